@@ -1,0 +1,680 @@
+# observer_ros.bag.replay: run an estimator over recorded measurements as the node does.
+"""
+Replay recorded measurements and commands through an estimator, as the observer node.
+
+The events (every sensor message and every ``control/u`` message of a
+:class:`~observer_ros.bag.reader.Recording`) are taken in bag order, which is the
+order the recorder received them; ties in receive time keep the order in the file.
+Each one is handled as ``observer_ros.nodes.observer_node`` handles it:
+
+- a measurement at stamp t (``stamp_to_sec``; the receive time for a message without a
+  header): a zero stamp or a message that does not give the outputs is skipped; a stamp
+  more than ``clock_jump_tolerance`` before the estimate's time is a clock jump (looping
+  bag): the estimator is reset; a smaller step back is skipped (out of order), as is a
+  repeated stamp of the same sensor and a stamp more than ``future_tolerance`` ahead of
+  the receive time. Otherwise ``x_hat = est.correct(t, y, plant.output_rows(outputs))``;
+  a non-finite estimate resets the estimator at t.
+- a command at stamp t: ``est.set_input(t, u)``; a stamp before the estimate's time is
+  held from the estimate's time on, or resets the estimator if it is a clock jump.
+
+So replaying a noise-free recorded run through the vehicle's own design reproduces the
+live estimate to round-off.
+
+Long single-sensor stretches at a constant step are replayed in bulk for the
+current-form estimators (full and reduced order with poles, open loop): one step of
+such an estimator is the affine map ``x_k = F x_{k-1} + G y_k + H u_{k-1}``, whose
+matrices are measured by calling the estimator itself on unit vectors; the recursion is
+then evaluated in blocks with numpy. The first steps of every stretch are checked
+against the estimator's own calls; ``exact=True`` turns bulk replay off.
+
+"""
+
+import copy
+from dataclasses import dataclass, field
+from typing import Dict, Tuple
+
+import numpy as np
+
+from ..core.errors import ObserverError
+from ..core.estimators import make_estimator
+from .errors import BagToolError
+
+__all__ = ['Replay', 'replay', 'live_replay', 'epochs_of', 'affine_scan',
+           'CLOCK_JUMP_TOLERANCE', 'FUTURE_TOLERANCE']
+
+CLOCK_JUMP_TOLERANCE = 0.5     # s, as the observer node's clock_jump_tolerance
+FUTURE_TOLERANCE = 10.0        # s, as the observer node's future_tolerance
+MIN_RUN = 64                   # steps: shorter stretches are replayed call by call
+CHECK_STEPS = 16               # steps of each bulk stretch checked against the estimator
+_PROGRESS_EVERY = 1 << 15
+
+
+@dataclass
+class Replay:
+    """
+    The estimates of one observer configuration over a recording.
+
+    One row per accepted measurement, in bag order: ``x_hat[i]`` is the estimate
+    published after the measurement stamped ``stamp_ns[i]``, ``residual[i]`` its
+    residual (NaN for the outputs that message does not carry), ``epoch[i]`` the number
+    of clock-jump resets before it.
+
+    """
+
+    name: str
+    vehicle: object
+    stamp_ns: np.ndarray
+    x_hat: np.ndarray
+    residual: np.ndarray
+    epoch: np.ndarray
+    seq: np.ndarray
+    sensor: np.ndarray                      # index into the vehicle's sensors; -1 live
+    counts: Dict[str, int] = field(default_factory=dict)
+    overrides: Tuple[str, ...] = ()
+    bulk_steps: int = 0
+    warnings: list = field(default_factory=list)
+
+    @property
+    def t(self):
+        """Stamps in seconds (``ns * 1e-9``)."""
+        return self.stamp_ns.astype(np.float64) * 1e-9
+
+    def __len__(self):
+        """Number of estimates."""
+        return int(self.stamp_ns.size)
+
+
+def epochs_of(stamp_ns, tolerance=CLOCK_JUMP_TOLERANCE):
+    """
+    Number the runs of a stamp sequence split where it jumps back (looping bag).
+
+    Parameters
+    ----------
+    stamp_ns : (N,) int array
+        Stamps in bag order.
+    tolerance : float
+        A step back of more than this many seconds starts a new epoch.
+
+    Returns
+    -------
+    epoch : (N,) int64 ndarray
+        0 for the first run, 1 after the first jump back, ...
+
+    """
+    stamp_ns = np.asarray(stamp_ns, dtype=np.int64)
+    epoch = np.zeros(stamp_ns.size, dtype=np.int64)
+    if stamp_ns.size < 2:
+        return epoch
+    tol = int(round(tolerance * 1e9))
+    # a jump is measured against the latest stamp of the current epoch: a running
+    # maximum that restarts at each jump, in a loop over the (few) jumps.
+    start, e = 0, 0
+    while True:
+        seg = stamp_ns[start:]
+        running = np.maximum.accumulate(seg)
+        back = np.flatnonzero(seg[1:] < running[:-1] - tol)
+        if not back.size:
+            epoch[start:] = e
+            return epoch
+        stop = start + int(back[0]) + 1
+        epoch[start:stop] = e
+        start, e = stop, e + 1
+
+
+def affine_scan(F, W, x0, steps=None, chunk=1 << 16):
+    """
+    Evaluate ``x_k = F[c_k] x_{k-1} + W[k-1]`` for k = 1..K, in blocks.
+
+    Parameters
+    ----------
+    F : (n, n) or (C, n, n) ndarray
+        One transition matrix, or one per class.
+    W : (K, n) ndarray
+        The forcing of each step.
+    x0 : (n,) ndarray
+        The state before the first step.
+    steps : (K,) int array, optional
+        The class c_k of each step (index into F); all 0 when None.
+    chunk : int
+        Steps evaluated together (memory is ``chunk * n**2`` floats).
+
+    Returns
+    -------
+    X : (K, n) ndarray
+        ``X[k-1] = x_k``, equal to the step-by-step recursion up to round-off.
+
+    Notes
+    -----
+    A chunk of K steps is cut into blocks of about sqrt(K) steps. The products of
+    the transitions inside each block and the response of each block from zero are
+    accumulated for all blocks at once (one batched product per position in the
+    block), then the state is carried from block to block, then every step is
+    ``Phi x_block_start + z``. That is O(K n^3) work in numpy with O(sqrt(K)) Python
+    iterations.
+
+    """
+    W = np.asarray(W, dtype=float)
+    K, n = W.shape
+    F = np.asarray(F, dtype=float)
+    if F.ndim == 2:
+        F = F[None]
+    cls = np.zeros(K, dtype=np.intp) if steps is None else np.asarray(steps, dtype=np.intp)
+    Fx = np.concatenate([F, np.eye(n)[None]])        # the last class pads: identity
+    pad_class = F.shape[0]
+    X = np.empty((K, n))
+    x = np.asarray(x0, dtype=float).copy()
+    for lo in range(0, K, chunk):
+        hi = min(K, lo + chunk)
+        L = hi - lo
+        B = max(1, int(np.sqrt(L)))
+        nb = -(-L // B)
+        c = np.full(nb * B, pad_class, dtype=np.intp)
+        c[:L] = cls[lo:hi]
+        c = c.reshape(nb, B)
+        Wb = np.zeros((nb * B, n))
+        Wb[:L] = W[lo:hi]
+        Wb = Wb.reshape(nb, B, n)
+        Phi = np.empty((nb, B, n, n))
+        Z = np.empty((nb, B, n))
+        P = np.broadcast_to(np.eye(n), (nb, n, n)).copy()
+        z = np.zeros((nb, n))
+        for j in range(B):
+            Fj = Fx[c[:, j]]
+            P = np.matmul(Fj, P)
+            z = np.einsum('bij,bj->bi', Fj, z) + Wb[:, j]
+            Phi[:, j] = P
+            Z[:, j] = z
+        S = np.empty((nb, n))
+        for blk in range(nb):
+            S[blk] = x
+            x = Phi[blk, -1] @ x + Z[blk, -1]
+        Xc = np.einsum('bjkl,bl->bjk', Phi, S) + Z
+        X[lo:hi] = Xc.reshape(nb * B, n)[:L]
+        x = X[hi - 1].copy()
+    return X
+
+
+class _Events:
+    """The recording's measurements and commands merged into bag order."""
+
+    def __init__(self, recording, sensors, plant, counts):
+        streams = [recording.sensors[s.name] for s in sensors]
+        self.streams = streams
+        kinds, idxs, seqs = [], [], []
+        for k, stream in enumerate(streams):
+            ok = stream.valid.copy()
+            if stream.has_header:
+                zero = stream.stamp_ns == 0
+                counts['zero_stamps'] += int((zero & ok).sum())
+                ok &= ~zero
+            counts['bad_messages'] += int((~stream.valid).sum())
+            sel = np.flatnonzero(ok)
+            kinds.append(np.full(sel.size, k, dtype=np.int64))
+            idxs.append(sel)
+            seqs.append(stream.seq[sel])
+        cmd = recording.command
+        self.command = cmd
+        if cmd is not None and plant.m:
+            counts['bad_commands'] += int((~cmd.valid).sum())
+            sel = np.flatnonzero(cmd.valid)
+            kinds.append(np.full(sel.size, -1, dtype=np.int64))
+            idxs.append(sel)
+            seqs.append(cmd.seq[sel])
+        if kinds:
+            kind = np.concatenate(kinds)
+            idx = np.concatenate(idxs)
+            seq = np.concatenate(seqs)
+            order = np.argsort(seq, kind='stable')
+            self.kind, self.idx, self.seq = kind[order], idx[order], seq[order]
+        else:
+            self.kind = self.idx = self.seq = np.zeros(0, dtype=np.int64)
+
+    def __len__(self):
+        return int(self.kind.size)
+
+
+def _variant_sensors(vehicle, recording):
+    sensors = []
+    for s in vehicle.sensors:
+        if s.name not in recording.sensors:
+            raise BagToolError(
+                f'sensor {s.name!r} of this configuration is not among the recorded sensors '
+                f'{list(recording.sensors)}')
+        rec = recording.sensors[s.name]
+        if tuple(rec.names) != tuple(s.outputs):
+            raise BagToolError(
+                f'sensor {s.name!r} gives outputs {list(s.outputs)} in this configuration '
+                f'but {list(rec.names)} in the vehicle the bag was read with')
+        sensors.append(s)
+    return sensors
+
+
+def _bulk_capable(est):
+    kind = getattr(est, 'kind', '')
+    if kind == 'open_loop':
+        return True
+    return kind in ('full', 'reduced') and getattr(est, 'gain', None) is None
+
+
+def replay(recording, vehicle, name='design', overrides=(), exact=False,
+           clock_jump_tolerance=CLOCK_JUMP_TOLERANCE, future_tolerance=FUTURE_TOLERANCE,
+           progress=None):
+    """
+    Replay a recording through the estimator of a vehicle configuration.
+
+    Parameters
+    ----------
+    recording : Recording
+        From :func:`observer_ros.bag.reader.read_recording`.
+    vehicle : Vehicle
+        The configuration: its plant and observer build the estimator
+        (``make_estimator``); its sensors say which recorded sensors it uses (all of
+        them must be in the recording, with the same outputs).
+    name : str
+        Name of the configuration (``design``, ``slow``, ...).
+    overrides : sequence of str
+        The overrides that made this configuration (kept for the report).
+    exact : bool
+        Call the estimator for every event (no bulk replay).
+    clock_jump_tolerance, future_tolerance : float
+        As the observer node's parameters; ``future_tolerance=None`` disables that check.
+    progress : callable, optional
+        ``progress(done, total)`` over the events.
+
+    Returns
+    -------
+    result : Replay
+
+    Raises
+    ------
+    BagToolError
+        The configuration's sensors do not match the recording.
+    ObserverError
+        The estimator cannot be built (bad design).
+
+    """
+    plant = vehicle.plant
+    sensors = _variant_sensors(vehicle, recording)
+    counts = dict.fromkeys(('measurements', 'commands', 'bad_messages', 'bad_commands',
+                            'zero_stamps', 'out_of_order', 'duplicates', 'future_stamps',
+                            'rejected_updates', 'numerical_resets', 'clock_jumps'), 0)
+    events = _Events(recording, sensors, plant, counts)
+    est = make_estimator(plant, vehicle.observer)
+    rows = [tuple(plant.output_rows(s.outputs)) for s in sensors]
+    rows_idx = [np.array(r, dtype=np.intp) for r in rows]
+    streams = events.streams
+    times = [s.t for s in streams]
+    values = [s.values for s in streams]
+    logs = [s.log_ns.astype(np.float64) * 1e-9 for s in streams]
+    cmd = events.command
+    if cmd is not None and plant.m:
+        cmd_t = cmd.t
+        cmd_u = cmd.values
+    n_meas = int(sum(int((events.kind == k).sum()) for k in range(len(streams))))
+    out_ns = np.zeros(n_meas, dtype=np.int64)
+    out_x = np.zeros((n_meas, plant.n))
+    out_r = np.full((n_meas, plant.p), np.nan)
+    out_epoch = np.zeros(n_meas, dtype=np.int64)
+    out_seq = np.zeros(n_meas, dtype=np.int64)
+    out_sensor = np.zeros(n_meas, dtype=np.int64)
+    runs = {}
+    warnings = []
+    if not exact and _bulk_capable(est):
+        runs = _find_runs(events, streams, cmd, est, clock_jump_tolerance, future_tolerance)
+    stamps = [s.stamp_ns for s in streams]
+    jump = clock_jump_tolerance
+    last_stamp = {}
+    epoch = 0
+    m = 0
+    bulk_steps = 0
+    kinds, idxs, seqs = events.kind.tolist(), events.idx.tolist(), events.seq.tolist()
+    total = len(kinds)
+    next_report = _PROGRESS_EVERY
+    i = 0
+    while i < total:
+        if progress is not None and i >= next_report:
+            next_report = i + _PROGRESS_EVERY
+            progress(i, total)
+        k, j = kinds[i], idxs[i]
+        if k < 0:
+            t = float(cmd_t[j])
+            u = cmd_u[j]
+            last = est.t
+            try:
+                if last is not None and t < last:
+                    if last - t > jump:
+                        est.reset(None, None)
+                        counts['clock_jumps'] += 1
+                        epoch += 1
+                        est.set_input(t, u)
+                    else:
+                        est.set_input(last, u)
+                else:
+                    est.set_input(t, u)
+                counts['commands'] += 1
+            except (ObserverError, ValueError):
+                counts['bad_commands'] += 1
+            i += 1
+            continue
+        t = float(times[k][j])
+        last = est.t
+        if last is not None and t < last:
+            if last - t > jump:
+                est.reset(None, None)
+                last_stamp.clear()
+                counts['clock_jumps'] += 1
+                epoch += 1
+            else:
+                counts['out_of_order'] += 1
+                i += 1
+                continue
+        if last_stamp.get(k) == t:
+            counts['duplicates'] += 1
+            i += 1
+            continue
+        if future_tolerance is not None and t - logs[k][j] > future_tolerance:
+            counts['future_stamps'] += 1
+            i += 1
+            continue
+        try:
+            x = est.correct(t, values[k][j], rows[k])
+        except (ObserverError, ValueError):
+            counts['rejected_updates'] += 1
+            i += 1
+            continue
+        if not np.all(np.isfinite(x)):
+            est.reset(None, t)
+            counts['numerical_resets'] += 1
+            i += 1
+            continue
+        last_stamp[k] = t
+        counts['measurements'] += 1
+        out_ns[m] = stamps[k][j]
+        out_x[m] = x
+        res = est.residual
+        if res is not None:
+            out_r[m, rows_idx[k]] = res
+        out_epoch[m] = epoch
+        out_seq[m] = seqs[i]
+        out_sensor[m] = k
+        m += 1
+        run = runs.get(i)
+        while run is not None:
+            done = _bulk_run(est, run, streams, cmd, rows, rows_idx,
+                             (out_ns, out_x, out_r, out_seq, out_sensor), m, warnings)
+            if done is None:             # check failed: replay everything call by call
+                runs = {}
+                break
+            steps, i, last = done        # i: the event of the last measurement done
+            out_epoch[m:m + steps] = epoch
+            m += steps
+            bulk_steps += steps
+            counts['measurements'] += steps
+            counts['commands'] += run['commands']
+            last_stamp.update(last)
+            run = runs.get(i)
+        i += 1
+    if progress is not None:
+        progress(total, total)
+    return Replay(name=name, vehicle=vehicle, stamp_ns=out_ns[:m], x_hat=out_x[:m],
+                  residual=out_r[:m], epoch=out_epoch[:m], seq=out_seq[:m],
+                  sensor=out_sensor[:m], counts=counts, overrides=tuple(overrides),
+                  bulk_steps=bulk_steps, warnings=warnings)
+
+
+# ---------------------------------------------------------------------------------------
+# Bulk replay of stretches of measurements at distinct, increasing stamps
+# ---------------------------------------------------------------------------------------
+
+def _find_runs(events, streams, cmd, est, jump, future_tolerance):
+    """
+    Stretches of measurements each of whose steps is an affine map of the previous x.
+
+    A step goes from one accepted measurement to the next; it is one affine map
+    ``x_k = F x_{k-1} + G y_k + H u`` of the current-form estimators when the stamp
+    increases (no fused correction at one stamp), every check of the node passes,
+    and every command in between is stamped at (or, within the jump tolerance,
+    before) the earlier measurement. Its class is (step key, sensor): F, G, H depend
+    only on those.
+
+    Returns {event index of measurement a: run}; the run covers measurements
+    a+1..b (indices into the merged measurement list).
+
+    """
+    mev = np.flatnonzero(events.kind >= 0)      # event indices of measurements
+    M = mev.size
+    if M < MIN_RUN + 1:
+        return {}
+    msens = events.kind[mev]
+    midx = events.idx[mev]
+    mseq = events.seq[mev]
+    tm = np.empty(M)
+    ok = np.ones(M, dtype=bool)
+    for k, stream in enumerate(streams):
+        sel = msens == k
+        tm[sel] = stream.t[midx[sel]]
+        if future_tolerance is not None:
+            log = stream.log_ns[midx[sel]].astype(np.float64) * 1e-9
+            ok[sel] = ~(tm[sel] - log > future_tolerance)
+    h = np.diff(tm)
+    key_id = np.full(M - 1, -1, dtype=np.int64)
+    pos = h > 0
+    uniq, inv = np.unique(h[pos], return_inverse=True)
+    key_index = {}
+    ids = np.empty(uniq.size, dtype=np.int64)
+    for i, v in enumerate(uniq):
+        try:
+            key = est.cache.key(float(v))
+        except (ObserverError, ValueError):
+            ids[i] = -1
+            continue
+        ids[i] = key_index.setdefault(key, len(key_index))
+    if ids.size:
+        key_id[pos] = ids[inv.reshape(-1)]
+    step_ok = (key_id >= 0) & ok[1:]
+    cev = np.flatnonzero(events.kind == -1)
+    gap_cmds = np.zeros(M, dtype=np.int64)
+    cmd_order = None
+    if cev.size:
+        cidx = events.idx[cev]
+        cseq = events.seq[cev]
+        ct = cmd.t[cidx]
+        g = np.searchsorted(mseq, cseq) - 1     # the measurement before each command
+        inside = g >= 0
+        gi = g[inside]
+        good = (ct[inside] <= tm[gi]) & (tm[gi] - ct[inside] <= jump)
+        bad_gap = np.zeros(M, dtype=bool)
+        bad_gap[gi[~good]] = True
+        step_ok &= ~bad_gap[:-1]
+        np.add.at(gap_cmds, gi, 1)
+        cmd_order = (cseq, cidx)                # events are in bag order already
+    n_keys = max(1, len(key_index))
+    step_class = np.where(step_ok, key_id * len(streams) + msens[1:], -1)
+    ok_i = step_ok.astype(np.int8)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], ok_i, [0]])))
+    runs = {}
+    shared = {'midx': midx, 'mseq': mseq, 'msens': msens, 'tm': tm, 'cmds': cmd_order,
+              'step_class': step_class, 'n_classes': n_keys * len(streams)}
+    for s0, s1 in zip(edges[::2], edges[1::2]):
+        a, b = int(s0), int(s1)                 # steps a..b-1: measurements a+1..b
+        if b + 1 < M and tm[b + 1] == tm[b]:
+            b -= 1                              # the next one fuses with b: b by call
+        if b - a < MIN_RUN:
+            continue
+        run = dict(shared)
+        run.update(a=a, b=b, commands=int(gap_cmds[a:b].sum()), last_event=int(mev[b]))
+        runs[int(mev[a])] = run
+    return runs
+
+
+def _probe(est, t0, t1, rows):
+    """The affine map of one step t0 -> t1 (correction with rows) of the estimator."""
+    plant = est.plant
+    n, m, q = plant.n, plant.m, len(rows)
+    probe = copy.deepcopy(est)
+
+    def run(x0, u, y):
+        probe.reset(x0, t0)
+        probe.set_input(t0, u)
+        x = probe.correct(t1, y, rows)
+        return x, probe.residual
+
+    F, G, H = np.zeros((n, n)), np.zeros((n, q)), np.zeros((n, m))
+    Rx, Ry, Ru = np.zeros((q, n)), np.zeros((q, q)), np.zeros((q, m))
+    zx, zu, zy = np.zeros(n), np.zeros(m), np.zeros(q)
+    x, r = run(zx, zu, zy)
+    if np.any(x != 0) or r is None or np.any(r != 0):
+        return None
+    for i in range(n):
+        F[:, i], Rx[:, i] = run(np.eye(n)[i], zu, zy)
+    for i in range(q):
+        G[:, i], Ry[:, i] = run(zx, zu, np.eye(q)[i])
+    for i in range(m):
+        H[:, i], Ru[:, i] = run(zx, np.eye(m)[i], zy)
+    return F, G, H, Rx, Ry, Ru
+
+
+def _close(x, ref):
+    scale = max(1.0, float(np.max(np.abs(ref))))
+    return float(np.max(np.abs(x - ref))) <= 1e-9 * scale
+
+
+def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
+    """Replay measurements a+1..b of a run in bulk; hand the state back to est."""
+    a, b = run['a'], run['b']
+    midx, mseq, msens, tm = run['midx'], run['mseq'], run['msens'], run['tm']
+    K = b - a
+    t_a = float(tm[a])
+    if est.t != t_a:
+        return None
+    plant = est.plant
+    n, m_u, p = plant.n, plant.m, plant.p
+    steps = slice(a + 1, b + 1)
+    sens = msens[steps]
+    idx = midx[steps]
+    # u held at each correction: the last command after a and before it, else est.u
+    U = np.empty((K, m_u))
+    U[:] = est.u
+    if run['cmds'] is not None and m_u:
+        c_seq, c_idx = run['cmds']
+        c_last = np.searchsorted(c_seq, mseq[steps]) - 1
+        after_a = c_last >= 0
+        after_a[after_a] = c_seq[c_last[after_a]] > mseq[a]
+        U[after_a] = cmd.values[c_idx[c_last[after_a]]]
+    # classes of this run, and their maps measured on the estimator
+    cls_all = run['step_class'][a:b]
+    classes, first, cls = np.unique(cls_all, return_index=True, return_inverse=True)
+    cls = cls.reshape(-1)
+    Fs = np.empty((classes.size, n, n))
+    W = np.zeros((K, n))
+    Y = [None] * len(streams)
+    maps = []
+    for c, f in enumerate(first):
+        k = int(sens[f])
+        mp = _probe(est, float(tm[a + f]), float(tm[a + f + 1]), rows[k])
+        if mp is None:
+            warnings.append('bulk replay disabled: an estimator step is not linear')
+            return None
+        maps.append(mp)
+        Fs[c] = mp[0]
+    for k in range(len(streams)):
+        sel = sens == k
+        if not sel.any():
+            continue
+        Y[k] = streams[k].values[idx[sel]]
+        Gk = np.stack([maps[c][1] for c in range(classes.size)])
+        Hk = np.stack([maps[c][2] for c in range(classes.size)])
+        ck = cls[sel]
+        W[sel] = np.einsum('kij,kj->ki', Gk[ck], Y[k]) + np.einsum('kij,kj->ki', Hk[ck],
+                                                                      U[sel])
+    x0 = est.x_hat
+    X = affine_scan(Fs, W, x0, cls)
+    if not np.all(np.isfinite(X)):
+        return None
+    Xprev = np.vstack([x0[None, :], X[:-1]])
+    R = np.full((K, p), np.nan)
+    for k in range(len(streams)):
+        sel = np.flatnonzero(sens == k)
+        if not sel.size:
+            continue
+        ck = cls[sel]
+        Rx = np.stack([mp[3] for mp in maps])[ck]
+        Ry = np.stack([mp[4] for mp in maps])[ck]
+        Ru = np.stack([mp[5] for mp in maps])[ck]
+        r = (np.einsum('kij,kj->ki', Rx, Xprev[sel]) + np.einsum('kij,kj->ki', Ry, Y[k])
+             + np.einsum('kij,kj->ki', Ru, U[sel]))
+        R[np.ix_(sel, rows_idx[k])] = r
+    # check: the first steps call by call, and one step of each class from its prior
+    check = copy.deepcopy(est)
+    for s in range(min(CHECK_STEPS, K)):
+        k = int(sens[s])
+        check.set_input(check.t, U[s])
+        x = check.correct(float(tm[a + 1 + s]), streams[k].values[idx[s]], rows[k])
+        if not _close(x, X[s]):
+            warnings.append('bulk replay disabled: it differs from the estimator '
+                            f'({np.max(np.abs(x - X[s])):.3g} at step {s})')
+            return None
+    for f in first:
+        k = int(sens[f])
+        check.reset(Xprev[f], float(tm[a + f]))
+        check.set_input(float(tm[a + f]), U[f])
+        x = check.correct(float(tm[a + f + 1]), streams[k].values[idx[f]], rows[k])
+        if not _close(x, X[f]):
+            warnings.append('bulk replay disabled: it differs from the estimator '
+                            f'({np.max(np.abs(x - X[f])):.3g} at step {f})')
+            return None
+    out_ns, out_x, out_r, out_seq, out_sensor = out
+    for k in range(len(streams)):
+        sel = sens == k
+        out_ns[m:m + K][sel] = streams[k].stamp_ns[idx[sel]]
+    out_x[m:m + K] = X
+    out_r[m:m + K] = R
+    out_seq[m:m + K] = mseq[steps]
+    out_sensor[m:m + K] = sens
+    t_b = float(tm[b])
+    # hand over: the estimator is at x_b, t_b, holding the input it held at b
+    est.reset(X[-1], t_b)
+    est.set_input(t_b, U[-1])
+    last = {int(k): float(tm[a + 1 + int(np.flatnonzero(sens == k)[-1])])
+            for k in np.unique(sens)}
+    return K, run['last_event'], last
+
+
+def live_replay(recording, vehicle, clock_jump_tolerance=CLOCK_JUMP_TOLERANCE):
+    """
+    Return the live estimate recorded on ``state/estimate`` as a :class:`Replay`.
+
+    Parameters
+    ----------
+    recording : Recording
+    vehicle : Vehicle
+    clock_jump_tolerance : float
+
+    Returns
+    -------
+    result : Replay or None
+        None when the bag has no ``state/estimate``.
+
+    """
+    est = recording.estimate
+    if est is None or not est.valid.any():
+        return None
+    plant = vehicle.plant
+    sel = np.flatnonzero(est.valid)
+    stamp = est.stamp_ns[sel]
+    residual = np.full((sel.size, plant.p), np.nan)
+    res = recording.residual
+    if res is not None and res.valid.any():
+        # the residual published right after each estimate, matched by stamp and order
+        rsel = np.flatnonzero(res.valid)
+        pos = np.searchsorted(res.seq[rsel], est.seq[sel])
+        pos = np.clip(pos, 0, rsel.size - 1)
+        same = res.stamp_ns[rsel][pos] == stamp
+        residual[same] = res.values[rsel][pos[same]]
+    counts = {'measurements': int(sel.size), 'bad_messages': int((~est.valid).sum())}
+    epoch = epochs_of(stamp, clock_jump_tolerance)
+    counts['clock_jumps'] = int(epoch[-1]) if epoch.size else 0
+    return Replay(name='live', vehicle=vehicle, stamp_ns=stamp, x_hat=est.values[sel],
+                  residual=residual, epoch=epoch, seq=est.seq[sel],
+                  sensor=np.full(sel.size, -1, dtype=np.int64), counts=counts)
+

@@ -1,0 +1,29 @@
+# observer_ros.core: the ROS-free core (numpy, scipy and python-control only).
+"""
+The ROS-free core of observer_ros: model, analysis, design, compensator, estimators.
+
+Nothing here imports rclpy or any ROS package (a test checks it).
+
+"""
+
+from .analysis import *     # noqa: F401,F403
+from .analysis import __all__ as _analysis_all
+from .compensator import *  # noqa: F401,F403
+from .compensator import __all__ as _compensator_all
+from .design import *       # noqa: F401,F403
+from .design import __all__ as _design_all
+from .errors import *       # noqa: F401,F403
+from .errors import __all__ as _errors_all
+from .model import *        # noqa: F401,F403
+from .model import __all__ as _model_all
+from .spec import *         # noqa: F401,F403
+from .spec import __all__ as _spec_all
+
+from .estimators import *   # noqa: F401,F403
+from .estimators import __all__ as _estimators_all
+from .simulate import *     # noqa: F401,F403
+from .simulate import __all__ as _simulate_all
+
+__all__ = (list(_errors_all) + list(_model_all) + list(_spec_all) + list(_analysis_all)
+           + list(_design_all) + list(_compensator_all) + list(_estimators_all)
+           + list(_simulate_all))

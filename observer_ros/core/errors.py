@@ -1,0 +1,38 @@
+# observer_ros.core.errors: the exception classes of the ROS-free core.
+"""Exception classes raised by observer_ros."""
+
+__all__ = ['ObserverError', 'DimensionError', 'NotObservableError',
+           'NotDetectableError', 'NotControllableError', 'DesignError',
+           'VehicleFileError', 'ObserverDesignWarning']
+
+
+class ObserverError(Exception):
+    """Base class of every error raised by observer_ros."""
+
+
+class DimensionError(ObserverError, ValueError):
+    """A matrix or vector has the wrong shape ("C has 3 columns; expected 2")."""
+
+
+class NotObservableError(ObserverError, ValueError):
+    """The pair (A, C) is not observable where observability is required."""
+
+
+class NotDetectableError(NotObservableError):
+    """The pair (A, C) has an unobservable mode that is not stable."""
+
+
+class NotControllableError(ObserverError, ValueError):
+    """The pair (A, B) is not controllable where controllability is required."""
+
+
+class DesignError(ObserverError, ValueError):
+    """A gain cannot be designed as asked (bad poles, infeasible placement, ...)."""
+
+
+class VehicleFileError(ObserverError, ValueError):
+    """A vehicle parameter file is invalid; the message names the offending field."""
+
+
+class ObserverDesignWarning(UserWarning):
+    """A design went through but is doubtful (inaccurate pole placement, slow observer, ...)."""

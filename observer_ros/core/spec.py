@@ -1,0 +1,104 @@
+# observer_ros.core.spec: what a vehicle file says, as plain data classes.
+"""
+Data classes describing a vehicle: plant, sensors, observer, controller, simulator.
+
+They are filled by ``observer_ros.vehicle`` (from a parameter file or a node's
+parameters) and consumed by the design, the estimators, the nodes and the tools.
+No ROS imports here.
+
+"""
+
+from dataclasses import dataclass, field
+from typing import Optional, Tuple
+
+import numpy as np
+
+from .model import Plant
+
+__all__ = ['SensorSpec', 'ObserverSpec', 'ControllerSpec', 'SimulatorSpec', 'Vehicle',
+           'OBSERVER_TYPES', 'SENSOR_TYPES']
+
+OBSERVER_TYPES = ('full', 'reduced', 'open_loop', 'kalman')
+SENSOR_TYPES = ('sensor_msgs/msg/Imu', 'sensor_msgs/msg/JointState', 'std_msgs/msg/Float64')
+
+
+@dataclass(frozen=True)
+class SensorSpec:
+    """One sensor topic: which message fields carry which model outputs."""
+
+    name: str
+    topic: str
+    msg_type: str
+    fields: Tuple[str, ...]
+    outputs: Tuple[str, ...]
+    noise_std: np.ndarray
+    timeout: float = 0.5
+    rate_divider: int = 1
+    frame_id: str = 'base_link'
+
+
+@dataclass(frozen=True)
+class ObserverSpec:
+    """The estimator: type and its design (poles, a gain, or Kalman covariances)."""
+
+    kind: str                                # one of OBSERVER_TYPES
+    poles: Optional[np.ndarray] = None       # complex; s-plane (continuous) or z-plane
+    gain: Optional[np.ndarray] = None        # L, 2-D; n x p (full) or (n-p) x p (reduced)
+    method: str = 'auto'                     # auto | place | acker
+    Qd: Optional[np.ndarray] = None          # kalman: k x k
+    Rd: Optional[np.ndarray] = None          # kalman: p x p
+    Bd: Optional[np.ndarray] = None          # kalman: n x k (None: identity)
+    initial_estimate: Optional[np.ndarray] = None   # n (None: zeros)
+    rate_hz: Optional[float] = None
+
+
+@dataclass(frozen=True)
+class ControllerSpec:
+    """The state feedback u = K (x_d - x_hat) - Kd x_d, with limits and a safe command."""
+
+    poles: Optional[np.ndarray] = None       # complex
+    K: Optional[np.ndarray] = None           # m x n
+    lqr_Q: Optional[np.ndarray] = None       # n x n
+    lqr_R: Optional[np.ndarray] = None       # m x m
+    reference: Optional[np.ndarray] = None   # x_d, n (None: zeros)
+    Kd: Optional[np.ndarray] = None          # m x n (None: zeros)
+    u_min: Optional[np.ndarray] = None       # m
+    u_max: Optional[np.ndarray] = None       # m
+    safe_command: str = 'zero'               # zero | hold
+    stale_timeout: float = 0.5
+
+
+@dataclass(frozen=True)
+class SimulatorSpec:
+    """How the plant simulator runs."""
+
+    rate_hz: float
+    initial_state: np.ndarray
+    duration: float = 10.0
+    seed: int = 0
+    noise: bool = True
+    process_noise_std: Optional[np.ndarray] = None
+    mode: str = 'lockstep'                   # lockstep | realtime
+    realtime_factor: float = 1.0
+    command_timeout: float = 2.0
+
+
+@dataclass(frozen=True)
+class Vehicle:
+    """Everything a vehicle file says."""
+
+    name: str
+    plant: Plant
+    sensors: Tuple[SensorSpec, ...]
+    observer: ObserverSpec
+    controller: ControllerSpec
+    simulator: SimulatorSpec
+    description: str = ''
+    source: str = ''
+    warnings: Tuple[str, ...] = field(default=())   # loader warnings (unknown keys, ...)
+    origin: str = ''                                # the file or node it was read from
+
+    @property
+    def sample_time(self):
+        """The simulator's step (the model's own for a discrete model)."""
+        return self.plant.dt if self.plant.is_discrete else 1.0 / self.simulator.rate_hz

@@ -1,0 +1,184 @@
+# observer_ros.nodes.common: what the three nodes share (parameters, QoS, messages, main).
+"""Shared pieces of the observer_ros nodes: vehicle parameters, QoS, conversions, main()."""
+
+import sys
+import traceback
+import warnings
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+import numpy as np
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
+                       qos_profile_sensor_data)
+from sensor_msgs.msg import JointState
+
+from ..core.errors import ObserverError
+from ..timeutil import sec_to_stamp_parts, stamp_to_sec
+from ..vehicle import vehicle_from_parameters
+
+__all__ = ['VEHICLE_SECTIONS', 'SENSOR_QOS', 'STATE_QOS', 'LATCHED_QOS', 'TOPICS',
+           'VehicleNode', 'joint_state', 'stamp_to_sec', 'to_stamp', 'run_node']
+
+# The parameter namespaces that belong to the vehicle file; anything else is a node's own.
+VEHICLE_SECTIONS = ('vehicle', 'model', 'sensors', 'observer', 'controller', 'simulator')
+
+# Measurements: the sensor-data profile (best effort, keep last 5), as real sensor drivers use.
+SENSOR_QOS = qos_profile_sensor_data
+# Estimates, commands, true state: reliable, keep last 10 (talker_qos.py / STYLE.md §11).
+STATE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                       history=HistoryPolicy.KEEP_LAST)
+# The reference x_d: latched, so a late subscriber gets it.
+LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         history=HistoryPolicy.KEEP_LAST,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+# Relative topic names: they follow the node's namespace (-r __ns:=/sub1).
+TOPICS = {
+    'true_state': 'state/true',
+    'estimate': 'state/estimate',
+    'residual': 'observer/residual',
+    'command': 'control/u',
+    'command_array': 'control/u_array',
+    'reference': 'control/reference',
+}
+
+
+def to_stamp(t):
+    """Return a builtin_interfaces/Time for t seconds."""
+    from builtin_interfaces.msg import Time
+    sec, nanosec = sec_to_stamp_parts(t)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def joint_state(names, values, t, frame_id=''):
+    """Build a JointState whose ``name`` are the vector's component names."""
+    msg = JointState()
+    msg.header.stamp = to_stamp(t)
+    msg.header.frame_id = frame_id
+    msg.name = list(names)
+    msg.position = [float(v) for v in values]
+    return msg
+
+
+def vector_from_joint_state(msg, names, topic):
+    """
+    Read the components ``names`` of a vector topic by name, in that order.
+
+    Raises ObserverError naming the topic for unknown/missing names, wrong sizes or
+    values that are not finite.
+
+    """
+    if len(msg.position) != len(msg.name):
+        raise ObserverError(f'{topic}: {len(msg.name)} names but {len(msg.position)} '
+                            'positions')
+    index = {name: i for i, name in enumerate(msg.name)}
+    if not msg.name and len(msg.position) == len(names):
+        values = np.array(msg.position, dtype=float)
+    else:
+        missing = [name for name in names if name not in index]
+        if missing:
+            raise ObserverError(f'{topic}: missing component(s) {missing}; '
+                                f'got names {list(msg.name)}')
+        values = np.array([msg.position[index[name]] for name in names], dtype=float)
+    if not np.all(np.isfinite(values)):
+        raise ObserverError(f'{topic}: non-finite value in {values.tolist()}')
+    return values
+
+
+class VehicleNode(Node):
+    """
+    A node whose parameters are a vehicle file (plus a few of its own).
+
+    Parameters come from ``--params-file config/<vehicle>.yaml`` (and ``-p`` overrides);
+    they are declared from the overrides and read through the same loader as the offline
+    tools. A file that cannot be used stops the node before it creates any topic.
+
+    """
+
+    def __init__(self, node_name, own_parameters=()):
+        super().__init__(node_name, automatically_declare_parameters_from_overrides=True)
+        for name, default in own_parameters:
+            if not self.has_parameter(name):
+                self.declare_parameter(name, default)
+        self.vehicle = self.load_vehicle()
+        self._counters = {}
+        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+
+    def vehicle_parameters(self):
+        """Return the vehicle-file parameters of this node as a flat dict."""
+        flat = {}
+        for name, param in self._parameters.items():
+            if name.split('.', 1)[0] in VEHICLE_SECTIONS:
+                flat[name] = param.value
+        return flat
+
+    def load_vehicle(self, overrides=None):
+        """Load the vehicle from this node's parameters; log and raise on errors."""
+        flat = self.vehicle_parameters()
+        if overrides:
+            flat.update(overrides)
+        vehicle = vehicle_from_parameters(flat, source=f'node {self.get_fully_qualified_name()}')
+        for text in vehicle.warnings:
+            self.get_logger().warning(text)
+        return vehicle
+
+    def param(self, name):
+        """Return the value of one of the node's own parameters."""
+        return self.get_parameter(name).value
+
+    def count(self, key, n=1):
+        """Increment a diagnostics counter."""
+        self._counters[key] = self._counters.get(key, 0) + n
+
+    def publish_diagnostics(self, level, message, values=None):
+        """Publish one DiagnosticStatus for this node on /diagnostics."""
+        status = DiagnosticStatus()
+        status.level = level
+        status.name = f'{self.get_fully_qualified_name()}'
+        status.message = message
+        status.hardware_id = self.vehicle.name
+        items = dict(self._counters)
+        items.update(values or {})
+        status.values = [KeyValue(key=str(k), value=str(v)) for k, v in sorted(items.items())]
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        array.status = [status]
+        self._diag_pub.publish(array)
+
+
+def run_node(node_factory, args=None):
+    """
+    Run a node as ros2/demos do: init, spin, clean shutdown; exit 2 on an unusable file.
+
+    Parameters
+    ----------
+    node_factory : callable
+        Builds the node (after rclpy.init).
+    args : list of str, optional
+        Command-line arguments (ROS arguments included).
+
+    """
+    warnings.filterwarnings('ignore', category=DeprecationWarning)
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        node = node_factory()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ObserverError as err:
+        name = node.get_name() if node is not None else 'observer_ros'
+        rclpy.logging.get_logger(name).fatal(f'cannot start: {err}')
+        print(f'error: {err}', file=sys.stderr)
+        code = 2
+    except Exception:   # noqa: BLE001 - report, then exit non-zero
+        traceback.print_exc()
+        code = 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code

@@ -1,0 +1,175 @@
+# observer_ros.nodes.compensator: u = K (x_d - x_hat) - Kd x_d from the estimate.
+"""
+Compensator node: ``state/estimate`` in, the command ``control/u`` out.
+
+The control law is the seeds' tracking form u = K (x_d - x_hat) - Kd x_d (seed 002,
+Eq. 5.109; with x_d = 0 it is u = -K x_hat), clipped to the file's input limits. The
+command carries the stamp of the estimate it answers. A stale or non-finite estimate
+gives the file's safe command (zero or hold) and an error on /diagnostics.
+
+"""
+
+from diagnostic_msgs.msg import DiagnosticStatus
+import numpy as np
+from rcl_interfaces.msg import SetParametersResult
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+
+from ..core.compensator import design_vehicle
+from ..core.errors import ObserverError
+from .common import (LATCHED_QOS, STATE_QOS, TOPICS, VehicleNode, joint_state, run_node,
+                     stamp_to_sec, vector_from_joint_state)
+
+__all__ = ['CompensatorNode', 'control_law', 'main']
+
+
+def control_law(K, x_hat, x_d, Kd, u_min=None, u_max=None):
+    """
+    Return u = K (x_d - x_hat) - Kd x_d, clipped to [u_min, u_max].
+
+    Parameters
+    ----------
+    K, Kd : (m, n) ndarray
+    x_hat, x_d : (n,) ndarray
+    u_min, u_max : (m,) ndarray, optional
+
+    Returns
+    -------
+    u : (m,) ndarray
+
+    """
+    u = K @ (x_d - x_hat) - Kd @ x_d
+    if u_min is not None or u_max is not None:
+        u = np.clip(u, u_min, u_max)
+    return u
+
+
+class CompensatorNode(VehicleNode):
+    """Close the loop on the estimate."""
+
+    def __init__(self):
+        super().__init__('compensator', own_parameters=(
+            ('publish_array', False),      # also publish Float64MultiArray (ros2_control)
+            ('diagnostics_period', 1.0),
+        ))
+        self._apply(self.vehicle, design_vehicle(self.vehicle))
+        self._last_u = np.zeros(self.vehicle.plant.m)
+        self._last_estimate_time = None      # node clock when the last good x_hat came
+        self._stale = False
+        self._cmd_pub = self.create_publisher(JointState, TOPICS['command'], STATE_QOS)
+        self._array_pub = None
+        if self.param('publish_array'):
+            self._array_pub = self.create_publisher(
+                Float64MultiArray, TOPICS['command_array'], STATE_QOS)
+        self._ref_pub = self.create_publisher(JointState, TOPICS['reference'], LATCHED_QOS)
+        self._publish_reference()
+        self._sub = self.create_subscription(
+            JointState, TOPICS['estimate'], self._on_estimate, STATE_QOS)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        period = min(self.vehicle.controller.stale_timeout / 2.0, 0.1)
+        self._watchdog = self.create_timer(period, self._on_watchdog)
+        self._diag_timer = self.create_timer(self.param('diagnostics_period'),
+                                             self._on_diagnostics)
+
+    def _apply(self, vehicle, design):
+        n, m = vehicle.plant.n, vehicle.plant.m
+        c = vehicle.controller
+        self.vehicle = vehicle
+        self.K = np.asarray(design.K, dtype=float).reshape(m, n)
+        self.x_d = np.zeros(n) if c.reference is None else np.asarray(c.reference, float)
+        self.Kd = np.zeros((m, n)) if c.Kd is None else np.asarray(c.Kd, float).reshape(m, n)
+        self.u_min, self.u_max = c.u_min, c.u_max
+        self.design = design
+
+    def _publish_reference(self):
+        now = self.get_clock().now().nanoseconds * 1e-9
+        self._ref_pub.publish(joint_state(self.vehicle.plant.state_names, self.x_d, now))
+
+    def _on_estimate(self, msg):
+        topic = TOPICS['estimate']
+        try:
+            t = stamp_to_sec(msg.header.stamp)
+            x_hat = vector_from_joint_state(msg, self.vehicle.plant.state_names, topic)
+        except (ObserverError, ValueError) as err:
+            self.count('bad_estimates')
+            self.get_logger().error(f'{err}; safe command', throttle_duration_sec=1.0)
+            self._publish_safe(self._stamp_of(msg))
+            return
+        u = control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
+        self._last_estimate_time = self.get_clock().now()
+        self._stale = False
+        self._publish(u, t)
+        self.count('commands')
+
+    def _stamp_of(self, msg):
+        try:
+            return stamp_to_sec(msg.header.stamp)
+        except (AttributeError, TypeError):
+            return self.get_clock().now().nanoseconds * 1e-9
+
+    def _publish(self, u, t):
+        self._last_u = u
+        self._cmd_pub.publish(joint_state(self.vehicle.plant.input_names, u, t))
+        if self._array_pub is not None:
+            self._array_pub.publish(Float64MultiArray(data=[float(v) for v in u]))
+
+    def _publish_safe(self, t):
+        c = self.vehicle.controller
+        u = self._last_u if c.safe_command == 'hold' else np.zeros(self.vehicle.plant.m)
+        self._publish(u, t)
+        self.count('safe_commands')
+
+    def _on_watchdog(self):
+        if self._last_estimate_time is None:
+            return
+        age = (self.get_clock().now() - self._last_estimate_time).nanoseconds * 1e-9
+        if age > self.vehicle.controller.stale_timeout:
+            if not self._stale:
+                self.get_logger().error(f'estimate stale ({age:.2f} s); safe command '
+                                        f'({self.vehicle.controller.safe_command})')
+            self._stale = True
+            self._publish_safe(self.get_clock().now().nanoseconds * 1e-9)
+
+    def _on_set_parameters(self, params):
+        changed = [p for p in params if p.name.startswith('controller.')]
+        if not changed:
+            return SetParametersResult(successful=True)
+        overrides = {p.name: p.value for p in params}
+        # Poles and K are alternatives: setting one clears the other for this check.
+        names = {p.name for p in params}
+        if names & {'controller.poles', 'controller.poles_imag'} and 'controller.K' not in names:
+            overrides.setdefault('controller.K', [])
+        try:
+            vehicle = self.load_vehicle(overrides)
+            design = design_vehicle(vehicle)
+            poles = np.asarray(design.controller_poles, dtype=complex)
+            unstable = np.abs(poles) >= 1.0 if vehicle.plant.is_discrete else poles.real >= 0
+            if np.any(unstable):
+                raise ObserverError('the closed loop eig(A - BK) would not be stable: '
+                                    f'{design.controller_poles}')
+        except (ObserverError, ValueError) as err:
+            self.count('parameter_changes_refused')
+            return SetParametersResult(successful=False, reason=str(err))
+        self._apply(vehicle, design)
+        self._publish_reference()
+        self.get_logger().info(f'controller redesigned: K = {self.K.tolist()}')
+        self.count('parameter_changes_applied')
+        return SetParametersResult(successful=True)
+
+    def _on_diagnostics(self):
+        if self._stale:
+            level, message = DiagnosticStatus.ERROR, 'estimate stale: safe command'
+        elif self._last_estimate_time is None:
+            level, message = DiagnosticStatus.WARN, 'waiting for state/estimate'
+        else:
+            level, message = DiagnosticStatus.OK, 'closing the loop'
+        self.publish_diagnostics(level, message, {'u': np.array2string(self._last_u)})
+
+
+def main(args=None):
+    """Run the compensator node."""
+    return run_node(CompensatorNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

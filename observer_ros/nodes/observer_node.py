@@ -1,0 +1,288 @@
+# observer_ros.nodes.observer_node: the state estimator as a ROS 2 node.
+"""
+Observer node: sensor topics and the command u in, the state estimate x_hat out.
+
+Subscribes to every sensor of the vehicle file (sensor-data QoS) and to ``control/u``;
+publishes ``state/estimate`` (JointState named by the states) and ``observer/residual``
+(named by the outputs). Each measurement corrects with its own rows of C at its own stamp.
+
+"""
+
+import time
+
+from diagnostic_msgs.msg import DiagnosticStatus
+import numpy as np
+from rcl_interfaces.msg import SetParametersResult
+from sensor_msgs.msg import Imu, JointState
+from std_msgs.msg import Float64
+
+from ..core.compensator import design_vehicle
+from ..core.errors import ObserverError
+from ..core.estimators import make_estimator
+from ..sensors import extract_measurement
+from .common import (SENSOR_QOS, STATE_QOS, TOPICS, VehicleNode, joint_state, run_node,
+                     stamp_to_sec, vector_from_joint_state)
+
+__all__ = ['ObserverNode', 'main']
+
+MESSAGE_CLASSES = {
+    'sensor_msgs/msg/Imu': Imu,
+    'sensor_msgs/msg/JointState': JointState,
+    'std_msgs/msg/Float64': Float64,
+}
+
+
+class ObserverNode(VehicleNode):
+    """Estimate the state from the vehicle's sensors and commands."""
+
+    def __init__(self):
+        super().__init__('observer', own_parameters=(
+            ('clock_jump_tolerance', 0.5),     # s: a stamp this far back is a clock jump
+            ('future_tolerance', 10.0),        # s: a stamp this far ahead of the clock is bad
+            ('diagnostics_period', 1.0),
+        ))
+        self._design_and_build(self.vehicle)
+        v = self.vehicle
+        self._lockstep = v.simulator.mode == 'lockstep'
+        self._pending_commands = 0          # lockstep: estimates whose command is not back
+        self._pending_since = None
+        self._queue = []                    # lockstep: measurements waiting for that command
+        self._last_estimate = None
+        self._pending_stamp = None
+        self._last_stamp = {}               # sensor name -> last stamp (s)
+        self._last_seen = {}                # sensor name -> wall time of last message
+        self._est_pub = self.create_publisher(JointState, TOPICS['estimate'], STATE_QOS)
+        self._res_pub = self.create_publisher(JointState, TOPICS['residual'], STATE_QOS)
+        self._subs = []
+        for sensor in v.sensors:
+            cls = MESSAGE_CLASSES[sensor.msg_type]
+            self._subs.append(self.create_subscription(
+                cls, sensor.topic, lambda msg, s=sensor: self._on_measurement(s, msg),
+                SENSOR_QOS))
+        self._cmd_sub = self.create_subscription(
+            JointState, TOPICS['command'], self._on_command, STATE_QOS)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self._diag_timer = self.create_timer(self.param('diagnostics_period'),
+                                             self._on_diagnostics)
+        if self._lockstep:
+            self._lockstep_timer = self.create_timer(0.1, self._on_lockstep_watchdog)
+
+    # -- design -------------------------------------------------------------------------
+    def _design_and_build(self, vehicle):
+        """Design (refusing an unusable file) and build the estimator."""
+        design = design_vehicle(vehicle)
+        log = self.get_logger()
+        rep = design.observability
+        log.info(f'{vehicle.name}: observer {vehicle.observer.kind}; '
+                 f'observable={rep.observable} (rank {rep.rank}/{rep.n}), '
+                 f'detectable={rep.detectable}; '
+                 f'observer poles {_poles(design.observer_poles)}; '
+                 f'separation {"ok" if design.separation_ok else "FAILED"}')
+        for text in design.warnings:
+            log.warning(text)
+        self.design = design
+        self.estimator = make_estimator(vehicle.plant, vehicle.observer)
+        self.vehicle = vehicle
+
+    def _on_set_parameters(self, params):
+        observer_params = [p for p in params if p.name.startswith('observer.')]
+        if not observer_params:
+            return SetParametersResult(successful=True)
+        overrides = {p.name: p.value for p in params}
+        try:
+            vehicle = self.load_vehicle(overrides)
+            design = design_vehicle(vehicle)
+            estimator = make_estimator(vehicle.plant, vehicle.observer)
+            poles = np.asarray(design.observer_poles)
+            bad = poles[np.abs(poles) >= 1.0] if vehicle.plant.is_discrete else \
+                poles[poles.real >= 0.0]
+            if bad.size:
+                raise ObserverError(f'observer pole {bad[0]} is not stable')
+        except (ObserverError, ValueError) as err:
+            self.count('parameter_changes_refused')
+            return SetParametersResult(successful=False, reason=str(err))
+        # Keep the estimate: only the gain changes.
+        if self.estimator.t is not None:
+            estimator.reset(self.estimator.x_hat, self.estimator.t)
+        self.vehicle, self.design, self.estimator = vehicle, design, estimator
+        self.get_logger().info(f'observer redesigned: poles {_poles(design.observer_poles)}')
+        self.count('parameter_changes_applied')
+        return SetParametersResult(successful=True)
+
+    # -- callbacks ----------------------------------------------------------------------
+    def _on_measurement(self, sensor, msg):
+        self._last_seen[sensor.name] = self.get_clock().now()
+        if self._lockstep and self._pending_commands > 0:
+            self._queue.append((sensor, msg))
+            return
+        self._process_measurement(sensor, msg)
+
+    def _process_measurement(self, sensor, msg):
+        plant = self.vehicle.plant
+        t = None
+        try:
+            if hasattr(msg, 'header'):
+                t = stamp_to_sec(msg.header.stamp)
+                if t == 0.0:
+                    raise ObserverError(f'{sensor.topic}: zero stamp (unset header.stamp)')
+            else:   # std_msgs/Float64 carries no stamp: the time it was received
+                t = self.get_clock().now().nanoseconds * 1e-9
+            y = extract_measurement(msg, sensor)
+        except (ObserverError, ValueError) as err:
+            self._reject('bad_messages', str(err))
+            self._answer_without_correction(sensor, t)
+            return
+        if not self._check_time(sensor, t):
+            return
+        rows = plant.output_rows(sensor.outputs)
+        try:
+            x_hat = self.estimator.correct(t, y, rows)
+        except (ObserverError, ValueError) as err:
+            self._reject('rejected_updates', f'{sensor.topic}: {err}')
+            self._answer_without_correction(sensor, t)
+            return
+        if not np.all(np.isfinite(x_hat)):
+            # Never publish a NaN: restart from the initial estimate.
+            self.estimator.reset(None, t)
+            self._reject('numerical_resets', f'{sensor.topic}: estimate not finite; reset')
+            self._answer_without_correction(sensor, t)
+            return
+        self._last_stamp[sensor.name] = t
+        self.count('measurements')
+        residual = self.estimator.residual
+        if residual is not None:
+            self._res_pub.publish(joint_state(sensor.outputs, residual, t, sensor.frame_id))
+        self._publish_estimate(t, sensor.frame_id)
+
+    def _publish_estimate(self, t, frame_id):
+        msg = joint_state(self.vehicle.plant.state_names, self.estimator.x_hat, t, frame_id)
+        self._est_pub.publish(msg)
+        self._last_estimate = msg
+        if self._lockstep:
+            self._pending_commands += 1
+            self._pending_since = time.monotonic()
+            self._pending_stamp = t
+
+    def _answer_without_correction(self, sensor, t):
+        """
+        Lockstep: a measurement that was refused still gets an answer (the prediction).
+
+        The simulator waits for a command per measurement; predicting to the message's
+        stamp (when it is a usable time) keeps the loop going without the bad data.
+        """
+        if not self._lockstep or t is None or t <= 0.0:
+            return
+        last = self.estimator.t
+        if last is None or t >= last:
+            try:
+                self.estimator.predict(t)
+            except (ObserverError, ValueError):
+                return
+        if np.all(np.isfinite(self.estimator.x_hat)):
+            self._publish_estimate(self.estimator.t if self.estimator.t is not None else t,
+                                   sensor.frame_id)
+
+    def _check_time(self, sensor, t):
+        """Handle stamps that go backwards, repeat, or lie far in the future."""
+        last = self.estimator.t
+        if last is not None and t < last:
+            if last - t > self.param('clock_jump_tolerance'):
+                self.get_logger().warning(
+                    f'{sensor.topic}: clock jumped back {last - t:.3f} s; estimator reset')
+                self.count('clock_jumps')
+                self.estimator.reset(None, None)
+                self._last_stamp.clear()
+                return True
+            self._reject('out_of_order', f'{sensor.topic}: stamp {t:.6f} older than '
+                         f'the estimate ({last:.6f}); skipped')
+            return False
+        if self._last_stamp.get(sensor.name) == t:
+            # a repeat (a simulator re-sending a message whose answer was lost): answer it
+            # again with the current estimate, without correcting twice
+            self._reject('duplicates', f'{sensor.topic}: duplicate stamp {t:.6f}; '
+                         'estimate re-published')
+            if last == t:
+                self._publish_estimate(t, sensor.frame_id)
+            return False
+        now = self.get_clock().now().nanoseconds * 1e-9
+        if now > 0.0 and t - now > self.param('future_tolerance'):
+            self._reject('future_stamps', f'{sensor.topic}: stamp {t:.3f} is '
+                         f'{t - now:.1f} s ahead of the clock; skipped')
+            return False
+        return True
+
+    def _on_command(self, msg):
+        t = None
+        try:
+            t = stamp_to_sec(msg.header.stamp)
+            u = vector_from_joint_state(msg, self.vehicle.plant.input_names, TOPICS['command'])
+            last = self.estimator.t
+            if last is not None and t < last:
+                if last - t > self.param('clock_jump_tolerance'):
+                    self.estimator.reset(None, None)
+                    self.count('clock_jumps')
+                    self.estimator.set_input(t, u)
+                else:   # a command for an older stamp: hold it from now on
+                    self.estimator.set_input(last, u)
+            else:
+                self.estimator.set_input(t, u)
+        except (ObserverError, ValueError) as err:
+            self._reject('bad_commands', f'{TOPICS["command"]}: {err}')
+        if self._lockstep and self._pending_commands > 0 and t == self._pending_stamp:
+            self._pending_commands -= 1
+            if self._pending_commands == 0:
+                self._drain_queue()
+
+    def _drain_queue(self):
+        while self._queue and self._pending_commands == 0:
+            sensor, msg = self._queue.pop(0)
+            self._process_measurement(sensor, msg)
+
+    def _on_lockstep_watchdog(self):
+        """Re-send an unanswered estimate (DDS matching can lag at start); give up late."""
+        if not self._pending_commands or self._pending_since is None:
+            return
+        waited = time.monotonic() - self._pending_since
+        if waited > self.vehicle.simulator.command_timeout:
+            self.count('command_wait_timeouts')
+            self._pending_commands = 0
+            self._drain_queue()
+        elif waited > 0.2 and self._last_estimate is not None:
+            self._est_pub.publish(self._last_estimate)
+            self.count('resent_estimates')
+
+    def _reject(self, counter, text):
+        self.count(counter)
+        self.get_logger().warning(text, throttle_duration_sec=1.0)
+
+    def _on_diagnostics(self):
+        now = self.get_clock().now()
+        level, message = DiagnosticStatus.OK, 'estimating'
+        silent = []
+        for sensor in self.vehicle.sensors:
+            seen = self._last_seen.get(sensor.name)
+            if seen is None or (now - seen).nanoseconds * 1e-9 > sensor.timeout:
+                silent.append(sensor.topic)
+        if silent:
+            level = DiagnosticStatus.WARN
+            message = f'predicting only: no data on {", ".join(silent)}'
+        x_hat = self.estimator.x_hat
+        self.publish_diagnostics(level, message, {
+            'observer_type': self.vehicle.observer.kind,
+            'x_hat': np.array2string(x_hat, precision=6),
+        })
+
+
+def _poles(poles):
+    return '[' + ', '.join(f'{complex(p).real:.4g}{complex(p).imag:+.4g}j'
+                           if abs(complex(p).imag) > 0 else f'{complex(p).real:.4g}'
+                           for p in poles) + ']'
+
+
+def main(args=None):
+    """Run the observer node."""
+    return run_node(ObserverNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,265 @@
+# observer_ros.nodes.plant_simulator: the vehicle's model, integrated exactly, as sensors.
+"""
+Plant simulator node: the command ``control/u`` in; sensors, ``state/true`` and /clock out.
+
+The model is integrated exactly with a zero-order hold on u (one matrix exponential at
+start). Measurement noise comes from ``simulator.seed``. Two modes:
+
+- ``lockstep``: step k publishes its sensor messages one at a time and waits for the
+  command that answers each (stamped t_k) before going on; step k+1 starts only when
+  step k is answered, so a closed-loop run is reproducible bit for bit. A command that
+  does not come within ``simulator.command_timeout`` (wall time) is reported on
+  /diagnostics and in the log, and the previous command is held.
+- ``realtime``: a wall-clock timer at ``rate_hz * realtime_factor``; each step applies
+  the latest command received. Late commands are counted.
+
+Simulated time starts at ``start_time`` (1.0 s: ROS reads a zero stamp as unset).
+
+"""
+
+import time
+
+from diagnostic_msgs.msg import DiagnosticStatus
+import numpy as np
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import Imu, JointState
+from std_msgs.msg import Float64
+
+from ..core.model import zoh_matrices
+from ..sensors import fill_measurement
+from .common import (SENSOR_QOS, STATE_QOS, TOPICS, VehicleNode, joint_state, run_node,
+                     stamp_to_sec, to_stamp, vector_from_joint_state)
+
+__all__ = ['PlantSimulatorNode', 'main']
+
+MESSAGE_CLASSES = {
+    'sensor_msgs/msg/Imu': Imu,
+    'sensor_msgs/msg/JointState': JointState,
+    'std_msgs/msg/Float64': Float64,
+}
+
+
+class PlantSimulatorNode(VehicleNode):
+    """Simulate the vehicle and publish what its sensors would measure."""
+
+    def __init__(self):
+        super().__init__('plant_simulator', own_parameters=(
+            ('start_time', 1.0),
+            ('publish_clock', True),
+            ('wait_for_subscribers', 1),     # lockstep: subscribers on each sensor topic
+            ('exit_when_done', True),
+            ('diagnostics_period', 1.0),
+        ))
+        v = self.vehicle
+        plant = v.plant
+        self.dt = v.sample_time
+        if plant.is_discrete:
+            self.Ad, self.Bd = plant.A, plant.B
+        else:
+            self.Ad, self.Bd = zoh_matrices(plant.A, plant.B, self.dt)
+        self.C, self.D = plant.C, plant.D
+        self.x = np.array(v.simulator.initial_state, dtype=float)
+        self.u = np.zeros(plant.m)
+        self.k = 0
+        self.t0 = float(self.param('start_time'))
+        self.steps = int(round(v.simulator.duration / self.dt))
+        self.rng = np.random.default_rng(v.simulator.seed)
+        self.noise = v.simulator.noise
+        self._lockstep = v.simulator.mode == 'lockstep'
+        self._sensor_pubs = [
+            (s, self.create_publisher(MESSAGE_CLASSES[s.msg_type], s.topic, SENSOR_QOS),
+             plant.output_rows(s.outputs)) for s in v.sensors]
+        self._state_pub = self.create_publisher(JointState, TOPICS['true_state'], STATE_QOS)
+        self._clock_pub = None
+        if self.param('publish_clock'):
+            self._clock_pub = self.create_publisher(Clock, '/clock', 10)
+        self._cmd_sub = self.create_subscription(
+            JointState, TOPICS['command'], self._on_command, STATE_QOS)
+        # lockstep bookkeeping
+        self._due = []                  # sensors still to publish at this step
+        self._answers = 0               # commands stamped t_k received so far
+        self._published = 0             # sensor messages published at this step
+        self._waiting_since = None
+        self._started = False
+        self._done = False
+        self._latest_cmd_stamp = None
+        self._last_sent = None
+        self._resends_this_wait = 0
+        self._resend_period = 0.2           # s of wall time before a measurement is re-sent
+        self.count('command_timeouts', 0)
+        if self._lockstep:
+            self._start_timer = self.create_timer(0.01, self._try_start)
+            self._watchdog = self.create_timer(0.05, self._on_watchdog)
+        else:
+            period = self.dt / v.simulator.realtime_factor
+            self._step_timer = self.create_timer(period, self._realtime_step)
+            self.count('late_commands', 0)
+        self._diag_timer = self.create_timer(self.param('diagnostics_period'),
+                                             self._on_diagnostics)
+
+    # -- time and measurement ---------------------------------------------------------------
+    @property
+    def t(self):
+        """Simulated time of the current step."""
+        return self.t0 + self.k * self.dt
+
+    def _publish_clock(self):
+        if self._clock_pub is not None:
+            self._clock_pub.publish(Clock(clock=to_stamp(self.t)))
+
+    def _measure(self, sensor, rows):
+        y = self.C[rows] @ self.x + self.D[rows] @ self.u
+        if self.noise:
+            y = y + self.rng.standard_normal(len(rows)) * sensor.noise_std
+        msg = MESSAGE_CLASSES[sensor.msg_type]()
+        if hasattr(msg, 'header'):
+            msg.header.stamp = to_stamp(self.t)
+            msg.header.frame_id = sensor.frame_id
+        fill_measurement(msg, sensor, y)
+        return msg
+
+    def _sensors_due(self):
+        return [(s, pub, rows) for s, pub, rows in self._sensor_pubs
+                if self.k % s.rate_divider == 0]
+
+    def _begin_step(self):
+        """Publish the clock and the true state of step k; list the sensors due."""
+        self._publish_clock()
+        self._state_pub.publish(joint_state(self.vehicle.plant.state_names, self.x, self.t))
+        self._due = self._sensors_due()
+        self._answers = 0
+        self._published = 0
+
+    def _advance(self):
+        """Integrate from t_k to t_k+1 holding u."""
+        self.x = self.Ad @ self.x + self.Bd @ self.u
+        sim = self.vehicle.simulator
+        if sim.process_noise_std is not None:
+            self.x = self.x + self.rng.standard_normal(self.x.size) * sim.process_noise_std
+        self.k += 1
+
+    # -- lockstep ---------------------------------------------------------------------------
+    def _try_start(self):
+        need = int(self.param('wait_for_subscribers'))
+        if any(self.count_subscribers(s.topic) < need for s, _, _ in self._sensor_pubs):
+            return
+        # the observer and the compensator are up: someone publishes and someone reads the
+        # estimate, and someone publishes commands
+        if self.count_publishers(TOPICS['command']) < 1 or \
+                self.count_publishers(TOPICS['estimate']) < 1 or \
+                self.count_subscribers(TOPICS['estimate']) < 1:
+            return
+        self._start_timer.cancel()
+        self._started = True
+        self.get_logger().info(f'{self.vehicle.name}: lockstep run of {self.steps} steps '
+                               f'of {self.dt} s')
+        self._begin_step()
+        self._publish_next()
+
+    def _publish_next(self):
+        """Publish the next due sensor of this step, or advance when all are answered."""
+        while True:
+            if self._due:
+                sensor, pub, rows = self._due.pop(0)
+                msg = self._measure(sensor, rows)
+                pub.publish(msg)
+                self._last_sent = (pub, msg)
+                self._resends_this_wait = 0
+                self._published += 1
+                self._waiting_since = time.monotonic()
+                return
+            # every sensor of step k answered (or none due): next step
+            if self.k >= self.steps:
+                self._finish()
+                return
+            self._advance()
+            self._begin_step()
+            if not self._due:
+                self._state_pub.publish(
+                    joint_state(self.vehicle.plant.state_names, self.x, self.t))
+
+    def _on_command(self, msg):
+        try:
+            u = vector_from_joint_state(msg, self.vehicle.plant.input_names, TOPICS['command'])
+            stamp = stamp_to_sec(msg.header.stamp)
+        except (ValueError, Exception) as err:   # noqa: BLE001 - never crash on a message
+            self.count('bad_commands')
+            self.get_logger().warning(f'{err}', throttle_duration_sec=1.0)
+            return
+        if not self._lockstep:
+            self.u = u
+            self._latest_cmd_stamp = stamp
+            return
+        if not self._started or self._done:
+            return
+        if abs(stamp - self.t) > 0.25 * self.dt:
+            self.count('stale_commands')     # an answer to an older step: ignored
+            return
+        self.u = u
+        self._answers += 1
+        if self._answers >= self._published:
+            self._waiting_since = None
+            self._publish_next()
+
+    def _on_watchdog(self):
+        if self._waiting_since is None or self._done:
+            return
+        waited = time.monotonic() - self._waiting_since
+        if waited > self._resend_period * (self._resends_this_wait + 1) and \
+                waited <= self.vehicle.simulator.command_timeout and self._last_sent:
+            # DDS matching can lag the graph at start-up: send the same message again
+            # (same stamp; the observer answers a repeat with its current estimate)
+            pub, msg = self._last_sent
+            pub.publish(msg)
+            self._resends_this_wait += 1
+            self.count('resent_measurements')
+            return
+        if waited > self.vehicle.simulator.command_timeout:
+            self.count('command_timeouts')
+            self.get_logger().error(
+                f'no command for step {self.k} (t={self.t:.3f}) after {waited:.1f} s; '
+                'holding the previous command')
+            self._answers = self._published
+            self._waiting_since = None
+            self._publish_next()
+
+    def _finish(self):
+        self._done = True
+        self._waiting_since = None
+        self.get_logger().info(f'run complete at t={self.t:.3f} s; x = {self.x.tolist()}')
+        self.publish_diagnostics(DiagnosticStatus.OK, 'run complete')
+        if self.param('exit_when_done'):
+            raise SystemExit(0)
+
+    # -- realtime ---------------------------------------------------------------------------
+    def _realtime_step(self):
+        if self._done:
+            return
+        if self.k > 0:
+            # the command answering the previous step should be here by now
+            if self._latest_cmd_stamp is None or \
+                    abs(self._latest_cmd_stamp - (self.t)) > 0.25 * self.dt:
+                self.count('late_commands')
+            self._advance()
+        self._begin_step()
+        for sensor, pub, rows in self._due:
+            pub.publish(self._measure(sensor, rows))
+        self.count('steps')
+        if self.k >= self.steps:
+            self._finish()
+
+    def _on_diagnostics(self):
+        level = DiagnosticStatus.OK
+        message = 'running' if self._started or not self._lockstep else 'waiting for peers'
+        if self._counters.get('command_timeouts'):
+            level, message = DiagnosticStatus.WARN, 'commands timed out (held)'
+        self.publish_diagnostics(level, message, {'t': f'{self.t:.6f}', 'step': self.k})
+
+
+def main(args=None):
+    """Run the plant simulator node."""
+    return run_node(PlantSimulatorNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,61 @@
+# observer_ros.tools.design_report: `observer-design VEHICLE.yaml [--json]`.
+"""
+Design report of a vehicle file: observability and detectability (modes named), gains,
+observer, controller and closed-loop poles, the separation check, D(s) and warnings.
+
+Exits 2 with one ``error: ...`` line for a file that is invalid, undetectable or
+otherwise unusable.
+
+"""
+
+import argparse
+import json
+import sys
+import warnings
+
+from ..core.compensator import design_vehicle, format_report, to_json_dict
+from ..core.errors import ObserverError
+from ..vehicle import apply_overrides, load_vehicle, vehicle_from_parameters, \
+    vehicle_to_parameters
+
+__all__ = ['main']
+
+
+def main(argv=None):
+    """Entry point of ``observer-design``."""
+    parser = argparse.ArgumentParser(
+        prog='observer-design',
+        description='Observer and compensator design report for a vehicle file.')
+    parser.add_argument('vehicle', help='vehicle parameter file (config/<vehicle>.yaml)')
+    parser.add_argument('--json', action='store_true', help='print one JSON object')
+    parser.add_argument('-p', '--param', action='append', default=[], metavar='NAME:=VALUE',
+                        help='override a parameter, e.g. "observer.poles:=[-1.0,-2.0]"')
+    args = parser.parse_args(argv)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter('always')
+            vehicle = load_vehicle(args.vehicle)
+            if args.param:
+                vehicle = vehicle_from_parameters(
+                    apply_overrides(vehicle_to_parameters(vehicle), args.param),
+                    source=args.vehicle)
+            design = design_vehicle(vehicle)
+        extra = [str(w.message) for w in caught
+                 if not issubclass(w.category, DeprecationWarning)]
+    except (ObserverError, OSError) as err:
+        print(f'error: {err}', file=sys.stderr)
+        return 2
+    if args.json:
+        out = to_json_dict(design)
+        out['vehicle'] = vehicle.name
+        out['warnings'] = list(out.get('warnings', [])) + list(vehicle.warnings) + extra
+        print(json.dumps(out, indent=2))
+    else:
+        print(format_report(design, vehicle))
+        for text in list(vehicle.warnings) + extra:
+            print(f'warning: {text}')
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

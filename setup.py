@@ -1,0 +1,42 @@
+"""ament_python package setup for observer_ros."""
+
+from glob import glob
+import os
+
+from setuptools import find_packages, setup
+
+package_name = 'observer_ros'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test', 'test.*']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        (os.path.join('share', package_name), ['package.xml']),
+        (os.path.join('share', package_name, 'config'), sorted(glob('config/*.yaml'))),
+    ],
+    install_requires=['setuptools'],
+    zip_safe=True,
+    maintainer='observer_ros developers',
+    maintainer_email='observer_ros@example.com',
+    description='Luenberger, reduced-order and Kalman state estimators as ROS 2 nodes',
+    license='Apache-2.0',
+    tests_require=['pytest'],
+    entry_points={
+        'console_scripts': [
+            'plant_simulator = observer_ros.nodes.plant_simulator:main',
+            'observer = observer_ros.nodes.observer_node:main',
+            'compensator = observer_ros.nodes.compensator:main',
+            'recorder = observer_ros.nodes.recorder:main',
+            'observer_design = observer_ros.tools.design_report:main',
+            'observer-design = observer_ros.tools.design_report:main',
+            'observer_eval = observer_ros.bag.evaluate:main',
+            'observer-eval = observer_ros.bag.evaluate:main',
+            'observer_play = observer_ros.bag.play:main',
+            'observer-play = observer_ros.bag.play:main',
+            'observer_run = observer_ros.tools.run_closed_loop:main',
+            'observer-run = observer_ros.tools.run_closed_loop:main',
+        ],
+    },
+)
