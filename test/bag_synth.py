@@ -19,14 +19,13 @@ were published, unless told otherwise.
 from pathlib import Path
 
 import numpy as np
-from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.typesys import get_typestore, Stores
-
 from observer_ros.core.compensator import design_vehicle
 from observer_ros.core.estimators import make_estimator
 from observer_ros.core.model import zoh_matrices
 from observer_ros.sensors import extract_measurement, fill_measurement
 from observer_ros.timeutil import ns_to_sec, sec_to_stamp_parts
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import get_typestore, Stores
 
 STORE = get_typestore(Stores.ROS2_JAZZY)
 IMU = 'sensor_msgs/msg/Imu'
@@ -41,18 +40,18 @@ def _t(name):
 
 
 def stamp(ns):
-    """A builtin_interfaces/Time of integer nanoseconds."""
+    """Return a builtin_interfaces/Time of integer nanoseconds."""
     return _t('builtin_interfaces/msg/Time')(sec=int(ns) // 1_000_000_000,
                                              nanosec=int(ns) % 1_000_000_000)
 
 
 def header(ns, frame_id=''):
-    """A std_msgs/Header."""
+    """Return a std_msgs/Header."""
     return _t('std_msgs/msg/Header')(stamp=stamp(ns), frame_id=frame_id)
 
 
 def blank(msgtype, ns=0, frame_id=''):
-    """An all-zero message of one of the types the tests use."""
+    """Return an all-zero message of one of the types the tests use."""
     if msgtype == IMU:
         q = _t('geometry_msgs/msg/Quaternion')(x=0.0, y=0.0, z=0.0, w=1.0)
         v = _t('geometry_msgs/msg/Vector3')
@@ -74,7 +73,7 @@ def blank(msgtype, ns=0, frame_id=''):
 
 
 def vector_msg(names, values, ns):
-    """A JointState named vector (state, estimate, command)."""
+    """Return a JointState named vector (state, estimate, command)."""
     msg = blank(JOINT_STATE, ns)
     msg.name = list(names)
     msg.position = np.asarray(values, dtype=np.float64).copy()
@@ -82,7 +81,7 @@ def vector_msg(names, values, ns):
 
 
 def control_law(design, vehicle, x_hat):
-    """u = K (x_d - x_hat) - Kd x_d, as the compensator node."""
+    """Return u = K (x_d - x_hat) - Kd x_d, as the compensator node."""
     n, m = vehicle.plant.n, vehicle.plant.m
     K = np.asarray(design.K, dtype=float).reshape(m, n)
     c = vehicle.controller
@@ -191,7 +190,7 @@ def write_bag(path, messages, namespace='', storage='mcap', skip=(), retype=None
 
 
 def bag_file(path):
-    """The storage file of a bag directory."""
+    """Return the storage file of a bag directory."""
     files = [p for p in Path(path).iterdir() if p.suffix in ('.mcap', '.db3')]
     assert len(files) == 1, files
     return files[0]

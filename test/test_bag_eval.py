@@ -20,8 +20,6 @@ from bag_synth import (bag_file, blank, CONFIG, FLOAT64, IMU, JOINT_STATE, simul
                        write_bag)
 import numpy as np
 from numpy.testing import assert_allclose, assert_array_equal
-import pytest
-
 from observer_ros.bag.errors import BagToolError
 from observer_ros.bag.evaluate import (evaluate_bag, main, parse_tolerance, parse_variant,
                                        whiteness, write_results)
@@ -31,6 +29,7 @@ from observer_ros.core.errors import ObserverError
 from observer_ros.sensors import extract_measurement
 from observer_ros.timeutil import stamp_to_sec
 from observer_ros.vehicle import load_vehicle
+import pytest
 
 FAST = ['observer.poles:=[-3.0,-3.05,-3.1]']
 SLOW = ['observer.poles:=[-0.3,-0.31,-0.32]']
@@ -460,7 +459,7 @@ def test_bag_errors_missing_topic(runs, tmp_path, capsys):
     vehicle, run = runs['sub']
     bag = _bag(run, tmp_path / 'nogyro', skip=('imu/data',))
     _error(bag, vehicle, r"bag has no messages on /sub1/imu/data \(sensor 'gyro' of vehicle "
-                         r"submarine\); topics in the bag: /clock")
+                         r'submarine\); topics in the bag: /clock')
     _error(bag, vehicle, r'no messages on /other/imu/data', namespace='/other')
     _cli_error([bag, '--vehicle', CONFIG / 'submarine.yaml', '--out', tmp_path / 'o'],
                capsys, "no messages on /sub1/imu/data (sensor 'gyro'")
@@ -492,31 +491,40 @@ def test_bag_errors_vehicle_outputs_not_in_the_bag(runs, tmp_path, capsys):
     _error(bag, vehicle, r"none of the 1001 messages on /joint_states gives the outputs \['x'\] "
                          r"of sensor 'encoder'.*joint 'cart' is not in JointState.name \['rail'\]")
     # a vehicle whose sensors are not in the bag at all
-    _error(bag, runs['sub'][0], "no messages on /imu/data")
+    _error(bag, runs['sub'][0], 'no messages on /imu/data')
     _cli_error([bag, '--vehicle', CONFIG / 'cart_pendulum.yaml', '--out', tmp_path / 'o'],
                capsys, "joint 'cart' is not in JointState.name")
 
 
 def test_bag_errors_definition_from_another_release(runs, tmp_path):
     """A bag whose Imu definition differs from Jazzy's (another ROS release or a fork)."""
-    vehicle, run = runs['sub']
+    vehicle, _ = runs['sub']
     from rosbags.rosbag2 import Writer
     from rosbags.typesys import get_types_from_msg, get_typestore, Stores
-    store = get_typestore(Stores.ROS2_JAZZY)
+    jazzy = get_typestore(Stores.ROS2_JAZZY)
+    store = get_typestore(Stores.EMPTY)
+    store.register({k: v for k, v in jazzy.fielddefs.items() if k != IMU})
     store.register(get_types_from_msg(
         'std_msgs/Header header\nfloat64 extra\n'
         'geometry_msgs/Quaternion orientation\nfloat64[9] orientation_covariance\n'
         'geometry_msgs/Vector3 angular_velocity\nfloat64[9] angular_velocity_covariance\n'
         'geometry_msgs/Vector3 linear_acceleration\n'
-        'float64[9] linear_acceleration_covariance\n', 'other_msgs/msg/Imu'))
-    msgdef, _ = store.generate_msgdef('other_msgs/msg/Imu', ros_version=2)
+        'float64[9] linear_acceleration_covariance\n', IMU))
+    # consistent definition and hash, but not Jazzy's: our check names it
     bag = tmp_path / 'other'
     with Writer(bag, version=9) as w:
-        conn = w.add_connection('/sub1/imu/data', IMU, msgdef=msgdef.replace(
-            'other_msgs/msg/Imu', IMU), rihs01='RIHS01_' + '0' * 64)
+        conn = w.add_connection('/sub1/imu/data', IMU, typestore=store)
         w.write(conn, 10**9, b'\x00\x01\x00\x00' + bytes(400))
-    with pytest.raises(BagToolError, match='cannot read the bag|differs from ROS 2 Jazzy'):
-        read_recording(bag, vehicle)
+    _error(bag, vehicle, r"/sub1/imu/data \(sensor 'gyro'\): the bag's sensor_msgs/msg/Imu "
+                         r"has type hash RIHS01_.*; ROS 2 Jazzy's is RIHS01_7d9a00ff")
+    # a definition that does not match its own hash: rosbags refuses it, we name the file
+    msgdef, _ = store.generate_msgdef(IMU, ros_version=2)
+    bad = tmp_path / 'bad'
+    with Writer(bad, version=9) as w:
+        conn = w.add_connection('/sub1/imu/data', IMU, msgdef=msgdef,
+                                rihs01='RIHS01_' + '0' * 64)
+        w.write(conn, 10**9, b'\x00\x01\x00\x00' + bytes(400))
+    _error(bad, vehicle, r'bad.db3: cannot read the bag: .*hash mismatch')
 
 
 def test_bag_namespace_detection(runs, tmp_path):

@@ -18,17 +18,16 @@ import time
 
 from bag_synth import CONFIG, simulate, write_bag
 import numpy as np
-import pytest
-
 from observer_ros.bag.errors import BagToolError
 from observer_ros.bag.play import message_class, parse_remap
 from observer_ros.vehicle import load_vehicle
+import pytest
 
 pytestmark = pytest.mark.filterwarnings('ignore::DeprecationWarning')
 
 rclpy = pytest.importorskip('rclpy')
 EXE = Path(sys.executable).parent / 'observer-play'
-DOMAIN = 1 + os.getpid() % 100
+DOMAIN = 1 + os.getpid() % 99      # 1..99: the node tests use 100..199
 NS = f'/play{os.getpid()}'
 DT = 0.05          # the submarine's step (20 Hz)
 
@@ -178,8 +177,8 @@ def test_bag_play_loop_jumps_the_clock_back_and_stops_on_sigint(bag):
 def test_bag_play_topics_and_remap(bag):
     from rclpy.qos import QoSProfile
     from sensor_msgs.msg import JointState
-    listener = Listener({'/replay/truth': (JointState, QoSProfile(depth=100),
-                                          lambda m: m.header.stamp)})
+    stamp = lambda m: m.header.stamp   # noqa: E731
+    listener = Listener({'/replay/truth': (JointState, QoSProfile(depth=100), stamp)})
     proc = _player(bag, '--rate', '20', '--topics', f'{NS}/state/true',
                    '--remap', f'{NS}/state/true:=/replay/truth', '--wait-subscribers', '1')
     try:
@@ -214,6 +213,45 @@ def test_bag_play_helpers():
     assert parse_remap('a/b:=/c') == ('/a/b', '/c')
     with pytest.raises(BagToolError):
         parse_remap('a')
+
+
+def test_bag_play_uses_the_recorded_qos(tmp_path):
+    """QoS from the bag's metadata when recorded (as the recorder node writes it)."""
+    from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+    from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
+                                    QosReliability, QosTime)
+    from rosbags.rosbag2 import Writer
+    from observer_ros.bag.play import _qos
+    from observer_ros.bag.reader import BagReader, jazzy_typestore
+    zero = QosTime(sec=0, nsec=0)
+
+    def qos(reliability, durability):
+        return Qos(history=QosHistory.KEEP_LAST, depth=5, reliability=reliability,
+                   durability=durability, deadline=zero, lifespan=zero,
+                   liveliness=QosLiveliness.AUTOMATIC, liveliness_lease_duration=zero,
+                   avoid_ros_namespace_conventions=False)
+    path = tmp_path / 'qos'
+    with Writer(path, version=9) as w:
+        for topic, q in (('/a/imu', qos(QosReliability.BEST_EFFORT, QosDurability.VOLATILE)),
+                         ('/a/ref', qos(QosReliability.RELIABLE,
+                                        QosDurability.TRANSIENT_LOCAL))):
+            conn = w.add_connection(topic, 'sensor_msgs/msg/JointState',
+                                    typestore=jazzy_typestore(), offered_qos_profiles=[q])
+            w.write(conn, 1, b'\x00\x01\x00\x00' + bytes(28))
+        conn = w.add_connection('/a/state/true', 'sensor_msgs/msg/JointState',
+                                typestore=jazzy_typestore())
+        w.write(conn, 2, b'\x00\x01\x00\x00' + bytes(28))
+        conn = w.add_connection('/a/imu_raw', 'sensor_msgs/msg/Imu',
+                                typestore=jazzy_typestore())
+        w.write(conn, 3, b'\x00\x01\x00\x00' + bytes(28))
+    with BagReader(path) as reader:
+        got = {c.topic: _qos(c, c.topic) for c in reader.connections()}
+    assert got['/a/imu'].reliability == ReliabilityPolicy.BEST_EFFORT
+    assert got['/a/ref'].durability == DurabilityPolicy.TRANSIENT_LOCAL
+    assert got['/a/ref'].reliability == ReliabilityPolicy.RELIABLE
+    # without recorded QoS: sensor messages best effort, the vehicle's vectors reliable
+    assert got['/a/state/true'].reliability == ReliabilityPolicy.RELIABLE
+    assert got['/a/imu_raw'].reliability == ReliabilityPolicy.BEST_EFFORT
 
 
 def test_bag_play_publishes_raw_bytes_rclpy_accepts(bag):

@@ -819,3 +819,102 @@ def test_make_estimator_kinds():
         make_estimator(plant, ObserverSpec('luenberger'))
     with pytest.raises(ObserverError, match='Qd and observer.Rd are required'):
         make_estimator(plant, ObserverSpec('kalman'))
+
+
+# ---------------------------------------------------------------- jittering stamps
+
+
+def jittered_times(n, dt, jitter, seed=0):
+    """Stamps of a sensor at 1/dt Hz whose steps jitter uniformly by +-jitter (s)."""
+    rng = np.random.default_rng(seed)
+    return np.concatenate([[0.0], np.cumsum(dt + rng.uniform(-jitter, jitter, n - 1))])
+
+
+def test_jittered_stamps_design_few_gains_and_propagate_exactly(monkeypatch):
+    # Real stamps: nearly every step is new to 12 digits. Each costs a matrix exponential;
+    # the gains come from the 3-digit key, so only a few dozen pole placements run.
+    import observer_ros.core.estimators as estimators
+    designs = []
+    real = estimators.observer_gain
+
+    def counting(*args, **kwargs):
+        designs.append(1)
+        return real(*args, **kwargs)
+    monkeypatch.setattr(estimators, 'observer_gain', counting)
+    plant = cart()
+    times = jittered_times(3000, 1e-3, 5e-5)
+    est = FullOrderEstimator(plant, poles=CART_POLES)
+    xs, xhats, _ = run(plant, est, [0.1, 0.0, 0.0, 0.0], times, cart_input)
+    steps = np.diff(times)
+    assert len(np.unique(steps)) > 2900                       # every step is new
+    assert len(designs) == len(est.gain_cache) <= 60          # 0.00095 .. 0.00105
+    # Exact propagation: the error obeys a homogeneous recursion and goes to round-off.
+    err = np.linalg.norm(xs - xhats, axis=1)
+    assert err[-1] < 1e-9 * np.linalg.norm(xs[-1])
+    # The map applied is (I - M(h_g) C) Ad(dt), with M designed for exp(s h_g), h_g the
+    # 3-digit step: as rates over dt its poles are within |dt - h_g| / dt <= 0.5 % of s.
+    for k in (10, 500, 2999):
+        dt = steps[k - 1]
+        assert_allclose(err[k], np.linalg.norm(est.error_matrix(dt) @ (xs - xhats)[k - 1]),
+                        rtol=1e-6, atol=1e-13 * np.linalg.norm(xs[k]))
+        s = np.log(np.linalg.eigvals(est.error_matrix(dt))) / dt
+        assert_allclose(np.sort_complex(s), np.sort_complex(np.array(CART_POLES)), rtol=1e-2)
+
+
+def test_gain_key_is_coarse_and_a_function_of_the_step_key():
+    est = FullOrderEstimator(submarine(), poles=SUB_POLES)
+    key = est.cache.key(0.0010004999)
+    assert key == 0.0010004999 and est.gain_key(key) == 0.001
+    assert est.gain_key(est.cache.key(0.000987654)) == 0.000988
+    exact = FullOrderEstimator(submarine(), poles=SUB_POLES, gain_digits=12)
+    assert exact.gain_key(0.000987654) == 0.000987654
+    assert exact.gain_cache is exact.cache
+    disc = FullOrderEstimator(submarine().discretize(0.1), poles=[0.5, 0.6, 0.7])
+    assert disc.gain_key(3) == 3
+    with pytest.raises(ObserverError, match='gain_digits must be between 3 and 17'):
+        FullOrderEstimator(submarine(), poles=SUB_POLES, gain_digits=2)
+
+
+@pytest.mark.parametrize('gain_digits', [3, 12])
+def test_gain_digits_exact_poles_at_any_step(gain_digits):
+    # gain_digits >= dt_digits designs every step exactly (the slow, old behaviour); the
+    # default designs at the 3-digit step and is exact there.
+    est = FullOrderEstimator(submarine(), poles=SUB_POLES, gain_digits=gain_digits)
+    dt = 0.0123456789
+    h = dt if gain_digits == 12 else 0.0123
+    z = np.sort(np.linalg.eigvals(est.error_matrix(h)).real)
+    assert_allclose(z, np.sort(np.exp(np.array(SUB_POLES) * h)), rtol=1e-9)
+    # At dt itself the default applies the gain of 0.0123 s: the poles 0.01 apart are
+    # sensitive (they move like the square root of the 0.4 % step error), yet stable.
+    s = np.log(np.linalg.eigvals(est.error_matrix(dt)).astype(complex)) / dt
+    if gain_digits == 12:
+        assert_allclose(np.sort(s.real), sorted(SUB_POLES), rtol=1e-8)
+    else:
+        assert np.all(s.real < -0.55) and np.all(np.abs(s) < 0.7)
+
+
+def test_jittered_stamps_reduced_converges():
+    plant = cart()
+    times = jittered_times(2000, 1e-3, 5e-5, seed=2)
+    est = ReducedOrderEstimator(plant, poles=CART_REDUCED_POLES)
+    xs, xhats, ys = run(plant, est, [0.1, 0.0, 0.0, 0.0], times, cart_input)
+    err = np.linalg.norm(xs - xhats, axis=1)
+    assert err[-1] < 1e-9 * np.linalg.norm(xs[-1])
+    assert len(est.gain_cache) <= 60
+    # C x_hat = y after every correction, whatever the gain.
+    assert_allclose(xhats[:, 1], np.array(ys)[:, 0], atol=1e-12)
+
+
+def test_jittered_stamps_kalman_close_to_exact_design():
+    # The process noise and the steady-state prior come from the 3-digit step: the filter
+    # is within a small fraction of the one designed for every step.
+    plant = cart()
+    times = jittered_times(1000, 1e-3, 5e-5, seed=2)
+    out = []
+    for gain_digits in (3, 12):
+        est = KalmanEstimator(plant, np.eye(4) * 1e-2, [[1e-6]], gain_digits=gain_digits)
+        xs, xhats, _ = run(plant, est, [0.1, 0.0, 0.0, 0.0], times, cart_input)
+        out.append(xhats)
+    assert len(est.gain_cache) == 64              # cache_size keys, all new (exact design)
+    scale = np.max(np.abs(xs))
+    assert np.max(np.abs(out[0] - out[1])) < 1e-3 * scale

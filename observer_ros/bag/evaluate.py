@@ -37,10 +37,10 @@ import warnings
 
 import numpy as np
 
-from ..core.errors import ObserverError
 from .errors import BagToolError
 from .reader import jazzy_typestore, read_recording
 from .replay import CLOCK_JUMP_TOLERANCE, epochs_of, live_replay, replay
+from ..core.errors import ObserverError
 
 __all__ = ['DEFAULT_TOLERANCE', 'STEADY_FRACTION', 'WHITENESS_LAGS', 'VariantResult',
            'EvalResult', 'parse_variant', 'parse_tolerance', 'evaluate_bag',
@@ -226,8 +226,9 @@ def parse_variant(text):
         raise BagToolError(f'--variant {text!r}: the name {name!r} must be a letter followed '
                            'by letters, digits or _ (it becomes a topic name)')
     if name in RESERVED:
-        raise BagToolError(f'--variant {text!r}: {name!r} is reserved (the vehicle file\'s '
-                           'own design is "design", the recorded estimate is "live")')
+        raise BagToolError(f'--variant {text!r}: {name!r} is reserved (the vehicle '
+                           "file's own design is 'design', the recorded estimate is "
+                           "'live')")
     overrides = _split_top(rest)
     bad = [o for o in overrides if ':=' not in o]
     if not overrides or bad:
@@ -268,8 +269,10 @@ def parse_tolerance(text):
 
 def _truth_at(truth, stamp_ns, epoch):
     """
-    The true state at the estimates' stamps: exact where a truth stamp matches,
-    linear interpolation inside the epoch's truth otherwise, NaN outside.
+    Return the true state at the estimates' stamps.
+
+    Exact where a truth stamp matches, linear interpolation inside the epoch's truth
+    otherwise, NaN outside.
 
     """
     t_ns, values, t_epoch = truth
@@ -391,11 +394,8 @@ def whiteness(r, lags=WHITENESS_LAGS):
         return out
     acf = np.array([float(d[:-j] @ d[j:]) / denom for j in range(1, k + 1)])
     q = float(N * (N + 2) * np.sum(acf ** 2 / (N - np.arange(1, k + 1))))
-    try:
-        from scipy.stats import chi2
-        p = float(chi2.sf(q, k))
-    except ImportError:   # pragma: no cover - scipy is a dependency
-        p = math.nan
+    from scipy.special import chdtrc      # chi-square survival function (light import)
+    p = float(chdtrc(k, q))
     out.update(lags=k, acf=acf.tolist(), ljung_box_q=q, ljung_box_p=p,
                acf_outside=float(np.mean(np.abs(acf) > 1.96 / math.sqrt(N))))
     return out
@@ -530,7 +530,7 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
         fraction, absolute = parse_tolerance(tolerance)
     else:
         fraction, absolute = None, float(tolerance)
-    rule = f'{fraction * 100:g}% of each state\'s range in the true trajectory' \
+    rule = f"{fraction * 100:g}% of each state's range in the true trajectory" \
         if absolute is None else f'{absolute:g} (absolute)'
     tol = _tolerances(None if truth is None else truth[1], base.plant.state_names,
                       fraction, absolute)
@@ -838,7 +838,7 @@ def _t0(result):
 
 
 def _joint_state_bytes(names, stamp_ns, values):
-    """Serialized JointState messages (name, position) for many stamps at once."""
+    """Serialize JointState messages (name, position) for many stamps at once."""
     from .reader import _joint_state_layout   # the same layout rules as the decoder
     store = jazzy_typestore()
     js = store.types['sensor_msgs/msg/JointState']
@@ -934,7 +934,9 @@ variants:
   KEY is a vehicle-file parameter (docs/vehicle_schema.md) and VALUE is YAML, as in a ROS
   -p override. Commas inside [...] belong to the value. Quote the whole argument.
     --variant 'slow:observer.poles:=[-0.1,-0.11,-0.12]'
-    --variant 'kalman:observer.type:=kalman,observer.Qd:=[0.0,0.0,0.0,0.0,0.0,0.0,0.0,0.0,1.0e-4],observer.Rd:=[1.0e-6]'
+    --variant 'kalman:observer.type:=kalman,observer.Rd:=[1.0e-6]'
+    --variant 'kalman:observer.Qd:=[1.0e-4,0.0,0.0, 0.0,1.0e-4,0.0, 0.0,0.0,1.0e-4]'
+                                                       (the same name: merged with the above)
     --variant 'openloop:observer.type:=open_loop'
   The vehicle file's own design is always the variant "design"; the estimate recorded on
   state/estimate is scored as "live".
@@ -952,7 +954,7 @@ exit status: 0 done; 2 the bag, the vehicle file or the arguments cannot be used
 def _parser():
     parser = argparse.ArgumentParser(
         prog='observer-eval',
-        description='Replay a bag\'s recorded measurements and commands through observer '
+        description="Replay a bag's recorded measurements and commands through observer "
                     'configurations (the same estimator code as the observer node) and '
                     'compare them with the true state (state/true) or, without it, by '
                     'their residuals.',
@@ -963,9 +965,9 @@ def _parser():
                         metavar='NAME:KEY:=VALUE[,...]',
                         help='an observer configuration to compare (see below)')
     parser.add_argument('--out', help='output folder (default bags/runs/<bag name>_eval)')
-    parser.add_argument('--namespace', help='the vehicle\'s namespace in the bag, e.g. /sub1 '
+    parser.add_argument('--namespace', help="the vehicle's namespace in the bag, e.g. /sub1 "
                         '(default: detected from the sensor topics)')
-    parser.add_argument('--tolerance', help='settling band: a percentage of each state\'s '
+    parser.add_argument('--tolerance', help="settling band: a percentage of each state's "
                         'range ("5%%") or an absolute value (default 2%%)')
     parser.add_argument('--force', action='store_true',
                         help='replace an existing output folder of observer-eval')

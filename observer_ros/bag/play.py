@@ -147,7 +147,7 @@ class Player:
             if wanted is not None and topic not in wanted:
                 continue
             if options.clock_hz is not None and topic == '/clock':
-                self.log('note: the bag\'s /clock is not played (--clock publishes it)')
+                self.log("note: the bag's /clock is not played (--clock publishes it)")
                 continue
             if topic in self.publishers:
                 continue
@@ -239,7 +239,7 @@ class Player:
 def _parser():
     parser = argparse.ArgumentParser(
         prog='observer-play',
-        description='Publish a bag\'s recorded messages with their recorded timing, like '
+        description="Publish a bag's recorded messages with their recorded timing, like "
                     '`ros2 bag play` (raw serialized data; rosbags, no ros2bag needed).',
         epilog='exit status: 0 done or interrupted (Ctrl-C); 2 the bag or the arguments '
                'cannot be used (one line "error: ..." on stderr). ROS arguments '
@@ -264,7 +264,7 @@ def _parser():
                         help='give up waiting for subscriptions after S seconds (default 30)')
     parser.add_argument('--wait-settle', type=float, default=0.5, metavar='S',
                         help='once they are matched, wait S seconds more for the '
-                             'subscriptions\' side of discovery (default 0.5)')
+                             "subscriptions' side of discovery (default 0.5)")
     return parser
 
 
@@ -282,7 +282,7 @@ def main(argv=None):
         options = PlayOptions(args.rate, args.start, args.topics, args.loop, args.clock,
                               remap, args.wait_subscribers, args.wait_timeout,
                               args.wait_settle)
-        bag = BagReader(args.bag).open()
+        bag = BagReader(args.bag).load()
     except BagToolError as err:
         print(f'error: {err}', file=sys.stderr)
         return 2

@@ -23,6 +23,8 @@ Stamps stay integer nanoseconds; seconds are ``ns * 1e-9`` exactly as
 
 from dataclasses import dataclass, field
 import functools
+import gc
+import itertools
 import math
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
@@ -31,8 +33,8 @@ import numpy as np
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
 
-from ..timeutil import stamp_to_ns
 from .errors import BagToolError
+from ..timeutil import stamp_to_ns
 
 __all__ = ['IMU', 'JOINT_STATE', 'FLOAT64', 'CLOCK', 'VEHICLE_TOPICS', 'jazzy_typestore',
            'normalize_namespace', 'BagInfo', 'BagReader', 'bag_info', 'TopicMap',
@@ -132,7 +134,7 @@ def _reason(path, err):
     elif 'malformed' in low or 'not a database' in low:
         hint = 'the sqlite3 database is truncated or corrupted'
     elif 'hash mismatch' in low:
-        hint = ('the bag\'s message definitions do not match their hashes (another ROS '
+        hint = ("the bag's message definitions do not match their hashes (another ROS "
                 'release or a modified message?)')
     else:
         hint = 'truncated or corrupted?'
@@ -140,7 +142,7 @@ def _reason(path, err):
 
 
 def _storage_file(path):
-    """The one storage file of a bag directory (for messages), else the path itself."""
+    """Return the one storage file of a bag directory (for messages), else the path."""
     path = Path(path)
     if path.is_dir():
         files = sorted(x for x in path.iterdir() if x.suffix in _STORAGE_SUFFIXES)
@@ -182,8 +184,7 @@ class BagReader:
 
     def __enter__(self):
         """Open the bag."""
-        self.open()
-        return self
+        return self.load()
 
     def __exit__(self, *exc):
         """Close the bag."""
@@ -218,8 +219,8 @@ class BagReader:
                 f'{p}: not a bag: expected a bag directory, a .mcap or a .db3 file')
         return p
 
-    def open(self):
-        """Open the bag and fill :attr:`info`."""
+    def load(self):
+        """Open the bag and fill :attr:`info`; return self."""
         storage_path = self._storage_path()
         try:
             reader = AnyReader([storage_path], default_typestore=jazzy_typestore())
@@ -316,8 +317,8 @@ class BagReader:
         for conn in self.reader.connections:
             if conn.msgtype == msgtype and conn.digest and \
                     conn.digest != store.hash_rihs01(msgtype):
-                return (f'the bag\'s {msgtype} has type hash {conn.digest[:22]}...; '
-                        f'ROS 2 Jazzy\'s is {store.hash_rihs01(msgtype)[:22]}...')
+                return (f"the bag's {msgtype} has type hash {conn.digest[:22]}...; "
+                        f"ROS 2 Jazzy's is {store.hash_rihs01(msgtype)[:22]}...")
         bag_store = self.reader.typestore
         todo, seen = [msgtype], set()
         while todo:
@@ -329,7 +330,7 @@ class BagReader:
             if mine is None or theirs is None:
                 continue
             if mine != theirs:
-                return f'the bag\'s definition of {name} differs from ROS 2 Jazzy\'s'
+                return f"the bag's definition of {name} differs from ROS 2 Jazzy's"
             todo.extend(_nested_types(mine))
         return ''
 
@@ -421,7 +422,7 @@ def resolve_topics(info, vehicle, namespace=None):
         topic = names[s.name]
         msgtype, count = info.topics.get(topic, (None, 0))
         if msgtype is None or count == 0:
-            hint = '' if namespace is not None else \
+            hint = '' if namespace is not None or msgtype is not None else \
                 ' (pass --namespace if the vehicle ran in a namespace)'
             raise BagToolError(
                 f'{where}: bag has no messages on {topic} (sensor {s.name!r} of vehicle '
@@ -444,7 +445,7 @@ def resolve_topics(info, vehicle, namespace=None):
 
 
 def _detect_namespace(info, vehicle):
-    """The one namespace under which all the vehicle's sensor topics are in the bag."""
+    """Return the one namespace under which all the vehicle's sensor topics are."""
     rels = [s.topic for s in vehicle.sensors]
     relative = [r for r in rels if not r.startswith('/')]
     if not relative:
@@ -795,7 +796,7 @@ class Stream:
         return self.stamp_ns.astype(np.float64) * 1e-9
 
     def __len__(self):
-        """Number of messages."""
+        """Return the number of messages."""
         return int(self.seq.size)
 
 
@@ -836,12 +837,19 @@ class _Accumulator:
         self.raws, self.logs, self.seqs = [], [], []
         self.parts = []
 
+    def add(self, raws, logs, seqs):
+        """Take a batch: raw messages (list), receive times and bag positions (arrays)."""
+        self.raws.extend(raws)
+        self.logs.append(logs)
+        self.seqs.append(seqs)
+        if len(self.raws) >= _FLUSH:
+            self.flush()
+
     def flush(self):
         if not self.raws:
             return
         dec = decode_messages(self.raws, self.msgtype, self.fields, self.mode, self.fallback)
-        log = np.array(self.logs, dtype=np.int64)
-        self.parts.append((np.array(self.seqs, dtype=np.int64), log, dec))
+        self.parts.append((np.concatenate(self.seqs), np.concatenate(self.logs), dec))
         self.raws, self.logs, self.seqs = [], [], []
 
     def stream(self):
@@ -936,8 +944,9 @@ def read_recording(path, vehicle, namespace=None, progress=None, vectors=True):
             why = bag.check_definition(sensor.msg_type)
             if why:
                 raise BagToolError(
-                    f'{info.path}: {topic} (sensor {sensor.name!r}): {why}; recorded with '
-                    f'ROS release {info.ros_distro or "unknown"}?')
+                    f'{info.path}: {topic} (sensor {sensor.name!r}): {why} (another ROS '
+                    f'release or a modified message? the bag says ros_distro '
+                    f'{info.ros_distro or "(not recorded)"})')
             accs[topic] = (f'sensor:{sensor.name}', _Accumulator(
                 topic, sensor.msg_type, sensor.outputs, sensor.fields, 'sensor',
                 _sensor_fallback(bag, sensor)))
@@ -989,20 +998,40 @@ def read_recording(path, vehicle, namespace=None, progress=None, vectors=True):
 
 def _read_all(bag, topics, by_conn, progress, total):
     """Read the topics' messages once, in bag order, into their accumulators."""
-    seq = 0
-    next_report = _PROGRESS_EVERY
-    for conn, log_ns, raw in bag.messages(topics):
-        acc = by_conn[conn.id]
-        acc.raws.append(raw)
-        acc.logs.append(log_ns)
-        acc.seqs.append(seq)
-        seq += 1
-        if len(acc.raws) >= _FLUSH:
-            acc.flush()
-        if seq >= next_report:
-            next_report += _PROGRESS_EVERY
-            if progress is not None:
-                progress(seq, total)
-    if progress is not None:
-        progress(seq, total)
+    messages = bag.messages(topics)
+    single = len({id(acc) for acc in by_conn.values()}) == 1
+    # the batches hold many tuples: keep the cyclic garbage collector from scanning them
+    # again and again (nothing read here forms reference cycles)
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        _read_batches(messages, by_conn, single, progress, total)
+    finally:
+        if enabled:
+            gc.enable()
 
+
+def _read_batches(messages, by_conn, single, progress, total):
+    """Read in batches; the bag position of a message is its index in the stream."""
+    done = 0
+    while True:
+        batch = list(itertools.islice(messages, _PROGRESS_EVERY))
+        if not batch:
+            break
+        conns, logs, raws = zip(*batch)
+        n = len(batch)
+        logs = np.array(logs, dtype=np.int64)
+        seqs = np.arange(done, done + n, dtype=np.int64)
+        if single:
+            next(iter(by_conn.values())).add(raws, logs, seqs)
+        else:
+            ids = np.fromiter((c.id for c in conns), dtype=np.int64, count=n)
+            for cid, acc in by_conn.items():
+                sel = np.flatnonzero(ids == cid)
+                if sel.size:
+                    acc.add([raws[i] for i in sel.tolist()], logs[sel], seqs[sel])
+        done += n
+        if progress is not None:
+            progress(done, total)
+    if progress is not None:
+        progress(done, total)

@@ -35,9 +35,9 @@ from typing import Dict, Tuple
 
 import numpy as np
 
+from .errors import BagToolError
 from ..core.errors import ObserverError
 from ..core.estimators import make_estimator
-from .errors import BagToolError
 
 __all__ = ['Replay', 'replay', 'live_replay', 'epochs_of', 'affine_scan',
            'CLOCK_JUMP_TOLERANCE', 'FUTURE_TOLERANCE']
@@ -80,13 +80,13 @@ class Replay:
         return self.stamp_ns.astype(np.float64) * 1e-9
 
     def __len__(self):
-        """Number of estimates."""
+        """Return the number of estimates."""
         return int(self.stamp_ns.size)
 
 
 def epochs_of(stamp_ns, tolerance=CLOCK_JUMP_TOLERANCE):
     """
-    Number the runs of a stamp sequence split where it jumps back (looping bag).
+    Return the epoch of each stamp: the runs of a sequence split where it jumps back.
 
     Parameters
     ----------
@@ -508,7 +508,7 @@ def _find_runs(events, streams, cmd, est, jump, future_tolerance):
 
 
 def _probe(est, t0, t1, rows):
-    """The affine map of one step t0 -> t1 (correction with rows) of the estimator."""
+    """Measure the affine map of one step t0 -> t1 (correction with rows)."""
     plant = est.plant
     n, m, q = plant.n, plant.m, len(rows)
     probe = copy.deepcopy(est)
@@ -585,8 +585,8 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
         Gk = np.stack([maps[c][1] for c in range(classes.size)])
         Hk = np.stack([maps[c][2] for c in range(classes.size)])
         ck = cls[sel]
-        W[sel] = np.einsum('kij,kj->ki', Gk[ck], Y[k]) + np.einsum('kij,kj->ki', Hk[ck],
-                                                                      U[sel])
+        W[sel] = (np.einsum('kij,kj->ki', Gk[ck], Y[k])
+                  + np.einsum('kij,kj->ki', Hk[ck], U[sel]))
     x0 = est.x_hat
     X = affine_scan(Fs, W, x0, cls)
     if not np.all(np.isfinite(X)):
@@ -677,4 +677,3 @@ def live_replay(recording, vehicle, clock_jump_tolerance=CLOCK_JUMP_TOLERANCE):
     return Replay(name='live', vehicle=vehicle, stamp_ns=stamp, x_hat=est.values[sel],
                   residual=residual, epoch=epoch, seq=est.seq[sel],
                   sensor=np.full(sel.size, -1, dtype=np.int64), counts=counts)
-

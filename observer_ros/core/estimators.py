@@ -7,6 +7,13 @@ randomness, no wall clock and no dependence on what is already cached (every
 matrix is a function of the quantised step only, see :class:`StepCache`). The
 ROS observer node and the offline bag replay both drive these classes.
 
+Two keys per step: the state is propagated with the exact sampled model of the
+step rounded to ``dt_digits`` (12) significant digits, while correction gains
+(pole placement, reduced-order Lr, Kalman process noise) are designed for the
+step rounded to ``gain_digits`` (3). Real time stamps jitter, so nearly every
+step is new to twelve digits; it then costs a matrix exponential, not a pole
+placement (see :data:`GAIN_DIGITS`).
+
 Time is a float in seconds. Keep it small: pass times relative to the start of
 a run (a float holding Unix time has a resolution of about 0.2 microseconds,
 which would make every step different).
@@ -37,7 +44,8 @@ from .errors import DesignError, DimensionError, NotDetectableError, ObserverErr
 from .model import as_matrix, as_poles, as_vector, Plant, zoh_matrices
 from .spec import OBSERVER_TYPES, ObserverSpec
 
-__all__ = ['TimeOrderError', 'StepCache', 'Estimator', 'FullOrderEstimator',
+__all__ = ['DT_DIGITS', 'GAIN_DIGITS', 'CACHE_SIZE', 'GAIN_CACHE_SIZE', 'TimeOrderError',
+           'StepCache', 'Estimator', 'FullOrderEstimator',
            'ReducedOrderEstimator', 'OpenLoopEstimator', 'KalmanEstimator',
            'make_estimator', 'process_noise_covariance']
 
@@ -49,9 +57,26 @@ __all__ = ['TimeOrderError', 'StepCache', 'Estimator', 'FullOrderEstimator',
 #: at a fixed rate to a handful of keys (at most 9 in an hour at 1 kHz).
 DT_DIGITS = 12
 
-#: Number of step lengths whose matrices and gains are kept (least recently used
-#: ones are dropped).
+#: Significant decimal digits of a step length the correction gain is designed
+#: for (pole placement, reduced-order Lr, Kalman process noise and steady-state
+#: prior). Propagation always uses the step of ``DT_DIGITS``; only the gain comes
+#: from this coarser key. Time stamps of real sensors jitter, so nearly every step
+#: is new to twelve digits: its propagation costs one matrix exponential (tens of
+#: microseconds) while the gain, a pole placement of about 1 to 10 ms, is reused
+#: from a step within 0.5 % (3 digits: 1e-5 s steps at 1 kHz). The error map of a
+#: correction h seconds after the previous one is then ``(I - M(h_g) C) Ad(h)``:
+#: its eigenvalues are within about ``|A| |h - h_g|`` of the designed
+#: ``exp(s h_g)``, still stable, and a noise-free run still converges to round-off
+#: (the propagation is exact, so the error obeys a homogeneous recursion).
+GAIN_DIGITS = 3
+
+#: Number of step lengths whose matrices are kept (least recently used ones are
+#: dropped).
 CACHE_SIZE = 64
+
+#: Number of gain keys whose gains are kept: every key of a jittering rate (about
+#: 60 at 1 kHz +- 5 %, 3 digits) must fit, or gains would be designed again.
+GAIN_CACHE_SIZE = 1024
 
 #: A step of a discrete plant may differ from a whole number of sample times by
 #: this fraction of the sample time (time-stamp rounding).
@@ -394,21 +419,25 @@ class Estimator:
     measured_rows : sequence of int, optional
         The outputs (rows of C) the estimator may be given; default all.
     dt_digits : int
-        Significant digits of a step length kept (see :class:`StepCache`). The
-        default keeps the step exact to 5e-12; a new step length costs a matrix
-        exponential and a pole placement (about 1 to 10 ms), a known one a few
-        microseconds. With time stamps that jitter (real sensors), lower it,
-        e.g. to 4: steps are then rounded to 0.01 % of themselves, a model error
-        of that size, and the matrices are reused.
+        Significant digits of a step length kept for propagation (see
+        :class:`StepCache`). The default keeps the step exact to 5e-12; a new
+        step length costs one matrix exponential (tens of microseconds), a known
+        one a few microseconds.
     cache_size : int
-        Number of step lengths whose matrices and gains are kept.
+        Number of step lengths whose propagation matrices are kept.
+    gain_digits : int
+        Significant digits of the step the correction gain is designed for
+        (see :data:`GAIN_DIGITS`); at least 3. A new gain key costs a pole
+        placement (about 1 to 10 ms), so with stamps that jitter the gains of a
+        few dozen keys are designed once and reused. ``gain_digits >= dt_digits``
+        designs the gain for every step exactly (the slow behaviour).
 
     """
 
     kind = 'base'
 
     def __init__(self, plant, x0=None, t0=None, measured_rows=None,
-                 dt_digits=DT_DIGITS, cache_size=CACHE_SIZE):
+                 dt_digits=DT_DIGITS, cache_size=CACHE_SIZE, gain_digits=GAIN_DIGITS):
         self._plant = _check_plant(plant)
         n = plant.n
         self._x0 = np.zeros(n) if x0 is None else as_vector(x0, 'x0', n)
@@ -416,6 +445,12 @@ class Estimator:
         self._measured = _measured_rows(plant, measured_rows)
         self._measured_set = frozenset(self._measured)
         self._cache = StepCache(plant, dt_digits, cache_size)
+        if not 3 <= int(gain_digits) <= 17:
+            raise ObserverError(f'gain_digits must be between 3 and 17; got {gain_digits!r}')
+        if plant.is_discrete or int(gain_digits) >= int(dt_digits):
+            self._gain_cache = None          # gains designed on the propagation step itself
+        else:
+            self._gain_cache = StepCache(plant, gain_digits, GAIN_CACHE_SIZE)
         self._rows_cache = {}
         self._all = self._rows_info(self._measured, 'rows')
         self._x = np.zeros(n)
@@ -470,8 +505,41 @@ class Estimator:
 
     @property
     def cache(self):
-        """The :class:`StepCache` of this estimator."""
+        """The :class:`StepCache` of this estimator (propagation matrices)."""
         return self._cache
+
+    @property
+    def gain_cache(self):
+        """The :class:`StepCache` the gains are designed on (:attr:`cache` when the same)."""
+        return self._cache if self._gain_cache is None else self._gain_cache
+
+    def gain_key(self, key):
+        """
+        Return the key of the step the gain of a propagation key is designed for.
+
+        Parameters
+        ----------
+        key : float or int
+            From ``cache.key(dt)``.
+
+        Returns
+        -------
+        key : float or int
+            ``key`` rounded to ``gain_digits`` significant digits (continuous
+            plant), or ``key`` itself (discrete plant, or gain_digits >= dt_digits).
+            It is a function of ``key`` only.
+
+        """
+        if self._gain_cache is None:
+            return key
+        return self._gain_cache.key(key)
+
+    def _gain_step(self, key):
+        """The step entry (Ad, Bd of the gain key) that a gain for ``key`` is designed on."""
+        if self._gain_cache is None:
+            return self._cache.get(key)
+        cache = self._gain_cache
+        return cache.get(cache.key(key))
 
     # ------------------------------------------------------------ public steps
 
@@ -707,7 +775,7 @@ class OpenLoopEstimator(Estimator):
     ----------
     plant : Plant
         The model.
-    x0, t0, measured_rows, dt_digits, cache_size
+    x0, t0, measured_rows, dt_digits, cache_size, gain_digits
         See :class:`Estimator`.
 
     """
@@ -715,8 +783,8 @@ class OpenLoopEstimator(Estimator):
     kind = 'open_loop'
 
     def __init__(self, plant, x0=None, t0=None, measured_rows=None,
-                 dt_digits=DT_DIGITS, cache_size=CACHE_SIZE):
-        super().__init__(plant, x0, t0, measured_rows, dt_digits, cache_size)
+                 dt_digits=DT_DIGITS, cache_size=CACHE_SIZE, gain_digits=GAIN_DIGITS):
+        super().__init__(plant, x0, t0, measured_rows, dt_digits, cache_size, gain_digits)
         self.reset(t0=self._t0)
 
     def _correct(self, y, info):
@@ -854,8 +922,12 @@ class FullOrderEstimator(_CurrentForm):
     ``e+ <- (I - M C) Ad(h) e+``, and ``eig((I - M C) Ad) = eig(Ad - M (C Ad))``,
     so M is designed on the pair (Ad(h), C Ad(h)) with the z-plane poles
     ``exp(s h)`` (continuous plant, s the given poles) or ``z^k`` (discrete
-    plant, k samples). With the true plant and no noise the error goes to zero
-    to round-off at any sampling, with no step-dependent bias.
+    plant, k samples). For a continuous plant h is the step rounded to
+    ``gain_digits`` significant digits (Ad of the step itself propagates), so
+    with a step that is not a 3-digit number the poles of the error map are
+    within about ``|A| |h - dt|`` of ``exp(s h)`` (:meth:`error_matrix` gives the
+    map actually applied). With the true plant and no noise the error goes to
+    zero to round-off at any sampling, with no step-dependent bias.
 
     Partial rows: a gain is designed for each set of rows. If (Ad, C[rows] Ad)
     is not observable only its observable part is placed (with the fastest of
@@ -903,7 +975,7 @@ class FullOrderEstimator(_CurrentForm):
         and gain.
     method : {'auto', 'place', 'acker'}
         Pole-placement method (design.observer_gain).
-    x0, t0, measured_rows, dt_digits, cache_size
+    x0, t0, measured_rows, dt_digits, cache_size, gain_digits
         See :class:`Estimator`.
 
     """
@@ -911,8 +983,9 @@ class FullOrderEstimator(_CurrentForm):
     kind = 'full'
 
     def __init__(self, plant, poles=None, gain=None, method='auto', x0=None, t0=None,
-                 measured_rows=None, dt_digits=DT_DIGITS, cache_size=CACHE_SIZE):
-        super().__init__(plant, x0, t0, measured_rows, dt_digits, cache_size)
+                 measured_rows=None, dt_digits=DT_DIGITS, cache_size=CACHE_SIZE,
+                 gain_digits=GAIN_DIGITS):
+        super().__init__(plant, x0, t0, measured_rows, dt_digits, cache_size, gain_digits)
         if (poles is None) == (gain is None):
             raise DesignError('give exactly one of poles and gain for a full-order observer')
         if method not in ('auto', 'place', 'acker'):
@@ -953,7 +1026,7 @@ class FullOrderEstimator(_CurrentForm):
     def _gain(self, key, info):
         if key is None:
             return None
-        step = self._cache.get(key)
+        step = self._gain_step(key)
         M = step.extra.get(info.rows)
         if M is None:
             if self._mode == 'poles':
@@ -1076,7 +1149,7 @@ class ReducedOrderEstimator(_CurrentForm):
         Lr given directly; exactly one of poles and gain.
     method : {'auto', 'place', 'acker'}
         Pole-placement method.
-    x0, t0, measured_rows, dt_digits, cache_size
+    x0, t0, measured_rows, dt_digits, cache_size, gain_digits
         See :class:`Estimator`; p is the number of measured rows, which must be
         independent.
 
@@ -1085,8 +1158,9 @@ class ReducedOrderEstimator(_CurrentForm):
     kind = 'reduced'
 
     def __init__(self, plant, poles=None, gain=None, method='auto', x0=None, t0=None,
-                 measured_rows=None, dt_digits=DT_DIGITS, cache_size=CACHE_SIZE):
-        super().__init__(plant, x0, t0, measured_rows, dt_digits, cache_size)
+                 measured_rows=None, dt_digits=DT_DIGITS, cache_size=CACHE_SIZE,
+                 gain_digits=GAIN_DIGITS):
+        super().__init__(plant, x0, t0, measured_rows, dt_digits, cache_size, gain_digits)
         if (poles is None) == (gain is None):
             raise DesignError('give exactly one of poles and gain for a reduced-order observer')
         if method not in ('auto', 'place', 'acker'):
@@ -1148,7 +1222,7 @@ class ReducedOrderEstimator(_CurrentForm):
                 M = self._Tinv[:, :self._pm][:, self._cols(info)]
                 self._init_gains[info.rows] = M
             return M
-        step = self._cache.get(key)
+        step = self._gain_step(key)
         M = step.extra.get(info.rows)
         if M is None:
             Mfull = step.extra.get('Mfull')
@@ -1261,7 +1335,8 @@ class KalmanEstimator(Estimator):
     Propagation over dt: ``x- = Ad x + Bd u``, ``P- = Ad P Ad^T + Qk(dt)``. For a
     continuous plant Qd is the intensity of continuous white process noise w in
     ``x' = A x + B u + Bd w`` and ``Qk(dt)`` its exact discretisation (Van Loan,
-    :func:`process_noise_covariance`); for a discrete plant Qd is the covariance
+    :func:`process_noise_covariance`) for dt rounded to ``gain_digits``
+    significant digits (Ad is that of dt itself); for a discrete plant Qd is the covariance
     of w per sample (``Qk = sum_{i<k} A^i Bd Qd Bd^T A^iT`` over k samples).
     Rd is the covariance of the measurement noise of each sample.
 
@@ -1291,7 +1366,7 @@ class KalmanEstimator(Estimator):
         Process-noise input matrix; default the identity (k = n).
     P0 : (n, n) array_like, optional
         Covariance of x0.
-    x0, t0, measured_rows, dt_digits, cache_size
+    x0, t0, measured_rows, dt_digits, cache_size, gain_digits
         See :class:`Estimator`.
 
     """
@@ -1299,8 +1374,9 @@ class KalmanEstimator(Estimator):
     kind = 'kalman'
 
     def __init__(self, plant, Qd, Rd, Bd=None, P0=None, x0=None, t0=None,
-                 measured_rows=None, dt_digits=DT_DIGITS, cache_size=CACHE_SIZE):
-        super().__init__(plant, x0, t0, measured_rows, dt_digits, cache_size)
+                 measured_rows=None, dt_digits=DT_DIGITS, cache_size=CACHE_SIZE,
+                 gain_digits=GAIN_DIGITS):
+        super().__init__(plant, x0, t0, measured_rows, dt_digits, cache_size, gain_digits)
         n, p = plant.n, plant.p
         G = np.eye(n) if Bd is None else as_matrix(Bd, 'Bd', rows=n)
         k = G.shape[1]
@@ -1341,7 +1417,7 @@ class KalmanEstimator(Estimator):
         if self._P is not None:
             Ad = step.Ad
             P = Ad @ self._P @ Ad.T
-            P += self._noise(step)
+            P += self._noise(self._gain_step(step.key))
             self._P = P
 
     def _R_rows(self, info):
@@ -1370,7 +1446,7 @@ class KalmanEstimator(Estimator):
             h = self._t - self._t_anchor
             if h <= 0.0:
                 return
-            self._P = self._steady_prior(self._cache.step(h), info, R)
+            self._P = self._steady_prior(self._gain_step(self._cache.key(h)), info, R)
         P = self._P
         C = info.C
         PCt = P @ C.T
@@ -1411,7 +1487,8 @@ def make_estimator(plant, observer_spec, measured_rows=None, **kwargs):
     measured_rows : sequence of int, optional
         The outputs the estimator will be given; default all.
     **kwargs
-        Passed on to the estimator (t0, dt_digits, cache_size, P0 for kalman).
+        Passed on to the estimator (t0, dt_digits, cache_size, gain_digits, P0 for
+        kalman).
 
     Returns
     -------

@@ -8,6 +8,7 @@ import warnings
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
 import rclpy
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
@@ -18,7 +19,8 @@ from ..core.errors import ObserverError
 from ..timeutil import sec_to_stamp_parts, stamp_to_sec
 from ..vehicle import vehicle_from_parameters
 
-__all__ = ['VEHICLE_SECTIONS', 'SENSOR_QOS', 'STATE_QOS', 'LATCHED_QOS', 'TOPICS',
+__all__ = ['VEHICLE_SECTIONS', 'SENSOR_QOS', 'STATE_QOS', 'STATE_PUB_QOS', 'LATCHED_QOS',
+           'TOPICS',
            'VehicleNode', 'joint_state', 'stamp_to_sec', 'to_stamp', 'run_node']
 
 # The parameter namespaces that belong to the vehicle file; anything else is a node's own.
@@ -29,6 +31,12 @@ SENSOR_QOS = qos_profile_sensor_data
 # Estimates, commands, true state: reliable, keep last 10 (talker_qos.py / STYLE.md §11).
 STATE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                        history=HistoryPolicy.KEEP_LAST)
+# What publishers of estimates, commands and the true state offer: the same, plus the last
+# 10 messages kept for late-joining transient-local readers (the recorder), so that nothing
+# sent while DDS is still matching a reader is lost to it. Volatile readers are unaffected.
+STATE_PUB_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                           history=HistoryPolicy.KEEP_LAST,
+                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
 # The reference x_d: latched, so a late subscriber gets it.
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          history=HistoryPolicy.KEEP_LAST,
@@ -105,6 +113,18 @@ class VehicleNode(Node):
         self.vehicle = self.load_vehicle()
         self._counters = {}
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        # Watchdogs and diagnostics run on the steady clock: with use_sim_time the ROS clock
+        # stands still whenever the simulation waits, and a dead time source must still be
+        # noticed.
+        self.steady_clock = Clock(clock_type=ClockType.STEADY_TIME)
+
+    def wall_timer(self, period, callback):
+        """Create a timer on the steady (wall) clock."""
+        return self.create_timer(period, callback, clock=self.steady_clock)
+
+    def wall_now(self):
+        """Return steady-clock seconds (for ages and timeouts)."""
+        return self.steady_clock.now().nanoseconds * 1e-9
 
     def vehicle_parameters(self):
         """Return the vehicle-file parameters of this node as a flat dict."""

@@ -17,8 +17,8 @@ from std_msgs.msg import Float64MultiArray
 
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
-from .common import (LATCHED_QOS, STATE_QOS, TOPICS, VehicleNode, joint_state, run_node,
-                     stamp_to_sec, vector_from_joint_state)
+from .common import (LATCHED_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS, VehicleNode, joint_state,
+                     run_node, stamp_to_sec, vector_from_joint_state)
 
 __all__ = ['CompensatorNode', 'control_law', 'main']
 
@@ -56,7 +56,7 @@ class CompensatorNode(VehicleNode):
         self._last_u = np.zeros(self.vehicle.plant.m)
         self._last_estimate_time = None      # node clock when the last good x_hat came
         self._stale = False
-        self._cmd_pub = self.create_publisher(JointState, TOPICS['command'], STATE_QOS)
+        self._cmd_pub = self.create_publisher(JointState, TOPICS['command'], STATE_PUB_QOS)
         self._array_pub = None
         if self.param('publish_array'):
             self._array_pub = self.create_publisher(
@@ -67,8 +67,8 @@ class CompensatorNode(VehicleNode):
             JointState, TOPICS['estimate'], self._on_estimate, STATE_QOS)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         period = min(self.vehicle.controller.stale_timeout / 2.0, 0.1)
-        self._watchdog = self.create_timer(period, self._on_watchdog)
-        self._diag_timer = self.create_timer(self.param('diagnostics_period'),
+        self._watchdog = self.wall_timer(period, self._on_watchdog)
+        self._diag_timer = self.wall_timer(self.param('diagnostics_period'),
                                              self._on_diagnostics)
 
     def _apply(self, vehicle, design):
@@ -96,7 +96,7 @@ class CompensatorNode(VehicleNode):
             self._publish_safe(self._stamp_of(msg))
             return
         u = control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
-        self._last_estimate_time = self.get_clock().now()
+        self._last_estimate_time = self.wall_now()
         self._stale = False
         self._publish(u, t)
         self.count('commands')
@@ -122,7 +122,7 @@ class CompensatorNode(VehicleNode):
     def _on_watchdog(self):
         if self._last_estimate_time is None:
             return
-        age = (self.get_clock().now() - self._last_estimate_time).nanoseconds * 1e-9
+        age = self.wall_now() - self._last_estimate_time
         if age > self.vehicle.controller.stale_timeout:
             if not self._stale:
                 self.get_logger().error(f'estimate stale ({age:.2f} s); safe command '

@@ -20,8 +20,8 @@ from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 from ..core.estimators import make_estimator
 from ..sensors import extract_measurement
-from .common import (SENSOR_QOS, STATE_QOS, TOPICS, VehicleNode, joint_state, run_node,
-                     stamp_to_sec, vector_from_joint_state)
+from .common import (SENSOR_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS, VehicleNode, joint_state,
+                     run_node, stamp_to_sec, vector_from_joint_state)
 
 __all__ = ['ObserverNode', 'main']
 
@@ -51,8 +51,8 @@ class ObserverNode(VehicleNode):
         self._pending_stamp = None
         self._last_stamp = {}               # sensor name -> last stamp (s)
         self._last_seen = {}                # sensor name -> wall time of last message
-        self._est_pub = self.create_publisher(JointState, TOPICS['estimate'], STATE_QOS)
-        self._res_pub = self.create_publisher(JointState, TOPICS['residual'], STATE_QOS)
+        self._est_pub = self.create_publisher(JointState, TOPICS['estimate'], STATE_PUB_QOS)
+        self._res_pub = self.create_publisher(JointState, TOPICS['residual'], STATE_PUB_QOS)
         self._subs = []
         for sensor in v.sensors:
             cls = MESSAGE_CLASSES[sensor.msg_type]
@@ -62,10 +62,10 @@ class ObserverNode(VehicleNode):
         self._cmd_sub = self.create_subscription(
             JointState, TOPICS['command'], self._on_command, STATE_QOS)
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        self._diag_timer = self.create_timer(self.param('diagnostics_period'),
+        self._diag_timer = self.wall_timer(self.param('diagnostics_period'),
                                              self._on_diagnostics)
         if self._lockstep:
-            self._lockstep_timer = self.create_timer(0.1, self._on_lockstep_watchdog)
+            self._lockstep_timer = self.wall_timer(0.1, self._on_lockstep_watchdog)
 
     # -- design -------------------------------------------------------------------------
     def _design_and_build(self, vehicle):
@@ -111,7 +111,7 @@ class ObserverNode(VehicleNode):
 
     # -- callbacks ----------------------------------------------------------------------
     def _on_measurement(self, sensor, msg):
-        self._last_seen[sensor.name] = self.get_clock().now()
+        self._last_seen[sensor.name] = self.wall_now()
         if self._lockstep and self._pending_commands > 0:
             self._queue.append((sensor, msg))
             return
@@ -256,12 +256,12 @@ class ObserverNode(VehicleNode):
         self.get_logger().warning(text, throttle_duration_sec=1.0)
 
     def _on_diagnostics(self):
-        now = self.get_clock().now()
+        now = self.wall_now()
         level, message = DiagnosticStatus.OK, 'estimating'
         silent = []
         for sensor in self.vehicle.sensors:
             seen = self._last_seen.get(sensor.name)
-            if seen is None or (now - seen).nanoseconds * 1e-9 > sensor.timeout:
+            if seen is None or now - seen > sensor.timeout:
                 silent.append(sensor.topic)
         if silent:
             level = DiagnosticStatus.WARN

@@ -23,12 +23,12 @@ from diagnostic_msgs.msg import DiagnosticStatus
 import numpy as np
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Imu, JointState
-from std_msgs.msg import Float64
+from std_msgs.msg import Bool, Float64
 
 from ..core.model import zoh_matrices
 from ..sensors import fill_measurement
-from .common import (SENSOR_QOS, STATE_QOS, TOPICS, VehicleNode, joint_state, run_node,
-                     stamp_to_sec, to_stamp, vector_from_joint_state)
+from .common import (LATCHED_QOS, SENSOR_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS, VehicleNode,
+                     joint_state, run_node, stamp_to_sec, to_stamp, vector_from_joint_state)
 
 __all__ = ['PlantSimulatorNode', 'main']
 
@@ -46,7 +46,8 @@ class PlantSimulatorNode(VehicleNode):
         super().__init__('plant_simulator', own_parameters=(
             ('start_time', 1.0),
             ('publish_clock', True),
-            ('wait_for_subscribers', 1),     # lockstep: subscribers on each sensor topic
+            ('wait_for_subscribers', 1),     # lockstep: matched readers of each sensor
+            ('wait_for_recorder', False),    # lockstep: start once recorder/ready is true
             ('exit_when_done', True),
             ('diagnostics_period', 1.0),
         ))
@@ -69,12 +70,16 @@ class PlantSimulatorNode(VehicleNode):
         self._sensor_pubs = [
             (s, self.create_publisher(MESSAGE_CLASSES[s.msg_type], s.topic, SENSOR_QOS),
              plant.output_rows(s.outputs)) for s in v.sensors]
-        self._state_pub = self.create_publisher(JointState, TOPICS['true_state'], STATE_QOS)
+        self._state_pub = self.create_publisher(JointState, TOPICS['true_state'], STATE_PUB_QOS)
         self._clock_pub = None
         if self.param('publish_clock'):
             self._clock_pub = self.create_publisher(Clock, '/clock', 10)
         self._cmd_sub = self.create_subscription(
             JointState, TOPICS['command'], self._on_command, STATE_QOS)
+        self._recorder_ready = False
+        if self.param('wait_for_recorder'):
+            self._ready_sub = self.create_subscription(
+                Bool, 'recorder/ready', self._on_recorder_ready, LATCHED_QOS)
         # lockstep bookkeeping
         self._due = []                  # sensors still to publish at this step
         self._answers = 0               # commands stamped t_k received so far
@@ -88,14 +93,17 @@ class PlantSimulatorNode(VehicleNode):
         self._resend_period = 0.2           # s of wall time before a measurement is re-sent
         self.count('command_timeouts', 0)
         if self._lockstep:
-            self._start_timer = self.create_timer(0.01, self._try_start)
-            self._watchdog = self.create_timer(0.05, self._on_watchdog)
+            self._start_timer = self.wall_timer(0.01, self._try_start)
+            self._watchdog = self.wall_timer(0.05, self._on_watchdog)
         else:
             period = self.dt / v.simulator.realtime_factor
-            self._step_timer = self.create_timer(period, self._realtime_step)
+            self._step_timer = self.wall_timer(period, self._realtime_step)
             self.count('late_commands', 0)
-        self._diag_timer = self.create_timer(self.param('diagnostics_period'),
+        self._diag_timer = self.wall_timer(self.param('diagnostics_period'),
                                              self._on_diagnostics)
+
+    def _on_recorder_ready(self, msg):
+        self._recorder_ready = bool(msg.data)
 
     # -- time and measurement ---------------------------------------------------------------
     @property
@@ -141,7 +149,13 @@ class PlantSimulatorNode(VehicleNode):
     # -- lockstep ---------------------------------------------------------------------------
     def _try_start(self):
         need = int(self.param('wait_for_subscribers'))
-        if any(self.count_subscribers(s.topic) < need for s, _, _ in self._sensor_pubs):
+        # matched readers (not just graph entries): a message sent now reaches them
+        if any(pub.get_subscription_count() < need for _, pub, _ in self._sensor_pubs):
+            return
+        if self._cmd_sub.get_publisher_count() < 1:
+            return
+        if self.param('wait_for_recorder') and (
+                not self._recorder_ready or self._state_pub.get_subscription_count() < 1):
             return
         # the observer and the compensator are up: someone publishes and someone reads the
         # estimate, and someone publishes commands

@@ -16,14 +16,17 @@ loses at most that much.
 
 from pathlib import Path
 
+from diagnostic_msgs.msg import DiagnosticStatus
 from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
 from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
                                 QosReliability, QosTime)
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import get_typestore, Stores
+from std_msgs.msg import Bool
 
 from ..core.errors import ObserverError
-from .common import (LATCHED_QOS, SENSOR_QOS, STATE_QOS, TOPICS, VehicleNode, run_node)
+from .common import (LATCHED_QOS, SENSOR_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS, VehicleNode,
+                     run_node)
 
 __all__ = ['RecorderNode', 'main', 'recorded_topics']
 
@@ -51,8 +54,9 @@ def recorded_topics(vehicle):
     """
     topics = [(s.topic, s.msg_type, SENSOR_QOS) for s in vehicle.sensors]
     js = 'sensor_msgs/msg/JointState'
-    topics += [(TOPICS['true_state'], js, STATE_QOS), (TOPICS['estimate'], js, STATE_QOS),
-               (TOPICS['residual'], js, STATE_QOS), (TOPICS['command'], js, STATE_QOS),
+    topics += [(TOPICS['true_state'], js, STATE_PUB_QOS),
+               (TOPICS['estimate'], js, STATE_PUB_QOS),
+               (TOPICS['residual'], js, STATE_PUB_QOS), (TOPICS['command'], js, STATE_PUB_QOS),
                (TOPICS['reference'], js, LATCHED_QOS),
                ('/clock', 'rosgraph_msgs/msg/Clock', STATE_QOS),
                ('/diagnostics', 'diagnostic_msgs/msg/DiagnosticArray', STATE_QOS)]
@@ -114,6 +118,27 @@ class RecorderNode(VehicleNode):
                 _message_class(msgtype), name,
                 lambda data, c=conn: self._on_message(c, data), qos, raw=True))
         self.get_logger().info(f'recording {len(topics)} topics to {path} ({storage})')
+        self._flush_timer = self.wall_timer(float(self.param('flush_period')), self._flush)
+        # 'recorder/ready' (latched) once every recorded topic has a matched publisher, so a
+        # simulator started with wait_for_recorder loses nothing to DDS matching
+        self._ready_pub = self.create_publisher(Bool, 'recorder/ready', LATCHED_QOS)
+        self._ready_timer = self.wall_timer(0.05, self._check_ready)
+
+    def _check_ready(self):
+        waiting = [sub.topic_name for sub in self._subs if sub.get_publisher_count() < 1]
+        if waiting:
+            self.get_logger().info(f'waiting for publishers of {waiting}',
+                                   throttle_duration_sec=2.0)
+            return
+        self._ready_timer.cancel()
+        self._ready_pub.publish(Bool(data=True))
+        self.get_logger().info('every topic has a publisher: ready')
+
+    def _flush(self):
+        """Report the counts; push buffered messages to disk (a SIGKILL loses less)."""
+        total = sum(self.counts.values())
+        self.publish_diagnostics(DiagnosticStatus.OK, f'recording to {self.path}',
+                                 {'messages': total})
 
     def _on_message(self, connection, data):
         t = self.get_clock().now().nanoseconds

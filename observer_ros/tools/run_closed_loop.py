@@ -97,7 +97,8 @@ def run_closed_loop(params_file, bag_path, storage='mcap', namespace=None, overr
         start('observer_node', *common)
         start('compensator', *common)
         # the simulator waits until the observer and the recorder subscribe to each sensor
-        start('plant_simulator', *overrides, 'wait_for_subscribers:=2')
+        start('plant_simulator', *overrides, 'wait_for_subscribers:=2',
+              'wait_for_recorder:=true')
         sim = procs['plant_simulator'][0]
         deadline = time.monotonic() + timeout
         while sim.poll() is None:

@@ -1,0 +1,382 @@
+# benchmarks/p3_replay.py: P3, observer-eval on a synthetic Imu bag against two baselines.
+"""
+P3: ``observer-eval`` on a synthetic bag of 10^6 Imu messages (10^4 with ``--smoke``).
+
+The bag is a seeded open-loop simulation of ``config/submarine.yaml``
+(``core.simulate.PlantSimulator``: exact ZOH, the gyro's noise) at the vehicle's rate:
+``/imu/data`` (sensor_msgs/Imu, one per step), and every 10th step ``/state/true`` and a
+new piecewise-constant command on ``/control/u`` (JointState), written with rosbags'
+Writer (mcap, version 9). It is generated once into ``benchmarks/.data/`` and reused.
+
+Three programs run in fresh processes, alternated over ``--rounds`` rounds (the order
+rotates each round); each reports its work time and its peak RSS (``VmHWM`` of /proc/self/status).
+The baselines are timed strictly: only their loop or call, imports and set-up
+excluded; observer-eval is timed from before its import to its exit status, so it
+pays for importing numpy, scipy, python-control and rosbags (about 1 s here):
+
+- ``eval``: ``observer-eval BAG --vehicle config/submarine.yaml --out DIR --no-plots``
+  (reading, replay of the design, scoring, table and the results files and bag);
+- baseline (a): rosbags ``Reader`` reading every message of the bag and deserialising
+  it with ``typestore.deserialize_cdr``;
+- baseline (b): python-control ``forced_response`` of the same discrete observer (the
+  vehicle's design at the bag's step, current form: inputs [y, u], outputs x_hat) on
+  the measurement and command arrays, already in memory.
+
+Figures: eval / (a) and eval / (b), per round [median <= 1.0 each]; peak RSS of eval
+per message. ``--big`` also writes a 10^7-message bag (about 3 GB, several minutes)
+and checks that observer-eval's peak RSS on it stays within 1 GiB.
+
+"""
+
+import json
+import os
+from pathlib import Path
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import (REPO, common_parser, machine_info, ratio_line, summary,  # noqa: E402
+                     write_json)
+
+VEHICLE = REPO / 'config' / 'submarine.yaml'
+DATA = Path(__file__).resolve().parent / '.data'
+CMD_EVERY = 10           # steps between commands (and true states)
+FORMAT = 2               # bump when the bag's content changes
+
+
+# ---------------------------------------------------------------- the synthetic bag
+
+def _template(store, msgtype, msg, markers):
+    """Serialise msg; return its bytes and the offsets of the marker values (float64)."""
+    import numpy as np
+    raw = bytes(store.serialize_cdr(msg, msgtype))
+    offsets = {}
+    for name, value in markers.items():
+        pos = raw.find(np.float64(value).tobytes())
+        assert pos > 0 and raw.find(np.float64(value).tobytes(), pos + 1) < 0, name
+        offsets[name] = pos
+    return raw, offsets
+
+
+def _stamp_offsets(store, make):
+    """Offsets of header.stamp.sec and .nanosec: serialise two stamps and compare."""
+    a = bytes(store.serialize_cdr(*make(0x01020304, 0x05060708)))
+    sec = a.find((0x01020304).to_bytes(4, 'little'))
+    nsec = a.find((0x05060708).to_bytes(4, 'little'))
+    assert sec > 0 and nsec > 0
+    return sec, nsec
+
+
+def _fill(template, count, stamp_ns, sec_off, nsec_off, doubles):
+    """``count`` copies of a template with stamps and float64 fields written in bulk."""
+    import numpy as np
+    rows = np.frombuffer(template, dtype=np.uint8)[None, :].repeat(count, axis=0)
+    sec = (stamp_ns // 1_000_000_000).astype('<i4')
+    nsec = (stamp_ns % 1_000_000_000).astype('<u4')
+    rows[:, sec_off:sec_off + 4] = sec.view(np.uint8).reshape(count, 4)
+    rows[:, nsec_off:nsec_off + 4] = nsec.view(np.uint8).reshape(count, 4)
+    for off, values in doubles:
+        rows[:, off:off + 8] = np.ascontiguousarray(values, dtype='<f8').view(
+            np.uint8).reshape(count, 8)
+    return rows
+
+
+def generate(messages, seed=0, data=DATA, log=print):
+    """
+    Write (or reuse) the synthetic bag of ``messages`` Imu messages.
+
+    Returns the bag directory; next to it ``arrays.npz`` holds, for baseline (b), the
+    stamps, the measurements and the command held at each measurement.
+
+    """
+    import numpy as np
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import get_typestore, Stores
+
+    from observer_ros.core.simulate import PlantSimulator
+    from observer_ros.vehicle import load_vehicle
+
+    root = Path(data) / f'imu_{messages}_s{seed}_v{FORMAT}'
+    bag = root / 'bag'
+    if (root / 'DONE').exists():
+        return bag
+    if root.exists():
+        shutil.rmtree(root)
+    root.mkdir(parents=True)
+    t_start = time.perf_counter()
+    vehicle = load_vehicle(VEHICLE)
+    plant = vehicle.plant
+    gyro = vehicle.sensors[0]
+    dt = vehicle.sample_time
+    rng = np.random.default_rng(seed + 1)
+    sim = PlantSimulator(plant, x0=vehicle.simulator.initial_state, seed=seed,
+                         measurement_noise_std=np.asarray(gyro.noise_std))
+    row = plant.output_rows(gyro.outputs)
+    n_cmd = (messages + CMD_EVERY - 1) // CMD_EVERY
+    commands = rng.uniform(-0.05, 0.05, size=(n_cmd, plant.m))
+    y = np.empty(messages)
+    x_true = np.empty((n_cmd, plant.n))
+    u_held = np.empty((messages, plant.m))      # the command held when y_k was measured
+    u = np.zeros(plant.m)
+    for k in range(messages):
+        if k % CMD_EVERY == 0:
+            x_true[k // CMD_EVERY] = sim.x
+        y[k] = sim.measure(row)[0]
+        u_held[k] = u
+        if k % CMD_EVERY == 0:
+            u = commands[k // CMD_EVERY]
+        sim.step(u, dt)
+    t0_ns = 1_000_000_000
+    step_ns = int(round(dt * 1e9))
+    stamps = t0_ns + step_ns * np.arange(messages, dtype=np.int64)
+    np.savez(root / 'arrays.npz', stamp_ns=stamps, y=y, u_held=u_held, dt=dt)
+    log(f'  P3: simulated {messages} steps in {time.perf_counter() - t_start:.1f} s')
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    T = store.types
+    IMU, JS = 'sensor_msgs/msg/Imu', 'sensor_msgs/msg/JointState'
+    field = gyro.fields[0].split('.')        # angular_velocity.y
+
+    def imu(sec=0, nsec=0, value=0.0):
+        v = T['geometry_msgs/msg/Vector3']
+        cov = np.zeros(9)
+        cov[0] = -1.0
+        msg = T[IMU](header=T['std_msgs/msg/Header'](
+            stamp=T['builtin_interfaces/msg/Time'](sec=sec, nanosec=nsec),
+            frame_id=gyro.frame_id),
+            orientation=T['geometry_msgs/msg/Quaternion'](x=0.0, y=0.0, z=0.0, w=1.0),
+            orientation_covariance=cov.copy(),
+            angular_velocity=v(x=0.0, y=0.0, z=0.0),
+            angular_velocity_covariance=np.zeros(9),
+            linear_acceleration=v(x=0.0, y=0.0, z=0.0),
+            linear_acceleration_covariance=cov.copy())
+        std = float(gyro.noise_std[0])
+        axis = 'xyz'.index(field[1])
+        msg.angular_velocity_covariance[4 * axis] = std * std
+        setattr(getattr(msg, field[0]), field[1], value)
+        return msg, IMU
+
+    def vector(names, values, sec=0, nsec=0):
+        msg = T[JS](header=T['std_msgs/msg/Header'](
+            stamp=T['builtin_interfaces/msg/Time'](sec=sec, nanosec=nsec), frame_id=''),
+            name=list(names), position=np.asarray(values, dtype=float),
+            velocity=np.zeros(0), effort=np.zeros(0))
+        return msg, JS
+
+    marker = 1.2345678901234567e-7
+    imu_raw, imu_off = _template(store, IMU, imu(value=marker)[0], {'y': marker})
+    imu_sec, imu_nsec = _stamp_offsets(store, lambda s, ns: imu(s, ns, 0.0))
+    n, m = plant.n, plant.m
+    st_markers = [marker * (i + 2) for i in range(n)]
+    st_raw, st_off = _template(store, JS, vector(plant.state_names, st_markers)[0],
+                               {i: v for i, v in enumerate(st_markers)})
+    st_sec, st_nsec = _stamp_offsets(store, lambda s, ns: vector(plant.state_names,
+                                                                 np.zeros(n), s, ns))
+    u_markers = [marker * (i + 20) for i in range(m)]
+    u_raw, u_off = _template(store, JS, vector(plant.input_names, u_markers)[0],
+                             {i: v for i, v in enumerate(u_markers)})
+    u_sec, u_nsec = _stamp_offsets(store, lambda s, ns: vector(plant.input_names,
+                                                               np.zeros(m), s, ns))
+    imu_rows = _fill(imu_raw, messages, stamps, imu_sec, imu_nsec, [(imu_off['y'], y)])
+    cmd_stamps = stamps[::CMD_EVERY]
+    st_rows = _fill(st_raw, n_cmd, cmd_stamps, st_sec, st_nsec,
+                    [(st_off[i], x_true[:, i]) for i in range(n)])
+    u_rows = _fill(u_raw, n_cmd, cmd_stamps, u_sec, u_nsec,
+                   [(u_off[i], commands[:, i]) for i in range(m)])
+    # sanity: the templated bytes deserialise to the values written
+    check = store.deserialize_cdr(imu_rows[messages // 2].tobytes(), IMU)
+    assert getattr(getattr(check, field[0]), field[1]) == y[messages // 2]
+    assert check.header.stamp.sec * 10**9 + check.header.stamp.nanosec == stamps[messages // 2]
+
+    ns = ''                                  # topics as recorded without a namespace
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        c_imu = writer.add_connection(f'{ns}/{gyro.topic}', IMU, typestore=store)
+        c_true = writer.add_connection(f'{ns}/state/true', JS, typestore=store)
+        c_u = writer.add_connection(f'{ns}/control/u', JS, typestore=store)
+        write = writer.write
+        stamp_list = stamps.tolist()
+        for k in range(messages):
+            ts = stamp_list[k]
+            if k % CMD_EVERY == 0:
+                write(c_true, ts, st_rows[k // CMD_EVERY].tobytes())
+            write(c_imu, ts, imu_rows[k].tobytes())
+            if k % CMD_EVERY == 0:
+                write(c_u, ts, u_rows[k // CMD_EVERY].tobytes())
+    (root / 'DONE').write_text(json.dumps({'messages': messages, 'seed': seed}))
+    log(f'  P3: wrote {bag} ({_size(bag) / 2**20:.0f} MiB) in '
+        f'{time.perf_counter() - t_start:.1f} s')
+    return bag
+
+
+def _size(path):
+    return sum(p.stat().st_size for p in Path(path).rglob('*') if p.is_file())
+
+
+# ---------------------------------------------------------------- the three programs
+
+def _maxrss_mib():
+    """Peak RSS of this process (VmHWM; getrusage's ru_maxrss survives exec on Linux)."""
+    try:
+        for line in Path('/proc/self/status').read_text().splitlines():
+            if line.startswith('VmHWM:'):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    import resource
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def worker_a(bag):
+    """Baseline (a): rosbags reads and deserialises every message."""
+    from rosbags.rosbag2 import Reader
+    from rosbags.typesys import get_typestore, Stores
+    store = get_typestore(Stores.ROS2_JAZZY)
+    t0 = time.perf_counter()
+    count = 0
+    with Reader(bag) as reader:
+        deserialize = store.deserialize_cdr
+        for conn, _, raw in reader.messages():
+            deserialize(raw, conn.msgtype)
+            count += 1
+    return {'seconds': time.perf_counter() - t0, 'messages': count}
+
+
+def worker_b(arrays):
+    """Baseline (b): python-control forced_response of the discrete observer, in memory."""
+    import numpy as np
+    data = np.load(arrays)
+    y, u_held, dt = data['y'], data['u_held'], float(data['dt'])
+    N = y.size
+    import control
+    from observer_ros.core.estimators import make_estimator
+    from observer_ros.core.model import zoh_matrices
+    from observer_ros.vehicle import load_vehicle
+    vehicle = load_vehicle(VEHICLE)
+    plant = vehicle.plant
+    est = make_estimator(plant, vehicle.observer)
+    M = est.correction_gain(dt)
+    Ad, Bd = zoh_matrices(plant.A, plant.B, dt)
+    C, D = plant.C, plant.D
+    n = plant.n
+    # current form, state s_k = x-_k (prior), inputs [y_k; u_k] (test_core_estimators)
+    IMC = np.eye(n) - M @ C
+    sys_ = control.ss(Ad @ IMC, np.hstack([Ad @ M, Bd - Ad @ M @ D]), IMC,
+                      np.hstack([M, -M @ D]), dt)
+    # the input held over step k is the one held when y_{k+1} is measured
+    u_step = np.vstack([u_held[1:], u_held[-1:]])
+    U = np.vstack([y[None, :], u_step.T])
+    t_arr = np.arange(N) * dt
+    t0 = time.perf_counter()
+    resp = control.forced_response(sys_, T=t_arr, U=U, X0=np.zeros(n))
+    x_hat = resp.outputs
+    return {'seconds': time.perf_counter() - t0, 'messages': int(N),
+            'x_hat_last': np.asarray(x_hat)[:, -1].tolist()}
+
+
+def worker_eval(bag, out):
+    """observer-eval BAG --vehicle config/submarine.yaml --out OUT --no-plots."""
+    t0 = time.perf_counter()
+    from observer_ros.bag.evaluate import main
+    import contextlib
+    import io
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        code = main([str(bag), '--vehicle', str(VEHICLE), '--out', str(out), '--no-plots',
+                     '--force'])
+    seconds = time.perf_counter() - t0
+    if code != 0:
+        raise SystemExit(f'observer-eval exited {code}: {buf.getvalue()[-2000:]}')
+    return {'seconds': seconds, 'table': buf.getvalue()[-1500:]}
+
+
+def _run_worker(kind, *args, timeout=3600):
+    cmd = [sys.executable, '-W', 'ignore', str(Path(__file__).resolve()), '--worker', kind,
+           *map(str, args)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+    if proc.returncode != 0:
+        raise RuntimeError(f'P3 worker {kind} failed ({proc.returncode}):\n'
+                           f'{proc.stdout[-2000:]}\n{proc.stderr[-3000:]}')
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+# ---------------------------------------------------------------- the benchmark
+
+def run(smoke=False, rounds=None, big=False, messages=None, log=print):
+    messages = messages or (10_000 if smoke else 1_000_000)
+    rounds = rounds or (1 if smoke else 3)
+    bag = generate(messages, log=log)
+    arrays = bag.parent / 'arrays.npz'
+    results = {'eval': [], 'a': [], 'b': []}
+    order = ['eval', 'a', 'b']
+    with tempfile.TemporaryDirectory(prefix='p3_eval_') as tmp:
+        for r in range(rounds):
+            for kind in order[r % 3:] + order[:r % 3]:
+                if kind == 'eval':
+                    res = _run_worker('eval', bag, Path(tmp) / f'out{r}')
+                elif kind == 'a':
+                    res = _run_worker('a', bag)
+                else:
+                    res = _run_worker('b', arrays)
+                results[kind].append(res)
+                log(f'  P3 round {r + 1}/{rounds} {kind:>4}: {res["seconds"]:.2f} s, '
+                    f'peak RSS {res["maxrss_mib"]:.0f} MiB')
+    figures = []
+    ev = [x['seconds'] for x in results['eval']]
+    for base, label in (('a', 'rosbags_read_deserialise'), ('b', 'control_forced_response')):
+        ratios = [e / x['seconds'] for e, x in zip(ev, results[base])]
+        figures.append(ratio_line(
+            'P3', f'eval/{label}', ratios, '<=', 1.0, smoke=smoke,
+            note=f'{messages} Imu msgs; eval median {summary(ev)["median"]:.2f} s, '
+                 f'({base}) {summary([x["seconds"] for x in results[base]])["median"]:.2f} s'))
+    rss = [x['maxrss_mib'] for x in results['eval']]
+    rss_a = [x['maxrss_mib'] for x in results['a']]
+    figures.append(ratio_line(
+        'P3', 'eval_peak_rss/rosbags_read_peak_rss',
+        [e / a for e, a in zip(rss, rss_a)], '<=', None, smoke=smoke,
+        note=f'eval {summary(rss)["median"]:.0f} MiB, (a) {summary(rss_a)["median"]:.0f} MiB '
+             f'for {messages} msgs (bag {_size(bag) / 2**20:.0f} MiB)'))
+    data = {'benchmark': 'P3', 'smoke': smoke, 'messages': messages, 'figures': figures,
+            'runs': results, 'bag_mib': _size(bag) / 2**20}
+    if big:
+        big_n = 10_000_000
+        big_bag = generate(big_n, log=log)
+        with tempfile.TemporaryDirectory(prefix='p3_big_') as tmp:
+            res = _run_worker('eval', big_bag, Path(tmp) / 'out')
+        log(f'  P3 big: eval of {big_n} msgs: {res["seconds"]:.1f} s, peak RSS '
+            f'{res["maxrss_mib"]:.0f} MiB')
+        figures.append(ratio_line('P3', 'eval_peak_rss_1e7_msgs/1GiB',
+                                  [res['maxrss_mib'] / 1024.0], '<=', 1.0,
+                                  note=f'{res["maxrss_mib"]:.0f} MiB, {res["seconds"]:.1f} s'))
+        data['big'] = res
+    return data
+
+
+def main(argv=None):
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ['--worker']:
+        kind, args = argv[1], argv[2:]
+        func = {'a': worker_a, 'b': worker_b, 'eval': worker_eval}[kind]
+        res = func(*args)
+        res['maxrss_mib'] = _maxrss_mib()
+        print(json.dumps(res))
+        return 0
+    parser = common_parser(__doc__.splitlines()[1])
+    parser.add_argument('--rounds', type=int, help='rounds of (eval, a, b); default 3')
+    parser.add_argument('--messages', type=int, help='Imu messages in the bag (default 10^6)')
+    parser.add_argument('--big', action='store_true',
+                        help='also the 10^7-message bag: peak RSS within 1 GiB')
+    args = parser.parse_args(argv)
+    print('P3: observer-eval on a synthetic Imu bag', flush=True)
+    data = run(smoke=args.smoke, rounds=args.rounds, big=args.big, messages=args.messages,
+               log=lambda s: print(s, flush=True))
+    data['machine'] = machine_info()
+    write_json(args.json, data)
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,119 @@
+# Shared helpers of the tests that start ROS 2 processes.
+"""Processes, a probe node and discovery waits for the node tests (no fixed sleeps)."""
+
+import contextlib
+import os
+from pathlib import Path
+import signal
+import subprocess
+import sys
+import time
+import warnings
+
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+
+from observer_ros.tools.run_closed_loop import node_command
+
+REPO = Path(__file__).resolve().parents[1]
+CONFIG = REPO / 'config'
+
+# One DDS domain per test session, so concurrent runs on the machine do not cross-talk.
+DOMAIN_ID = 100 + os.getpid() % 100
+
+
+def ros_env():
+    """Environment of the processes a test starts: this session's DDS domain."""
+    env = dict(os.environ)
+    env['ROS_DOMAIN_ID'] = str(DOMAIN_ID)
+    env['PYTHONUNBUFFERED'] = '1'
+    return env
+
+
+@contextlib.contextmanager
+def domain_env():
+    """Run code (e.g. run_closed_loop) with this session's domain in os.environ."""
+    old = os.environ.get('ROS_DOMAIN_ID')
+    os.environ['ROS_DOMAIN_ID'] = str(DOMAIN_ID)
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop('ROS_DOMAIN_ID', None)
+        else:
+            os.environ['ROS_DOMAIN_ID'] = old
+
+
+class Proc:
+    """A node process with its output captured to a file."""
+
+    def __init__(self, node, params_file, *params, namespace=None, log_dir=None):
+        log_dir = Path(log_dir or '/tmp')
+        self.log_path = log_dir / f'{node}_{os.getpid()}_{time.monotonic_ns()}.log'
+        self._log = open(self.log_path, 'w')
+        self.popen = subprocess.Popen(
+            node_command(node, params_file, *params, namespace=namespace),
+            stdout=self._log, stderr=subprocess.STDOUT, env=ros_env())
+
+    def alive(self):
+        """Return True while the process runs."""
+        return self.popen.poll() is None
+
+    def output(self):
+        """Return what the process printed so far."""
+        self._log.flush()
+        return self.log_path.read_text()
+
+    def stop(self, sig=signal.SIGINT, timeout=10.0):
+        """Send a signal and wait; kill if it does not exit. Return the exit code."""
+        if self.popen.poll() is None:
+            self.popen.send_signal(sig)
+            try:
+                self.popen.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                self.popen.kill()
+                self.popen.wait()
+        self._log.close()
+        return self.popen.returncode
+
+
+class Probe:
+    """An in-process node in this session's domain, with waits that spin it."""
+
+    def __init__(self, name='probe'):
+        warnings.filterwarnings('ignore', category=DeprecationWarning)
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=DOMAIN_ID)
+        self.node = rclpy.create_node(name, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def spin_until(self, predicate, timeout=20.0, what='condition'):
+        """Spin until predicate() is true; fail the test with `what` after timeout."""
+        deadline = time.monotonic() + timeout
+        while not predicate():
+            if time.monotonic() > deadline:
+                raise AssertionError(f'timed out after {timeout} s waiting for {what}')
+            self.executor.spin_once(timeout_sec=0.02)
+
+    def wait_subscribers(self, topic, count=1, timeout=20.0):
+        """Wait until `count` subscribers see `topic` (discovery, never a sleep)."""
+        self.spin_until(lambda: self.node.count_subscribers(topic) >= count, timeout,
+                        f'{count} subscriber(s) on {topic}')
+
+    def wait_publishers(self, topic, count=1, timeout=20.0):
+        """Wait until `count` publishers of `topic` are discovered."""
+        self.spin_until(lambda: self.node.count_publishers(topic) >= count, timeout,
+                        f'{count} publisher(s) of {topic}')
+
+    def close(self):
+        """Destroy the node and shut the context down."""
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
+def python():
+    """The interpreter the tests run with (the .venv one)."""
+    return sys.executable

@@ -1,0 +1,161 @@
+# Closed-loop runs over DDS: four processes, recorded to a bag, checked from the bag.
+"""The plant simulator, observer, compensator and recorder in closed loop (issue 4)."""
+
+import concurrent.futures
+
+import numpy as np
+import pytest
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import get_typestore, Stores
+
+from observer_ros.bag.vectors import read_vector_topic
+from observer_ros.core.compensator import design_vehicle
+from observer_ros.core.estimators import make_estimator
+from observer_ros.nodes.recorder import recorded_topics
+from observer_ros.tools.run_closed_loop import run_closed_loop
+from observer_ros.vehicle import load_vehicle
+
+from ros_helpers import CONFIG, domain_env
+
+NOISE_OFF = 'simulator.noise:=false'
+
+
+def _run(tmp_path, vehicle, *params, name='bag', namespace=None, storage='mcap'):
+    with domain_env():
+        return run_closed_loop(CONFIG / vehicle, tmp_path / name, storage=storage,
+                               namespace=namespace, overrides=params, quiet=True)
+
+
+def _vectors(bag, topic, names):
+    t, x = read_vector_topic(bag, topic, names)
+    assert len(t), f'no messages on {topic}'
+    return t, x
+
+
+def _at_common_stamps(ta, xa, tb, xb):
+    common, ia, ib = np.intersect1d(ta, tb, return_indices=True)
+    return common, xa[ia], xb[ib]
+
+
+@pytest.fixture(scope='module')
+def submarine_bag(tmp_path_factory):
+    """A noise-free submarine run, 20 s simulated (400 lock-step exchanges)."""
+    tmp = tmp_path_factory.mktemp('sub')
+    return _run(tmp, 'submarine.yaml', NOISE_OFF, 'simulator.duration:=20.0')
+
+
+def test_estimate_converges_at_the_designed_rate(submarine_bag):
+    vehicle = load_vehicle(CONFIG / 'submarine.yaml')
+    names = vehicle.plant.state_names
+    t_true, x_true = _vectors(submarine_bag, '/state/true', names)
+    t_est, x_est = _vectors(submarine_bag, '/state/estimate', names)
+    t, x, xh = _at_common_stamps(t_true, x_true, t_est, x_est)
+    assert len(t) >= 400
+    err = np.linalg.norm(x - xh, axis=1)
+    # theta(0) = 30 deg, theta_hat(0) = 0: the error starts at 0.52 rad ...
+    assert err[0] == pytest.approx(np.deg2rad(30.0), rel=1e-9)
+    # ... and each observer mode decays at its designed rate. The poles -0.6, -0.61, -0.62
+    # are so close that the norm of the error is dominated by t^2 exp(-0.6 t) for a long
+    # time, so the rates are measured on the modes: the projection of the error on the left
+    # eigenvector w of the sampled error matrix F = (I - M C) Ad (eig F = exp(p dt)) obeys
+    # w e[k+1] = exp(p dt) w e[k].
+    F = make_estimator(vehicle.plant, vehicle.observer).error_matrix(vehicle.sample_time)
+    z, W = np.linalg.eig(F.T)
+    e = (x - xh)[2:]
+    for zi, w in zip(z, W.T):
+        rate = np.log(zi.real) / vehicle.sample_time
+        proj = np.abs(e @ w)
+        window = (t[2:] - t[0] > 1.0) & (t[2:] - t[0] < 15.0)
+        slope = np.polyfit(t[2:][window], np.log(proj[window]), 1)[0]
+        assert slope == pytest.approx(rate, rel=0.05)
+        assert rate == pytest.approx(min(vehicle.observer.poles.real, key=lambda p:
+                                         abs(p - rate)), rel=1e-9)
+    # noise free and exactly sampled: the recorded error follows e[k+1] = F e[k] to
+    # round-off at every step (so it goes to zero, with no step-dependent bias)
+    np.testing.assert_allclose(e[1:], e[:-1] @ F.T, rtol=0, atol=1e-12 * err[0])
+    assert err[-1] < 1e-3 * err[0]
+
+
+def test_command_is_minus_k_times_the_estimate_at_matching_stamps(submarine_bag):
+    vehicle = load_vehicle(CONFIG / 'submarine.yaml')
+    K = np.asarray(design_vehicle(vehicle).K).reshape(1, 3)
+    t_est, x_est = _vectors(submarine_bag, '/state/estimate', vehicle.plant.state_names)
+    t_u, u = _vectors(submarine_bag, '/control/u', vehicle.plant.input_names)
+    t, xh, uu = _at_common_stamps(t_est, x_est, t_u, u)
+    assert len(t) >= 400
+    np.testing.assert_allclose(uu[:, 0], -(xh @ K.T)[:, 0], rtol=1e-12, atol=1e-15)
+
+
+def test_bag_has_every_topic_and_reads_back(submarine_bag):
+    vehicle = load_vehicle(CONFIG / 'submarine.yaml')
+    expected = {('/' + name.lstrip('/')) for name, _, _ in recorded_topics(vehicle)}
+    store = get_typestore(Stores.ROS2_JAZZY)
+    with AnyReader([submarine_bag], default_typestore=store) as reader:
+        counts = {c.topic: c.msgcount for c in reader.connections}
+        assert expected <= set(counts), f'missing {expected - set(counts)}'
+        for topic in expected:
+            assert counts[topic] > 0, f'{topic} is empty'
+        # every message deserialises
+        n = sum(1 for c, _, raw in reader.messages() if reader.deserialize(raw, c.msgtype))
+        assert n == sum(counts.values())
+    assert (submarine_bag / 'metadata.yaml').exists()
+    assert list(submarine_bag.glob('*.mcap'))
+
+
+def test_lockstep_run_is_reproducible_bit_for_bit(tmp_path):
+    """Two runs with measurement noise on give identical trajectories."""
+    vehicle = load_vehicle(CONFIG / 'submarine.yaml')
+    names = vehicle.plant.state_names
+    runs = [_run(tmp_path, 'submarine.yaml', 'simulator.duration:=5.0', name=f'run{i}')
+            for i in range(2)]
+    (t1, x1), (t2, x2) = [_vectors(b, '/state/true', names) for b in runs]
+    (e1, xh1), (e2, xh2) = [_vectors(b, '/state/estimate', names) for b in runs]
+    assert np.array_equal(t1, t2) and np.array_equal(x1, x2)
+    assert np.array_equal(e1, e2) and np.array_equal(xh1, xh2)
+
+
+def test_reduced_order_observer_reproduces_the_measured_state(tmp_path):
+    vehicle = load_vehicle(CONFIG / 'cart_pendulum_reduced.yaml')
+    names = vehicle.plant.state_names
+    bag = _run(tmp_path, 'cart_pendulum_reduced.yaml', NOISE_OFF, 'simulator.duration:=3.0')
+    t_true, x_true = _vectors(bag, '/state/true', names)
+    t_est, x_est = _vectors(bag, '/state/estimate', names)
+    t, x, xh = _at_common_stamps(t_true, x_true, t_est, x_est)
+    assert len(t) >= 300
+    i = names.index('x')
+    # the cart displacement is measured: the estimate is the measurement, exactly
+    np.testing.assert_allclose(xh[:, i], x[:, i], rtol=0, atol=1e-12)
+    # the others converge (poles -20, -20 +- 20i: e^-20 per second)
+    err = np.abs(x - xh).max(axis=1)
+    assert err[-1] < 1e-6
+
+
+def test_sqlite3_storage(tmp_path):
+    bag = _run(tmp_path, 'submarine.yaml', 'simulator.duration:=1.0', storage='sqlite3')
+    assert list(bag.glob('*.db3'))
+    vehicle = load_vehicle(CONFIG / 'submarine.yaml')
+    t, _ = _vectors(bag, '/state/estimate', vehicle.plant.state_names)
+    assert len(t) == 21
+
+
+def test_two_namespaced_vehicles_do_not_interfere(tmp_path):
+    """Two submarines side by side, in /sub1 and /sub2, with different initial states."""
+    vehicle = load_vehicle(CONFIG / 'submarine.yaml')
+    names = vehicle.plant.state_names
+    initial = {'sub1': [0.5, 0.0, 0.0], 'sub2': [-0.2, 0.1, 0.0]}
+    with concurrent.futures.ThreadPoolExecutor(2) as pool:
+        futures = {ns: pool.submit(
+            _run, tmp_path, 'submarine.yaml', NOISE_OFF, 'simulator.duration:=5.0',
+            f'simulator.initial_state:={x0}', name=ns, namespace=f'/{ns}')
+            for ns, x0 in initial.items()}
+        bags = {ns: f.result() for ns, f in futures.items()}
+    for ns, bag in bags.items():
+        other = 'sub2' if ns == 'sub1' else 'sub1'
+        t, x = _vectors(bag, f'/{ns}/state/true', names)
+        np.testing.assert_allclose(x[0], initial[ns])
+        assert len(t) == 101                    # one true state per step, none doubled
+        te, xe = _vectors(bag, f'/{ns}/state/estimate', names)
+        assert len(te) == 101
+        store = get_typestore(Stores.ROS2_JAZZY)
+        with AnyReader([bag], default_typestore=store) as reader:
+            assert not [c.topic for c in reader.connections if other in c.topic]
