@@ -14,7 +14,7 @@ setup: $(STAMP)
 $(STAMP): requirements.txt setup.py setup.cfg package.xml
 	test -x $(PY) || python3 -m venv .venv
 	$(PY) -m pip install --disable-pip-version-check -q -r requirements.txt
-	$(PY) -m pip install --disable-pip-version-check -q --no-deps --no-build-isolation -e .
+	$(PY) -m pip install --disable-pip-version-check -q --no-deps --use-pep517 -e . --config-settings editable_mode=compat
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -37,17 +37,11 @@ def message_class(msgtype):
     """
     Return the rclpy message class of a type name (``sensor_msgs/msg/Imu``).
 
-    Uses ``rosidl_runtime_py.utilities.get_message`` when it is installed, else imports
-    ``<package>.msg``. Raises BagToolError when the class cannot be imported.
+    Imports ``<package>.msg`` (the same on a Jazzy install and from the PyPI wheels).
+    Raises BagToolError when the class cannot be imported.
 
     """
     try:
-        from rosidl_runtime_py.utilities import get_message
-    except ImportError:
-        get_message = None
-    try:
-        if get_message is not None:
-            return get_message(msgtype)
         pkg, kind, name = msgtype.split('/')
         module = importlib.import_module(f'{pkg}.{kind}')
         return getattr(module, name)

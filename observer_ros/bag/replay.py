@@ -24,8 +24,15 @@ Long single-sensor stretches at a constant step are replayed in bulk for the
 current-form estimators (full and reduced order with poles, open loop): one step of
 such an estimator is the affine map ``x_k = F x_{k-1} + G y_k + H u_{k-1}``, whose
 matrices are measured by calling the estimator itself on unit vectors; the recursion is
-then evaluated in blocks with numpy. The first steps of every stretch are checked
-against the estimator's own calls; ``exact=True`` turns bulk replay off.
+then evaluated in blocks with numpy. The input held at each step is the last command
+before it in the replay order (the order above, the order the main loop walks). Every
+stretch is checked against the estimator's own calls, with the recorded events handled
+as the main loop handles them (:func:`_check_windows`): its first and last steps, a
+spread of windows across it, windows at its irregular places (a gap with other than one
+command, a command received after a later measurement, a change of step length or
+sensor) and one step of each step class. A stretch that differs by more than round-off
+(:data:`CHECK_RTOL` of the largest state so far) anywhere checked is replayed call by
+call instead, with a warning; ``exact=True`` turns bulk replay off.
 
 """
 
@@ -45,7 +52,11 @@ __all__ = ['Replay', 'replay', 'live_replay', 'epochs_of', 'affine_scan',
 CLOCK_JUMP_TOLERANCE = 0.5     # s, as the observer node's clock_jump_tolerance
 FUTURE_TOLERANCE = 10.0        # s, as the observer node's future_tolerance
 MIN_RUN = 64                   # steps: shorter stretches are replayed call by call
-CHECK_STEPS = 16               # steps of each bulk stretch checked against the estimator
+CHECK_STEPS = 16               # steps of each checked window of a bulk stretch
+CHECK_WINDOWS = 8              # windows spread over a stretch (first and last included)
+CHECK_IRREGULAR = 16           # most windows at irregular places of a stretch
+IRREGULAR_STEPS = 3            # steps of each of those
+CHECK_RTOL = 1e-11             # bulk vs call: relative to the largest |x_hat| so far
 _PROGRESS_EVERY = 1 << 15
 
 
@@ -195,12 +206,25 @@ def affine_scan(F, W, x0, steps=None, chunk=1 << 16):
 
 
 class _Events:
-    """The recording's measurements and commands merged into bag order."""
+    """
+    The recording's measurements and commands merged into the order the node used.
 
-    def __init__(self, recording, sensors, plant, counts):
+    A free-running (``realtime``) node handles messages as they arrive: bag order, the
+    recorder's receive order. A ``lockstep`` observer waits, after each estimate, for the
+    command that answers it before it takes the next measurement, so its order is the
+    stamps' order with, at one stamp, the measurement before the command; the recorder may
+    receive u[k] after y[k+1] (they come from different processes), so bag order is not
+    the node's order there. The stamps are sorted within each epoch of the bag order
+    (:func:`epochs_of`): a bag that loops, or a recording of several runs, keeps its
+    clock jumps where they were received.
+
+    """
+
+    def __init__(self, recording, sensors, plant, counts, lockstep=False,
+                 clock_jump_tolerance=CLOCK_JUMP_TOLERANCE):
         streams = [recording.sensors[s.name] for s in sensors]
         self.streams = streams
-        kinds, idxs, seqs = [], [], []
+        kinds, idxs, seqs, stamps = [], [], [], []
         for k, stream in enumerate(streams):
             ok = stream.valid.copy()
             if stream.has_header:
@@ -212,6 +236,7 @@ class _Events:
             kinds.append(np.full(sel.size, k, dtype=np.int64))
             idxs.append(sel)
             seqs.append(stream.seq[sel])
+            stamps.append(stream.stamp_ns[sel])
         cmd = recording.command
         self.command = cmd
         if cmd is not None and plant.m:
@@ -220,11 +245,16 @@ class _Events:
             kinds.append(np.full(sel.size, -1, dtype=np.int64))
             idxs.append(sel)
             seqs.append(cmd.seq[sel])
+            stamps.append(cmd.stamp_ns[sel])
         if kinds:
             kind = np.concatenate(kinds)
             idx = np.concatenate(idxs)
             seq = np.concatenate(seqs)
             order = np.argsort(seq, kind='stable')
+            if lockstep:
+                stamp = np.concatenate(stamps)[order]
+                epoch = epochs_of(stamp, clock_jump_tolerance)
+                order = order[np.lexsort((seq[order], kind[order] < 0, stamp, epoch))]
             self.kind, self.idx, self.seq = kind[order], idx[order], seq[order]
         else:
             self.kind = self.idx = self.seq = np.zeros(0, dtype=np.int64)
@@ -298,7 +328,9 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
     counts = dict.fromkeys(('measurements', 'commands', 'bad_messages', 'bad_commands',
                             'zero_stamps', 'out_of_order', 'duplicates', 'future_stamps',
                             'rejected_updates', 'numerical_resets', 'clock_jumps'), 0)
-    events = _Events(recording, sensors, plant, counts)
+    events = _Events(recording, sensors, plant, counts,
+                     lockstep=vehicle.simulator.mode == 'lockstep',
+                     clock_jump_tolerance=clock_jump_tolerance)
     est = make_estimator(plant, vehicle.observer)
     rows = [tuple(plant.output_rows(s.outputs)) for s in sensors]
     rows_idx = [np.array(r, dtype=np.intp) for r in rows]
@@ -435,7 +467,8 @@ def _find_runs(events, streams, cmd, est, jump, future_tolerance):
     increases (no fused correction at one stamp), every check of the node passes,
     and every command in between is stamped at (or, within the jump tolerance,
     before) the earlier measurement. Its class is (step key, sensor): F, G, H depend
-    only on those.
+    only on those. "In between" is in the replay order (``events``), which in lockstep
+    is not the bag order: positions in ``events``, never ``seq``, place the commands.
 
     Returns {event index of measurement a: run}; the run covers measurements
     a+1..b (indices into the merged measurement list).
@@ -474,12 +507,13 @@ def _find_runs(events, streams, cmd, est, jump, future_tolerance):
     step_ok = (key_id >= 0) & ok[1:]
     cev = np.flatnonzero(events.kind == -1)
     gap_cmds = np.zeros(M, dtype=np.int64)
-    cmd_order = None
+    # the last command at or before each event, in the replay order (-1: none)
+    last_cmd = np.maximum.accumulate(np.where(events.kind == -1,
+                                              np.arange(len(events)), -1))
     if cev.size:
         cidx = events.idx[cev]
-        cseq = events.seq[cev]
         ct = cmd.t[cidx]
-        g = np.searchsorted(mseq, cseq) - 1     # the measurement before each command
+        g = np.searchsorted(mev, cev) - 1       # the measurement before each command
         inside = g >= 0
         gi = g[inside]
         good = (ct[inside] <= tm[gi]) & (tm[gi] - ct[inside] <= jump)
@@ -487,13 +521,14 @@ def _find_runs(events, streams, cmd, est, jump, future_tolerance):
         bad_gap[gi[~good]] = True
         step_ok &= ~bad_gap[:-1]
         np.add.at(gap_cmds, gi, 1)
-        cmd_order = (cseq, cidx)                # events are in bag order already
     n_keys = max(1, len(key_index))
     step_class = np.where(step_ok, key_id * len(streams) + msens[1:], -1)
     ok_i = step_ok.astype(np.int8)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], ok_i, [0]])))
     runs = {}
-    shared = {'midx': midx, 'mseq': mseq, 'msens': msens, 'tm': tm, 'cmds': cmd_order,
+    shared = {'midx': midx, 'mseq': mseq, 'msens': msens, 'tm': tm, 'mev': mev,
+              'kind': events.kind, 'idx': events.idx, 'seq': events.seq,
+              'last_cmd': last_cmd, 'gap_cmds': gap_cmds,
               'step_class': step_class, 'n_classes': n_keys * len(streams)}
     for s0, s1 in zip(edges[::2], edges[1::2]):
         a, b = int(s0), int(s1)                 # steps a..b-1: measurements a+1..b
@@ -534,9 +569,113 @@ def _probe(est, t0, t1, rows):
     return F, G, H, Rx, Ry, Ru
 
 
-def _close(x, ref):
-    scale = max(1.0, float(np.max(np.abs(ref))))
-    return float(np.max(np.abs(x - ref))) <= 1e-9 * scale
+def _held_inputs(run, cmd, u0, a, b):
+    """
+    The input held at each correction a+1..b: that of the last command before it.
+
+    The last command before measurement j in the replay order, if it comes after
+    measurement a; else ``u0``, the input the estimator held at a.
+
+    """
+    last = run['last_cmd'][run['mev'][a + 1:b + 1]]
+    U = np.empty((b - a, u0.size))
+    U[:] = u0
+    after_a = last > run['mev'][a]
+    if after_a.any():
+        U[after_a] = cmd.values[run['idx'][last[after_a]]]
+    return U
+
+
+def _call_events(check, run, streams, cmd, rows, e0, e1):
+    """
+    Handle the events e0..e1-1 with the estimator ``check`` as the main loop does.
+
+    Inside a bulk stretch every event passes the node's checks, so a command is
+    ``set_input`` at its stamp (at the estimate's time if before it) and a
+    measurement is ``correct``. Returns the estimates after the measurements.
+
+    """
+    kind, idx = run['kind'], run['idx']
+    xs = []
+    for e in range(e0, e1):
+        k, j = int(kind[e]), int(idx[e])
+        if k < 0:
+            t = float(cmd.t[j])
+            last = check.t
+            check.set_input(last if last is not None and t < last else t, cmd.values[j])
+        else:
+            xs.append(check.correct(float(streams[k].t[j]), streams[k].values[j], rows[k]))
+    return np.array(xs).reshape(-1, check.n)
+
+
+def _windows(run, K):
+    """
+    The stretches (s0, s1) of steps of a bulk run checked call by call.
+
+    Steps s0..s1-1 (step s is measurement a+1+s): the first and the last
+    :data:`CHECK_STEPS`, :data:`CHECK_WINDOWS` in all spread evenly, and up to
+    :data:`CHECK_IRREGULAR` short ones (spread over them) where the events are not
+    the plain pattern: a gap with other than one command, events whose bag order is
+    not the replay order, a change of step class.
+
+    """
+    a = run['a']
+    w = min(CHECK_STEPS, K)
+    starts = np.unique(np.linspace(0, K - w, max(2, CHECK_WINDOWS)).round().astype(np.int64))
+    wins = [(int(s), int(s) + w) for s in starts]
+    mev = run['mev']
+    e0, e1 = int(mev[a]), int(mev[a + K])
+    seq = run['seq'][e0:e1 + 1]
+    odd = np.zeros(K, dtype=bool)                    # step s is irregular
+    odd |= run['gap_cmds'][a:a + K] != 1             # commands in the gap before step s
+    back = np.flatnonzero(np.diff(seq) < 0)          # bag order is not the replay order
+    if back.size:
+        odd[np.clip(np.searchsorted(mev[a + 1:a + K + 1] - e0, back + 1), 0, K - 1)] = True
+    cls = run['step_class'][a:a + K]
+    odd[1:] |= cls[1:] != cls[:-1]
+    spots = np.flatnonzero(odd)
+    if spots.size > CHECK_IRREGULAR:
+        spots = spots[np.linspace(0, spots.size - 1, CHECK_IRREGULAR).round().astype(int)]
+    for s in spots.tolist():
+        s0 = max(0, s - 1)
+        wins.append((s0, min(K, s0 + IRREGULAR_STEPS)))
+    wins.sort()
+    merged = []
+    for s0, s1 in wins:
+        if merged and s0 <= merged[-1][1]:
+            merged[-1] = (merged[-1][0], max(merged[-1][1], s1))
+        else:
+            merged.append((s0, s1))
+    return merged
+
+
+def _check_windows(est, run, streams, cmd, rows, X, U, scale):
+    """
+    Compare the bulk estimates X with the estimator's calls over the checked windows.
+
+    Each window starts from the bulk estimate before it (the estimator itself for
+    the first one) and handles the recorded events as the main loop does, commands
+    included, so it checks which input each step holds as well as the arithmetic.
+    Returns None, or a message naming the first difference beyond round-off.
+
+    """
+    a, K = run['a'], X.shape[0]
+    mev, tm = run['mev'], run['tm']
+    for s0, s1 in _windows(run, K):
+        check = copy.deepcopy(est)
+        if s0:
+            t0 = float(tm[a + s0])
+            check.reset(X[s0 - 1], t0)
+            check.set_input(t0, U[s0 - 1])
+        xs = _call_events(check, run, streams, cmd, rows, int(mev[a + s0]) + 1,
+                          int(mev[a + s1]) + 1)
+        err = np.max(np.abs(xs - X[s0:s1]), axis=1)
+        bad = np.flatnonzero(err > CHECK_RTOL * scale[s0:s1])
+        if bad.size:
+            s = s0 + int(bad[0])
+            return (f'{err[bad[0]]:.3g} at step {s} of {K}, t = {float(tm[a + 1 + s]):.9g} s '
+                    f'(|x_hat| up to {scale[s]:.3g})')
+    return None
 
 
 def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
@@ -548,19 +687,11 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
     if est.t != t_a:
         return None
     plant = est.plant
-    n, m_u, p = plant.n, plant.m, plant.p
+    n, p = plant.n, plant.p
     steps = slice(a + 1, b + 1)
     sens = msens[steps]
     idx = midx[steps]
-    # u held at each correction: the last command after a and before it, else est.u
-    U = np.empty((K, m_u))
-    U[:] = est.u
-    if run['cmds'] is not None and m_u:
-        c_seq, c_idx = run['cmds']
-        c_last = np.searchsorted(c_seq, mseq[steps]) - 1
-        after_a = c_last >= 0
-        after_a[after_a] = c_seq[c_last[after_a]] > mseq[a]
-        U[after_a] = cmd.values[c_idx[c_last[after_a]]]
+    U = _held_inputs(run, cmd, est.u, a, b)
     # classes of this run, and their maps measured on the estimator
     cls_all = run['step_class'][a:b]
     classes, first, cls = np.unique(cls_all, return_index=True, return_inverse=True)
@@ -604,25 +735,27 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
         r = (np.einsum('kij,kj->ki', Rx, Xprev[sel]) + np.einsum('kij,kj->ki', Ry, Y[k])
              + np.einsum('kij,kj->ki', Ru, U[sel]))
         R[np.ix_(sel, rows_idx[k])] = r
-    # check: the first steps call by call, and one step of each class from its prior
+    # round-off is relative to the size of the estimate so far (it may shrink to zero
+    # by cancellation, or grow without bound on an unstable open loop)
+    scale = np.maximum.accumulate(np.maximum(np.max(np.abs(X), axis=1),
+                                             np.max(np.abs(x0)))) + np.finfo(float).tiny
+    # check: windows of real calls over the recorded events, and one step of each class
+    # from its bulk prior
+    problem = _check_windows(est, run, streams, cmd, rows, X, U, scale)
     check = copy.deepcopy(est)
-    for s in range(min(CHECK_STEPS, K)):
-        k = int(sens[s])
-        check.set_input(check.t, U[s])
-        x = check.correct(float(tm[a + 1 + s]), streams[k].values[idx[s]], rows[k])
-        if not _close(x, X[s]):
-            warnings.append('bulk replay disabled: it differs from the estimator '
-                            f'({np.max(np.abs(x - X[s])):.3g} at step {s})')
-            return None
-    for f in first:
+    for f in first if problem is None else ():
         k = int(sens[f])
         check.reset(Xprev[f], float(tm[a + f]))
         check.set_input(float(tm[a + f]), U[f])
         x = check.correct(float(tm[a + f + 1]), streams[k].values[idx[f]], rows[k])
-        if not _close(x, X[f]):
-            warnings.append('bulk replay disabled: it differs from the estimator '
-                            f'({np.max(np.abs(x - X[f])):.3g} at step {f})')
-            return None
+        err = float(np.max(np.abs(x - X[f])))
+        if err > CHECK_RTOL * scale[f]:
+            problem = f'{err:.3g} at step {f} of {K} (one step of its class)'
+            break
+    if problem is not None:
+        warnings.append('bulk replay disabled: it differs from the estimator\'s calls by '
+                        f'{problem}; replaying call by call')
+        return None
     out_ns, out_x, out_r, out_seq, out_sensor = out
     for k in range(len(streams)):
         sel = sens == k

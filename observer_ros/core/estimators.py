@@ -39,7 +39,7 @@ import numpy as np
 import scipy.linalg
 
 from .analysis import is_stable_eigenvalue, observable_decomposition, stability_margin
-from .design import observer_gain, reduced_coordinates
+from .design import observer_gain, pole_placement_error, reduced_coordinates
 from .errors import DesignError, DimensionError, NotDetectableError, ObserverError
 from .model import as_matrix, as_poles, as_vector, Plant, zoh_matrices
 from .spec import OBSERVER_TYPES, ObserverSpec
@@ -57,30 +57,37 @@ __all__ = ['DT_DIGITS', 'GAIN_DIGITS', 'CACHE_SIZE', 'GAIN_CACHE_SIZE', 'TimeOrd
 #: at a fixed rate to a handful of keys (at most 9 in an hour at 1 kHz).
 DT_DIGITS = 12
 
-#: Significant decimal digits of a step length the correction gain is designed
-#: for (pole placement, reduced-order Lr, Kalman process noise and steady-state
-#: prior). Propagation always uses the step of ``DT_DIGITS``; only the gain comes
-#: from this coarser key. Time stamps of real sensors jitter, so nearly every step
-#: is new to twelve digits: its propagation costs one matrix exponential (tens of
-#: microseconds) while the gain, a pole placement of about 1 to 10 ms, is reused
-#: from a step within 0.5 % (3 digits: 1e-5 s steps at 1 kHz). The error map of a
-#: correction h seconds after the previous one is then ``(I - M(h_g) C) Ad(h)``:
-#: its eigenvalues are within about ``|A| |h - h_g|`` of the designed
-#: ``exp(s h_g)``, still stable, and a noise-free run still converges to round-off
-#: (the propagation is exact, so the error obeys a homogeneous recursion).
-GAIN_DIGITS = 3
+#: Significant decimal digits of the steps the correction gains are designed for
+#: (pole placement, reduced-order Lr, Kalman process noise): a grid of steps
+#: (2 digits: ..., 0.0039, 0.0040, 0.0041, ... s, 90 per decade, 1 % to 10 %
+#: apart). The gain of a step between two grid steps is interpolated linearly
+#: between theirs; on a grid step it is the designed one. Propagation always uses
+#: the step itself (``DT_DIGITS``). Time stamps of real sensors jitter, so nearly
+#: every step is new to twelve digits: it then costs one matrix exponential (tens
+#: of microseconds) and an interpolation, while pole placements (0.1 to 10 ms
+#: each) run once per grid step, a few dozen for a jittering rate. The gains are
+#: smooth in the step, so the interpolated gain places the poles to about
+#: ``(spacing / step)^2 / 8`` of themselves (1e-3 at worst for 2 digits); a
+#: noise-free run still converges to round-off, since the propagation is exact and
+#: the error obeys a homogeneous recursion.
+GAIN_DIGITS = 2
 
 #: Number of step lengths whose matrices are kept (least recently used ones are
 #: dropped).
 CACHE_SIZE = 64
 
-#: Number of gain keys whose gains are kept: every key of a jittering rate (about
-#: 60 at 1 kHz +- 5 %, 3 digits) must fit, or gains would be designed again.
+#: Number of grid steps whose gains are kept: all those a jittering rate meets
+#: must fit (about 90 per decade of step lengths), or gains would be designed again.
 GAIN_CACHE_SIZE = 1024
 
 #: A step of a discrete plant may differ from a whole number of sample times by
 #: this fraction of the sample time (time-stamp rounding).
 DISCRETE_STEP_TOL = 1e-6
+
+#: A gain from the quick placement (:func:`_quick_gain`) is kept only if its poles
+#: are within this relative error (``design.pole_placement_error``) of those asked
+#: for; otherwise the full design (place and acker compared) runs.
+QUICK_PLACE_TOL = 1e-10
 
 
 class TimeOrderError(ObserverError, ValueError):
@@ -146,6 +153,36 @@ def _discrete_noise(A, GQG, k):
     return 0.5 * (Q + Q.T)
 
 
+def _grid_step(mant, exp):
+    """The float of the decimal number mant * 10**exp (correctly rounded)."""
+    return float(f'{mant}e{exp}')
+
+
+def _bracket(key, digits):
+    """
+    Grid steps g0 <= key < g1 of ``digits`` significant digits and the weight of g1.
+
+    Returns ``(key_on_grid, None, 0.0)`` when key is a grid step (to 1e-12 of
+    itself); a function of key only.
+
+    """
+    text = format(key, f'.{digits - 1}e')          # d.ddd e+XX: nearest grid step
+    mantissa, exponent = text.split('e')
+    mant = int(mantissa.replace('.', ''))
+    exp = int(exponent) - (digits - 1)
+    near = _grid_step(mant, exp)
+    if abs(key - near) <= 1e-12 * key:
+        return near, None, 0.0
+    low, high = 10 ** (digits - 1), 10 ** digits
+    if near < key:
+        m1, e1 = (mant + 1, exp) if mant + 1 < high else (low, exp + 1)
+        g0, g1 = near, _grid_step(m1, e1)
+    else:
+        m0, e0 = (mant - 1, exp) if mant - 1 >= low else (high - 1, exp - 1)
+        g0, g1 = _grid_step(m0, e0), near
+    return g0, g1, (key - g0) / (g1 - g0)
+
+
 def _pick_poles(z, count):
     """
     Choose ``count`` of the desired z-plane poles ``z`` (conjugate pairs kept).
@@ -182,18 +219,81 @@ def _pick_poles(z, count):
     return np.array(chosen, dtype=complex)
 
 
+def _quick_gain(A, C, z, method):
+    """
+    M with eig(A - M C) = z by one direct formula, or None when it is not accurate.
+
+    One output (``auto`` or ``acker``): Ackermann's formula for the observer,
+    ``M = phi(A) O^-1 e_n`` with ``O = [C; C A; ...; C A^(n-1)]`` and phi the
+    polynomial with roots z (tens of microseconds). Then, for ``auto`` when
+    Ackermann lost digits, for several outputs, or for ``place``: scipy's
+    ``place_poles`` on the dual (what python-control's place calls; about a
+    millisecond). A result is kept only if its placed poles are within
+    :data:`QUICK_PLACE_TOL` of z, where neither method can lose to the other by
+    much, so it stands for the comparison ``design.observer_gain`` makes (several
+    milliseconds: decompositions, both methods, four pole errors). Every failure
+    (singular O, repeated poles, loss of digits) returns None.
+
+    """
+    p = C.shape[0]
+    if p == 1 and method in ('auto', 'acker'):
+        M = _checked(A, C, z, _ackermann)
+        if M is not None or method == 'acker':
+            return M
+    if method in ('auto', 'place'):
+        return _checked(A, C, z, _place_poles)
+    return None
+
+
+def _ackermann(A, C, z):
+    n = A.shape[0]
+    O = np.empty((n, n))
+    row = C[0]
+    for i in range(n):
+        O[i] = row
+        row = row @ A
+    coeffs = np.poly(z).real
+    P = np.eye(n)
+    for c in coeffs[1:]:
+        P = P @ A
+        P.flat[::n + 1] += c
+    e = np.zeros(n)
+    e[-1] = 1.0
+    return (P @ np.linalg.solve(O, e)).reshape(n, 1)
+
+
+def _place_poles(A, C, z):
+    import scipy.signal
+    return scipy.signal.place_poles(A.T, C.T, z, method='YT').gain_matrix.T
+
+
+def _checked(A, C, z, formula):
+    try:
+        M = formula(A, C, z)
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+    if not np.all(np.isfinite(M)) or pole_placement_error(A - M @ C, z) > QUICK_PLACE_TOL:
+        return None
+    return np.ascontiguousarray(M, dtype=float)
+
+
 def _place(A, C, zpoles, method):
     """
     Gain M with the observable part of eig(A - M C) at (some of) ``zpoles``.
 
-    When (A, C) is observable all n poles are placed (design.observer_gain).
-    Otherwise the pair is split by the orthogonal observable decomposition
-    ``T^T A T = [[Ao, 0], [A21, Au]]``, ``C T = [Co, 0]``; r = rank poles are
-    chosen by :func:`_pick_poles` and placed for (Ao, Co), and the unobservable
-    eigenvalues eig(Au) are kept: ``M = T[:, :r] Mo``.
+    The quick formula of :func:`_quick_gain` is tried first (all n poles, checked).
+    Otherwise, when (A, C) is observable all n poles are placed
+    (design.observer_gain). Otherwise the pair is split by the orthogonal
+    observable decomposition ``T^T A T = [[Ao, 0], [A21, Au]]``, ``C T = [Co, 0]``;
+    r = rank poles are chosen by :func:`_pick_poles` and placed for (Ao, Co), and
+    the unobservable eigenvalues eig(Au) are kept: ``M = T[:, :r] Mo``.
 
     """
     n = A.shape[0]
+    if len(zpoles) == n:
+        M = _quick_gain(A, C, np.asarray(zpoles, dtype=complex), method)
+        if M is not None:
+            return M
     _, _, _, T, r = observable_decomposition(A, None, C)
     if r == n:
         return observer_gain(A, C, _pick_poles(zpoles, n), method)
@@ -426,11 +526,12 @@ class Estimator:
     cache_size : int
         Number of step lengths whose propagation matrices are kept.
     gain_digits : int
-        Significant digits of the step the correction gain is designed for
-        (see :data:`GAIN_DIGITS`); at least 3. A new gain key costs a pole
-        placement (about 1 to 10 ms), so with stamps that jitter the gains of a
-        few dozen keys are designed once and reused. ``gain_digits >= dt_digits``
-        designs the gain for every step exactly (the slow behaviour).
+        Significant digits of the grid of steps the correction gains are
+        designed for, interpolated in between (see :data:`GAIN_DIGITS`); 2 to
+        17. A new grid step costs a pole placement (0.1 to 10 ms), so with
+        stamps that jitter a few dozen are designed once and reused.
+        ``gain_digits >= dt_digits`` designs the gain of every step exactly (a
+        pole placement for every new step).
 
     """
 
@@ -445,12 +546,14 @@ class Estimator:
         self._measured = _measured_rows(plant, measured_rows)
         self._measured_set = frozenset(self._measured)
         self._cache = StepCache(plant, dt_digits, cache_size)
-        if not 3 <= int(gain_digits) <= 17:
-            raise ObserverError(f'gain_digits must be between 3 and 17; got {gain_digits!r}')
+        if not 2 <= int(gain_digits) <= 17:
+            raise ObserverError(f'gain_digits must be between 2 and 17; got {gain_digits!r}')
+        self._gain_digits = int(gain_digits)
         if plant.is_discrete or int(gain_digits) >= int(dt_digits):
             self._gain_cache = None          # gains designed on the propagation step itself
         else:
-            self._gain_cache = StepCache(plant, gain_digits, GAIN_CACHE_SIZE)
+            # keyed by grid steps (exact decimal numbers), computed by gain_steps
+            self._gain_cache = StepCache(plant, DT_DIGITS, GAIN_CACHE_SIZE)
         self._rows_cache = {}
         self._all = self._rows_info(self._measured, 'rows')
         self._x = np.zeros(n)
@@ -513,9 +616,9 @@ class Estimator:
         """The :class:`StepCache` the gains are designed on (:attr:`cache` when the same)."""
         return self._cache if self._gain_cache is None else self._gain_cache
 
-    def gain_key(self, key):
+    def gain_steps(self, key):
         """
-        Return the key of the step the gain of a propagation key is designed for.
+        Return the grid steps whose gains make the gain of a step, and the weight.
 
         Parameters
         ----------
@@ -524,22 +627,49 @@ class Estimator:
 
         Returns
         -------
-        key : float or int
-            ``key`` rounded to ``gain_digits`` significant digits (continuous
-            plant), or ``key`` itself (discrete plant, or gain_digits >= dt_digits).
-            It is a function of ``key`` only.
+        g0, g1 : float or int
+            The grid steps (``gain_digits`` significant digits) with
+            ``g0 <= key < g1``; ``g1`` is None when ``key`` is a grid step, or for a
+            discrete plant (``g0 = key`` samples) or gain_digits >= dt_digits
+            (``g0 = key``).
+        w : float
+            The gain is ``(1 - w) M(g0) + w M(g1)``, ``w = (key - g0) / (g1 - g0)``.
+            A function of ``key`` only.
 
         """
         if self._gain_cache is None:
-            return key
-        return self._gain_cache.key(key)
+            return key, None, 0.0
+        return _bracket(key, self._gain_digits)
 
-    def _gain_step(self, key):
-        """The step entry (Ad, Bd of the gain key) that a gain for ``key`` is designed on."""
+    def _gain_value(self, key, name, design):
+        """
+        A gain (or Kalman noise) of the step ``key``: ``design(step)`` on the grid, interpolated.
+
+        ``name`` identifies the value in the steps' ``extra`` dicts; the interpolated
+        value is cached on the step of ``key`` itself.
+
+        """
+        step = self._cache.get(key)
+        value = step.extra.get(name)
+        if value is not None:
+            return value
         if self._gain_cache is None:
-            return self._cache.get(key)
-        cache = self._gain_cache
-        return cache.get(cache.key(key))
+            value = design(step)
+        else:
+            g0, g1, w = _bracket(key, self._gain_digits)
+            value = self._grid_value(g0, name, design)
+            if g1 is not None:
+                value = (1.0 - w) * value + w * self._grid_value(g1, name, design)
+        step.extra[name] = value
+        return value
+
+    def _grid_value(self, g, name, design):
+        step = self._gain_cache.get(g)
+        value = step.extra.get(name)
+        if value is None:
+            value = design(step)
+            step.extra[name] = value
+        return value
 
     # ------------------------------------------------------------ public steps
 
@@ -1026,16 +1156,11 @@ class FullOrderEstimator(_CurrentForm):
     def _gain(self, key, info):
         if key is None:
             return None
-        step = self._gain_step(key)
-        M = step.extra.get(info.rows)
-        if M is None:
-            if self._mode == 'poles':
-                M = _place(step.Ad, info.C @ step.Ad, self._zpoles(step), self._method)
-            else:
-                raise ObserverError('correction_gain and error_matrix apply to a full-order '
-                                    'observer given poles')
-            step.extra[info.rows] = M
-        return M
+        if self._mode != 'poles':
+            raise ObserverError('correction_gain and error_matrix apply to a full-order '
+                                'observer given poles')
+        return self._gain_value(key, info.rows, lambda step: _place(
+            step.Ad, info.C @ step.Ad, self._zpoles(step), self._method))
 
     def _propagate(self, step):
         mode = self._mode
@@ -1222,23 +1347,23 @@ class ReducedOrderEstimator(_CurrentForm):
                 M = self._Tinv[:, :self._pm][:, self._cols(info)]
                 self._init_gains[info.rows] = M
             return M
-        step = self._gain_step(key)
+        step = self._cache.get(key)
         M = step.extra.get(info.rows)
         if M is None:
-            Mfull = step.extra.get('Mfull')
-            if Mfull is None:
-                if self._mode == 'poles':
-                    pm = self._pm
-                    Phi = self._T @ step.Ad @ self._Tinv
-                    Lr = _place(Phi[pm:, pm:], Phi[:pm, pm:], self._zpoles(step),
-                                self._method)
-                else:
-                    Lr = self._L
-                Mfull = self._full_gain(Lr)
-                step.extra['Mfull'] = Mfull
+            Mfull = self._gain_value(key, 'Mfull', self._design_gain)
             M = Mfull[:, self._cols(info)]
             step.extra[info.rows] = M
         return M
+
+    def _design_gain(self, step):
+        """Tinv [I; Lr] of a step: Lr places the poles on (Phi22, Phi12) (or is given)."""
+        if self._mode == 'poles':
+            pm = self._pm
+            Phi = self._T @ step.Ad @ self._Tinv
+            Lr = _place(Phi[pm:, pm:], Phi[:pm, pm:], self._zpoles(step), self._method)
+        else:
+            Lr = self._L
+        return self._full_gain(Lr)
 
     # continuous given gain: z-form with ybar held ---------------------------
 
@@ -1403,21 +1528,20 @@ class KalmanEstimator(Estimator):
         self._P = None if self._P0 is None else self._P0.copy()
 
     def _noise(self, step):
-        Qk = step.extra.get('Q')
-        if Qk is None:
-            if step.k is None:
-                Qk = process_noise_covariance(self._plant.A, self._Q, step.h, self._G)
-            else:
-                Qk = _discrete_noise(self._plant.A, self._GQG, step.k)
-            step.extra['Q'] = Qk
-        return Qk
+        """Qk of a step (interpolated between grid steps, see :data:`GAIN_DIGITS`)."""
+        return self._gain_value(step.key, 'Q', self._noise_at)
+
+    def _noise_at(self, step):
+        if step.k is None:
+            return process_noise_covariance(self._plant.A, self._Q, step.h, self._G)
+        return _discrete_noise(self._plant.A, self._GQG, step.k)
 
     def _propagate(self, step):
         self._propagate_model(step)
         if self._P is not None:
             Ad = step.Ad
             P = Ad @ self._P @ Ad.T
-            P += self._noise(self._gain_step(step.key))
+            P += self._noise(step)
             self._P = P
 
     def _R_rows(self, info):
@@ -1446,7 +1570,7 @@ class KalmanEstimator(Estimator):
             h = self._t - self._t_anchor
             if h <= 0.0:
                 return
-            self._P = self._steady_prior(self._gain_step(self._cache.key(h)), info, R)
+            self._P = self._steady_prior(self._cache.step(h), info, R)
         P = self._P
         C = info.C
         PCt = P @ C.T

@@ -9,14 +9,30 @@ node's namespace), plus ``extra_topics`` ("name:pkg/msg/Type"). The storage is m
 Messages are stamped with the node clock at reception (sim time with use_sim_time).
 
 SIGINT or SIGTERM closes the bag cleanly: every message received before the signal is
-in it. The writer flushes (mcap: a chunk) every ``flush_period`` seconds, so a SIGKILL
-loses at most that much.
+in it. Every ``flush_period`` seconds (wall time) the writer flushes: mcap closes its
+pending chunk and flushes the file, sqlite3 commits; then the recorder reports on
+/diagnostics (``messages``: the total on disk, ``messages <topic>`` per topic). A SIGKILL
+therefore loses at most the messages since the last flush, and ``observer-bag-recover BAG``
+(observer_ros.bagrecover) makes such a bag readable again.
+
+A write that fails (disk full, I/O error) stops the recorder with a logged error naming
+the bag and exit status 1; the bag is then recovered in place up to its last flush (or,
+when even that fails, left for ``observer-bag-recover``). An existing ``output`` is never
+overwritten: the recorder refuses to start (status 2) and names the path.
 
 """
 
+import os
 from pathlib import Path
+import signal
+import sqlite3
+import sys
+import traceback
+import warnings
 
 from diagnostic_msgs.msg import DiagnosticStatus
+import rclpy
+from rclpy.executors import ExternalShutdownException
 from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
 from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
                                 QosReliability, QosTime)
@@ -24,19 +40,43 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import get_typestore, Stores
 from std_msgs.msg import Bool
 
+from ..bag.play import message_class
 from ..core.errors import ObserverError
-from .common import (LATCHED_QOS, SENSOR_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS, VehicleNode,
-                     run_node)
+from .common import LATCHED_QOS, SENSOR_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS, VehicleNode
 
-__all__ = ['RecorderNode', 'main', 'recorded_topics']
+__all__ = ['RecorderNode', 'RecordingError', 'main', 'recorded_topics']
 
 STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
 
 
-def _message_class(msgtype):
-    pkg, _, name = msgtype.split('/')
-    module = __import__(f'{pkg}.msg', fromlist=[name])
-    return getattr(module, name)
+class RecordingError(ObserverError):
+    """Writing the bag failed while recording (disk full, I/O error); the recorder stops."""
+
+
+def flush_storage(writer):
+    """
+    Push everything a rosbags Writer holds to the operating system.
+
+    mcap: the pending chunk is closed (written with its message indexes) and the file is
+    flushed; sqlite3: the open transaction is committed. After this, a killed process
+    leaves every message written so far on disk (``observer-bag-recover`` reads them).
+    Uses rosbags 0.11's storage internals; returns False when they are not there.
+
+    """
+    storage = writer.storage
+    if storage is None:
+        return False
+    chunk = getattr(storage, 'chunk', None)
+    if chunk is not None and hasattr(storage, 'close_chunk') and hasattr(storage, 'bio'):
+        if chunk.bio.tell():
+            storage.close_chunk()
+        storage.bio.flush()
+        return True
+    conn = getattr(storage, 'conn', None)
+    if isinstance(conn, sqlite3.Connection):
+        conn.commit()
+        return True
+    return False
 
 
 def recorded_topics(vehicle):
@@ -105,9 +145,14 @@ class RecorderNode(VehicleNode):
                 topics.append((name, msgtype, STATE_QOS))
         self.typestore = get_typestore(Stores.ROS2_JAZZY)
         self.writer = Writer(path, version=9, storage_plugin=STORAGES[storage])
-        self.writer.open()
+        try:
+            self.writer.open()
+        except OSError as err:
+            raise ObserverError(f'recorder: cannot create the bag {path}: {err}') from None
         self.path = path
+        self.failed = None
         self.counts = {}
+        self.flushes = 0
         self._subs = []
         for name, msgtype, qos in topics:
             resolved = self.resolve_topic_name(name)
@@ -115,10 +160,18 @@ class RecorderNode(VehicleNode):
                                               offered_qos_profiles=[_bag_qos(qos)])
             self.counts[resolved] = 0
             self._subs.append(self.create_subscription(
-                _message_class(msgtype), name,
+                message_class(msgtype), name,
                 lambda data, c=conn: self._on_message(c, data), qos, raw=True))
         self.get_logger().info(f'recording {len(topics)} topics to {path} ({storage})')
-        self._flush_timer = self.wall_timer(float(self.param('flush_period')), self._flush)
+        # the topic definitions go to disk at once: a bag killed before its first periodic
+        # flush still recovers (with its topics, no messages)
+        if not flush_storage(self.writer):
+            self.get_logger().warning('this rosbags version cannot flush while writing: a '
+                                      'SIGKILL loses the whole bag')
+        period = float(self.param('flush_period'))
+        if not period > 0.0:
+            raise ObserverError(f'recorder: flush_period must be > 0 s; got {period}')
+        self._flush_timer = self.wall_timer(period, self._flush)
         # 'recorder/ready' (latched) once every recorded topic has a matched publisher, so a
         # simulator started with wait_for_recorder loses nothing to DDS matching
         self._ready_pub = self.create_publisher(Bool, 'recorder/ready', LATCHED_QOS)
@@ -135,21 +188,71 @@ class RecorderNode(VehicleNode):
         self.get_logger().info('every topic has a publisher: ready')
 
     def _flush(self):
-        """Report the counts; push buffered messages to disk (a SIGKILL loses less)."""
+        """Push buffered messages to disk, then report the counts (now all on disk)."""
+        if self.writer is None:
+            return
+        try:
+            flush_storage(self.writer)
+        except (OSError, sqlite3.Error) as err:
+            self._fail(err)
+        self.flushes += 1
         total = sum(self.counts.values())
-        self.publish_diagnostics(DiagnosticStatus.OK, f'recording to {self.path}',
-                                 {'messages': total})
+        values = {'messages': total, 'flushes': self.flushes}
+        values.update({f'messages {topic}': n for topic, n in self.counts.items()})
+        self.publish_diagnostics(DiagnosticStatus.OK, f'recording to {self.path}', values)
 
     def _on_message(self, connection, data):
+        if self.writer is None:
+            return
         t = self.get_clock().now().nanoseconds
-        self.writer.write(connection, t, data)
+        try:
+            self.writer.write(connection, t, data)
+        except (OSError, sqlite3.Error) as err:
+            self._fail(err)
         self.counts[connection.topic] += 1
+
+    def _fail(self, err):
+        """A write failed: abort the bag, recover it up to its last flush, stop (raise)."""
+        writer, self.writer = self.writer, None
+        log = self.get_logger()
+        reason = os.strerror(err.errno) if isinstance(err, OSError) and err.errno else err
+        text = f'cannot write the bag {self.path}: {reason}'
+        log.error(f'{text}; recording stopped')
+        self.failed = text
+        try:
+            writer.abort()
+        except Exception:   # noqa: BLE001 - the file is closed either way
+            pass
+        from ..bagrecover import BagRecoveryError, recover_bag
+        try:
+            report = recover_bag(self.path)
+            log.error(f'bag {self.path} recovered up to its last flush: '
+                      f'{report["total"]} messages readable')
+        except (BagRecoveryError, OSError) as rec_err:
+            log.error(f'bag {self.path} not recovered now ({rec_err}); free some space and '
+                      f'run: observer-bag-recover {self.path}')
+        try:
+            self.publish_diagnostics(DiagnosticStatus.ERROR, text,
+                                     {'messages': sum(self.counts.values())})
+        except Exception:   # noqa: BLE001 - shutting down anyway
+            pass
+        raise RecordingError(text)
 
     def close(self):
         """Close the bag (idempotent)."""
         if self.writer is not None:
-            self.writer.close()
-            self.writer = None
+            writer, self.writer = self.writer, None
+            try:
+                writer.close()
+            except (OSError, sqlite3.Error) as err:
+                with_abort = f'cannot close the bag {self.path}: {err}'
+                self.get_logger().error(f'{with_abort}; run observer-bag-recover {self.path}')
+                self.failed = with_abort
+                try:
+                    writer.abort()
+                except Exception:   # noqa: BLE001 - the file is closed either way
+                    pass
+                return
             total = sum(self.counts.values())
             self.get_logger().info(f'bag closed: {self.path} ({total} messages)')
 
@@ -160,8 +263,43 @@ class RecorderNode(VehicleNode):
 
 
 def main(args=None):
-    """Run the recorder node (rclpy turns SIGINT and SIGTERM into a clean shutdown)."""
-    return run_node(RecorderNode, args)
+    """
+    Run the recorder node; return the exit status.
+
+    rclpy turns SIGINT and SIGTERM into a clean shutdown, and the bag is closed. Status 2:
+    it cannot start (bad parameters, the output exists); 1: writing failed.
+
+    """
+    warnings.filterwarnings('ignore', category=DeprecationWarning)
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        node = RecorderNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except RecordingError as err:
+        print(f'error: recorder: {err}', file=sys.stderr)
+        code = 1
+    except ObserverError as err:
+        rclpy.logging.get_logger('recorder').fatal(f'cannot start: {err}')
+        print(f'error: {err}', file=sys.stderr)
+        code = 2
+    except Exception:   # noqa: BLE001 - report, then exit non-zero
+        traceback.print_exc()
+        code = 1
+    finally:
+        # a second signal while the bag is being closed must not cut the close short
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        if node is not None:
+            node.close()
+            if node.failed and code == 0:
+                code = 1
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
 
 
 if __name__ == '__main__':

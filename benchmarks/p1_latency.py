@@ -1,0 +1,199 @@
+# benchmarks/p1_latency.py: P1, measurement -> estimate latency of the observer node vs a relay.
+"""
+P1: sensor message published -> x_hat received, over DDS, three processes.
+
+Processes: the observer node (``config/submarine.yaml``, ``simulator.mode:=realtime``
+so it answers every measurement without waiting for a command) in namespace
+``/p1_obs``; the baseline, ``relay_node.py`` (same topics, QoS and message layout, no
+estimator) in ``/p1_relay``; and this driver, which publishes ``imu/data`` to one of
+them at ``--rate`` Hz and receives its ``state/estimate``.
+
+Each Imu is stamped with the wall clock just before it is published (as a driver
+stamping real data would: the steps jitter by the publishing thread's wake-up
+jitter, so nearly every step is new to the estimator); the latency of an answer is
+the wall clock when the driver's callback runs minus that stamp.
+
+After a warm-up (DDS matching, the observer's first gains), blocks of ``--count``
+messages go alternately to the relay and to the observer (A B, B A, ...), ``--pairs``
+pairs. Per pair: observer / relay of the median and of the 99th percentile.
+
+Targets: median <= 1.10x relay, p99 <= 1.20x relay.
+
+"""
+
+import os
+from pathlib import Path
+import sys
+import tempfile
+import threading
+import time
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import (REPO, common_parser, machine_info, percentile, ratio_line,  # noqa: E402
+                     ros_env, summary, write_json)
+from _procs import node_command, start, stop_all  # noqa: E402
+
+TARGETS = {'relay': '/p1_relay', 'observer': '/p1_obs'}
+
+
+def _wait(predicate, timeout, what):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.05)
+    raise RuntimeError(f'P1: timed out waiting for {what}')
+
+
+def run(smoke=False, rate=None, count=None, pairs=None, observer_pythonpath=None,
+        log=print):
+    rate = rate or (200.0 if smoke else 250.0)
+    count = count or (200 if smoke else 1500)
+    pairs = pairs or (1 if smoke else 4)
+    os.environ['ROS_DOMAIN_ID'] = ros_env()['ROS_DOMAIN_ID']
+    import warnings
+    warnings.filterwarnings('ignore', category=DeprecationWarning)
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from sensor_msgs.msg import Imu, JointState
+    from builtin_interfaces.msg import Time
+
+    from observer_ros.nodes.common import SENSOR_QOS, STATE_QOS
+
+    logdir = Path(tempfile.mkdtemp(prefix='p1_logs_'))
+    procs = []
+    rclpy.init()
+    node = Node('p1_driver')
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    state = {'block': None, 'lat': [], 'got': 0}
+    lock = threading.Lock()
+
+    def on_estimate(target):
+        def cb(msg):
+            now = time.time_ns()
+            s = msg.header.stamp
+            lat = now - (s.sec * 1_000_000_000 + s.nanosec)
+            with lock:
+                if state['block'] == target:
+                    state['lat'].append(lat)
+        return cb
+
+    pubs, subs = {}, {}
+    for target, ns in TARGETS.items():
+        pubs[target] = node.create_publisher(Imu, f'{ns}/imu/data', SENSOR_QOS)
+        subs[target] = node.create_subscription(JointState, f'{ns}/state/estimate',
+                                                on_estimate(target), STATE_QOS)
+    msg = Imu()
+    msg.header.frame_id = 'base_link_frd'
+    msg.orientation.w = 1.0
+    msg.orientation_covariance[0] = -1.0
+    msg.linear_acceleration_covariance[0] = -1.0
+    msg.angular_velocity_covariance[4] = 1e-6
+
+    def send(target, n, seconds_per=None):
+        """Publish n messages to target at the rate; stamp = wall clock at publish."""
+        pub = pubs[target]
+        period = 1.0 / rate
+        t0 = time.perf_counter() + 0.01
+        for i in range(n):
+            deadline = t0 + i * period
+            while True:
+                left = deadline - time.perf_counter()
+                if left <= 0:
+                    break
+                time.sleep(left if left > 0.002 else 0.0)
+            now = time.time_ns()
+            msg.header.stamp = Time(sec=now // 1_000_000_000, nanosec=now % 1_000_000_000)
+            msg.angular_velocity.y = 0.001 * ((i % 200) - 100) / 100.0
+            pub.publish(msg)
+
+    def block(target, n):
+        with lock:
+            state['block'], state['lat'] = target, []
+        send(target, n)
+        time.sleep(0.3)                    # drain
+        with lock:
+            lat, state['block'] = state['lat'], None
+        return lat
+
+    results = {'relay': [], 'observer': []}
+    try:
+        procs.append(start([sys.executable, str(REPO / 'benchmarks' / 'relay_node.py'),
+                            '--ros-args', '-r', f'__ns:={TARGETS["relay"]}'],
+                           logdir / 'relay.log'))
+        procs.append(start(node_command('observer_node', 'simulator.mode:=realtime',
+                                        namespace=TARGETS['observer']),
+                           logdir / 'observer.log', pythonpath=observer_pythonpath))
+        spinner.start()
+        for target in TARGETS:
+            _wait(lambda t=target: pubs[t].get_subscription_count() >= 1
+                  and subs[t].get_publisher_count() >= 1, 60.0, f'{target} to match')
+        # warm-up: matching in both directions, the observer's first gains
+        for target in TARGETS:
+            deadline = time.monotonic() + 30.0
+            while True:
+                lat = block(target, int(rate * (0.5 if smoke else 1.5)))
+                if len(lat) > 0.5 * rate * (0.5 if smoke else 1.5) or \
+                        time.monotonic() > deadline:
+                    break
+        log(f'  P1: {rate:g} Hz, blocks of {count} messages, {pairs} pairs')
+        for i in range(pairs):
+            order = ('relay', 'observer') if i % 2 == 0 else ('observer', 'relay')
+            for target in order:
+                lat = block(target, count)
+                us = [x / 1000.0 for x in lat]
+                results[target].append({
+                    'sent': count, 'received': len(us),
+                    'median_us': percentile(us, 50), 'p99_us': percentile(us, 99),
+                    'max_us': max(us) if us else float('nan')})
+                r = results[target][-1]
+                log(f'  P1 pair {i + 1}/{pairs} {target:>8}: median {r["median_us"]:.0f} us, '
+                    f'p99 {r["p99_us"]:.0f} us, max {r["max_us"]:.0f} us, '
+                    f'received {r["received"]}/{count}')
+    finally:
+        executor.shutdown(timeout_sec=1.0)
+        node.destroy_node()
+        rclpy.try_shutdown()
+        stop_all(procs)
+    figures = []
+    rel, obs = results['relay'], results['observer']
+    for key, target in (('median_us', 1.10), ('p99_us', 1.20)):
+        ratios = [o[key] / r[key] for o, r in zip(obs, rel)]
+        figures.append(ratio_line(
+            'P1', f'{key[:-3]}_latency_observer/relay', ratios, '<=', target, smoke=smoke,
+            note=f'observer {summary([o[key] for o in obs])["median"]:.0f} us, relay '
+                 f'{summary([r[key] for r in rel])["median"]:.0f} us'))
+    lost = sum(o['sent'] - o['received'] for o in obs)
+    lost_r = sum(r['sent'] - r['received'] for r in rel)
+    figures.append(ratio_line(
+        'P1', 'answered_observer/relay',
+        [o['received'] / max(1, r['received']) for o, r in zip(obs, rel)], '>=', None,
+        smoke=smoke, note=f'unanswered: observer {lost}, relay {lost_r} of {count * pairs}'))
+    return {'benchmark': 'P1', 'smoke': smoke, 'rate_hz': rate, 'count': count,
+            'pairs': pairs, 'figures': figures, 'blocks': results, 'logs': str(logdir)}
+
+
+def main(argv=None):
+    parser = common_parser(__doc__.splitlines()[1])
+    parser.add_argument('--rate', type=float, help='messages per second (default 250)')
+    parser.add_argument('--count', type=int, help='messages per block (default 1500)')
+    parser.add_argument('--pairs', type=int, help='relay/observer block pairs (default 4)')
+    parser.add_argument('--observer-pythonpath', metavar='DIR',
+                        help='run the observer with this copy of observer_ros first on '
+                             'PYTHONPATH (to measure a previous version)')
+    args = parser.parse_args(argv)
+    print('P1: observer node latency against a bare relay', flush=True)
+    data = run(smoke=args.smoke, rate=args.rate, count=args.count, pairs=args.pairs,
+               observer_pythonpath=args.observer_pythonpath,
+               log=lambda s: print(s, flush=True))
+    data['machine'] = machine_info()
+    write_json(args.json, data)
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,290 @@
+# The nodes against bad messages, bad files, stale estimates and run-time parameter changes.
+"""Each node survives bad input, reports it, and keeps its design unless a change is sound."""
+
+import math
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+import numpy as np
+import pytest
+from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
+from sensor_msgs.msg import Imu, JointState
+import yaml
+
+from observer_ros.nodes.common import SENSOR_QOS, STATE_QOS, joint_state
+from observer_ros.timeutil import stamp_to_sec
+
+from ros_helpers import CONFIG, Probe, Proc
+
+REALTIME = 'simulator.mode:=realtime'   # no lock-step waiting for commands in these tests
+
+
+class Listener:
+    """Collect the estimates, commands and diagnostics of the nodes under test."""
+
+    def __init__(self, probe):
+        self.probe = probe
+        self.estimates, self.commands, self.diagnostics = [], [], []
+        node = probe.node
+        self.subs = {
+            'state/estimate': node.create_subscription(
+                JointState, 'state/estimate', self.estimates.append, STATE_QOS),
+            'control/u': node.create_subscription(
+                JointState, 'control/u', self.commands.append, STATE_QOS),
+            '/diagnostics': node.create_subscription(
+                DiagnosticArray, '/diagnostics', self.diagnostics.append, 50)}
+
+    def wait_matched(self, *topics):
+        """Wait until each topic's subscription has a matched publisher."""
+        for topic in topics:
+            sub = self.subs[topic]
+            self.probe.spin_until(lambda: sub.get_publisher_count() >= 1, 20.0,
+                                  f'{topic} matched')
+
+    def estimate_at(self, t, timeout=10.0):
+        """Wait for an estimate stamped t; return its values."""
+        def found():
+            return any(abs(stamp_to_sec(m.header.stamp) - t) < 1e-9 for m in self.estimates)
+        self.probe.spin_until(found, timeout, f'an estimate stamped {t}')
+        msg = [m for m in self.estimates if abs(stamp_to_sec(m.header.stamp) - t) < 1e-9][-1]
+        return np.array(msg.position)
+
+    def counter(self, node_name, key):
+        """Latest value of a diagnostics counter of a node (0 if never reported)."""
+        for array in reversed(self.diagnostics):
+            for status in array.status:
+                if status.name.endswith(node_name):
+                    for kv in status.values:
+                        if kv.key == key:
+                            return int(kv.value)
+        return 0
+
+    def wait_counter(self, node_name, key, at_least, timeout=10.0):
+        """Wait until a diagnostics counter reaches a value."""
+        self.probe.spin_until(lambda: self.counter(node_name, key) >= at_least, timeout,
+                              f'{node_name} diagnostics {key} >= {at_least}')
+
+    def latest_status(self, node_name):
+        """Return the node's latest DiagnosticStatus."""
+        for array in reversed(self.diagnostics):
+            for status in array.status:
+                if status.name.endswith(node_name):
+                    return status
+        return None
+
+
+def _imu(t, q):
+    msg = Imu()
+    msg.header.stamp.sec = int(math.floor(t))
+    msg.header.stamp.nanosec = int(round((t - math.floor(t)) * 1e9))
+    msg.angular_velocity.y = q
+    return msg
+
+
+@pytest.fixture
+def observer_setup(tmp_path):
+    proc = Proc('observer_node', CONFIG / 'submarine.yaml', REALTIME,
+                'diagnostics_period:=0.2', log_dir=tmp_path)
+    probe = Probe()
+    listener = Listener(probe)
+    pub = probe.node.create_publisher(Imu, 'imu/data', SENSOR_QOS)
+    cmd = probe.node.create_publisher(JointState, 'control/u', STATE_QOS)
+    probe.wait_subscribers('imu/data')
+    probe.wait_subscribers('control/u')
+    probe.wait_publishers('state/estimate')
+    probe.spin_until(lambda: pub.get_subscription_count() >= 1, 20.0, 'imu/data matched')
+    probe.spin_until(lambda: cmd.get_subscription_count() >= 1, 20.0, 'control/u matched')
+    listener.wait_matched('state/estimate', '/diagnostics')
+    yield proc, probe, listener, pub, cmd
+    probe.close()
+    assert proc.stop() == 0, proc.output()
+
+
+def test_observer_survives_every_bad_message(observer_setup):
+    proc, probe, listener, pub, cmd = observer_setup
+    t = 100.0
+
+    def good(q=0.01):
+        nonlocal t
+        t += 0.05
+        pub.publish(_imu(t, q))
+        x = listener.estimate_at(t)
+        assert np.all(np.isfinite(x))
+        return x
+
+    good()
+    good()
+    # NaN and Inf measurements: skipped, counted
+    for bad in (float('nan'), float('inf')):
+        pub.publish(_imu(t + 0.01, bad))
+    listener.wait_counter('observer', 'bad_messages', 2)
+    good()
+    # a zero stamp
+    pub.publish(_imu(0.0, 0.0))
+    listener.wait_counter('observer', 'bad_messages', 3)
+    good()
+    # an older stamp (out of order, less than the clock-jump tolerance back)
+    pub.publish(_imu(t - 0.2, 0.0))
+    listener.wait_counter('observer', 'out_of_order', 1)
+    # a duplicate stamp: not corrected twice, the estimate is re-published
+    n_before = len(listener.estimates)
+    pub.publish(_imu(t, 0.5))
+    listener.wait_counter('observer', 'duplicates', 1)
+    probe.spin_until(lambda: len(listener.estimates) > n_before, 5.0, 're-published estimate')
+    np.testing.assert_array_equal(listener.estimates[-1].position,
+                                  listener.estimates[-2].position)
+    good()
+    # a stamp far in the future of the node's clock
+    pub.publish(_imu(time.time() + 1e6, 0.0))
+    listener.wait_counter('observer', 'future_stamps', 1)
+    good()
+    # commands with unknown names, too few values, or NaN
+    for names, values in ((['rudder'], [1.0]), (['delta', 'x'], [1.0]),
+                          (['delta'], [float('nan')])):
+        msg = joint_state(['delta'], [0.0], t)
+        msg.name, msg.position = names, values
+        cmd.publish(msg)
+    listener.wait_counter('observer', 'bad_commands', 3)
+    good()
+    # a burst: 50 measurements at once; none is lost by our code (the DDS queue may drop)
+    received_before = listener.counter('observer', 'measurements')
+    for _ in range(50):
+        t += 0.001
+        pub.publish(_imu(t, 0.0))
+    probe.spin_until(lambda: any(abs(stamp_to_sec(m.header.stamp) - t) < 1e-9
+                                 for m in listener.estimates), 10.0, 'end of the burst')
+    # the clock jumps back (a looping bag): the estimator resets and goes on
+    t -= 30.0
+    good()
+    listener.wait_counter('observer', 'clock_jumps', 1)
+    # a sensor that stops: diagnostics warn 'predicting only', and it comes back
+    probe.spin_until(lambda: (s := listener.latest_status('observer')) is not None
+                     and 'predicting only' in s.message, 10.0, 'a silent-sensor warning')
+    good()
+    probe.spin_until(lambda: (s := listener.latest_status('observer')) is not None
+                     and s.message == 'estimating', 10.0, 'the sensor back')
+    assert listener.counter('observer', 'measurements') > received_before
+    assert proc.alive(), proc.output()
+    assert all(np.all(np.isfinite(m.position)) for m in listener.estimates)
+
+
+def _set_parameter(probe, node, name, values):
+    client = probe.node.create_client(SetParameters, f'/{node}/set_parameters')
+    probe.spin_until(client.service_is_ready, 20.0, f'/{node}/set_parameters')
+    value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE_ARRAY, double_array_value=values)
+    future = client.call_async(SetParameters.Request(
+        parameters=[Parameter(name=name, value=value)]))
+    probe.spin_until(future.done, 20.0, f'the answer to setting {name}')
+    return future.result().results[0]
+
+
+def test_observer_pole_change_is_validated(observer_setup):
+    proc, probe, listener, pub, cmd = observer_setup
+    result = _set_parameter(probe, 'observer', 'observer.poles', [0.5, -1.0, -2.0])
+    assert not result.successful
+    assert '0.5' in result.reason and 'stable' in result.reason, result.reason
+    result = _set_parameter(probe, 'observer', 'observer.poles', [-1.0, -1.1])
+    assert not result.successful and 'observer.poles' in result.reason, result.reason
+    result = _set_parameter(probe, 'observer', 'observer.poles', [-1.0, -1.1, -1.2])
+    assert result.successful, result.reason
+    # the node still estimates with the new gain
+    pub.publish(_imu(200.0, 0.0))
+    assert np.all(np.isfinite(listener.estimate_at(200.0)))
+    assert proc.alive()
+
+
+@pytest.fixture
+def compensator_setup(tmp_path):
+    proc = Proc('compensator', CONFIG / 'submarine.yaml', REALTIME,
+                'diagnostics_period:=0.2', log_dir=tmp_path)
+    probe = Probe()
+    listener = Listener(probe)
+    est = probe.node.create_publisher(JointState, 'state/estimate', STATE_QOS)
+    probe.spin_until(lambda: est.get_subscription_count() >= 1, 20.0, 'state/estimate matched')
+    listener.wait_matched('control/u', '/diagnostics')
+    yield proc, probe, listener, est
+    probe.close()
+    assert proc.stop() == 0, proc.output()
+
+
+def test_compensator_stale_and_bad_estimates_give_the_safe_command(compensator_setup):
+    proc, probe, listener, est = compensator_setup
+    names = ['theta', 'w', 'q']
+    est.publish(joint_state(names, [0.1, 0.0, 0.0], 5.0))
+    probe.spin_until(lambda: any(abs(stamp_to_sec(m.header.stamp) - 5.0) < 1e-9
+                                 for m in listener.commands), 10.0, 'a command')
+    u = [m for m in listener.commands if abs(stamp_to_sec(m.header.stamp) - 5.0) < 1e-9][0]
+    assert u.name == ['delta'] and u.position[0] != 0.0
+    # no more estimates: after stale_timeout the safe command (zero) and an ERROR
+    listener.wait_counter('compensator', 'safe_commands', 1)
+    assert listener.commands[-1].position[0] == 0.0
+    probe.spin_until(lambda: (s := listener.latest_status('compensator')) is not None
+                     and s.level == DiagnosticStatus.ERROR, 10.0, 'an ERROR on /diagnostics')
+    # a non-finite estimate: safe command, the node stays up
+    before = listener.counter('compensator', 'bad_estimates')
+    est.publish(joint_state(names, [float('nan'), 0.0, 0.0], 6.0))
+    listener.wait_counter('compensator', 'bad_estimates', before + 1)
+    assert listener.commands[-1].position[0] == 0.0
+    # good estimates again: the loop is closed again
+    est.publish(joint_state(names, [0.1, 0.0, 0.0], 7.0))
+    probe.spin_until(lambda: any(abs(stamp_to_sec(m.header.stamp) - 7.0) < 1e-9
+                                 for m in listener.commands), 10.0, 'a command again')
+    assert proc.alive()
+
+
+def test_controller_pole_change_is_validated(compensator_setup):
+    proc, probe, listener, est = compensator_setup
+    result = _set_parameter(probe, 'compensator', 'controller.poles', [0.3, -0.31, -0.32])
+    assert not result.successful and 'stable' in result.reason, result.reason
+    result = _set_parameter(probe, 'compensator', 'controller.poles', [-1.0, -1.1, -1.2])
+    assert result.successful, result.reason
+    est.publish(joint_state(['theta', 'w', 'q'], [0.1, 0.0, 0.0], 9.0))
+    probe.spin_until(lambda: any(abs(stamp_to_sec(m.header.stamp) - 9.0) < 1e-9
+                                 for m in listener.commands), 10.0, 'a command')
+    u = [m for m in listener.commands if abs(stamp_to_sec(m.header.stamp) - 9.0) < 1e-9][0]
+    # the new gain: K for poles -1, -1.1, -1.2 times x_hat
+    from observer_ros.core.design import controller_gain
+    from observer_ros.vehicle import load_vehicle
+    plant = load_vehicle(CONFIG / 'submarine.yaml').plant
+    K = controller_gain(plant.A, plant.B, [-1.0, -1.1, -1.2])
+    assert u.position[0] == pytest.approx(-(K @ [0.1, 0.0, 0.0])[0], rel=1e-9)
+
+
+def _write_vehicle(tmp_path, mutate):
+    with open(CONFIG / 'submarine.yaml') as f:
+        doc = yaml.safe_load(f)
+    mutate(doc['/**']['ros__parameters'])
+    path = tmp_path / 'vehicle.yaml'
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+@pytest.mark.parametrize('node', ['observer_node', 'compensator', 'plant_simulator'])
+def test_unusable_file_stops_the_node_before_it_starts(tmp_path, node):
+    path = _write_vehicle(tmp_path, lambda p: p['model'].pop('A'))
+    proc = Proc(node, path, log_dir=tmp_path)
+    code = proc.popen.wait(timeout=60)
+    assert code == 2, proc.output()
+    assert 'model.A' in proc.output()
+
+
+def test_undetectable_plant_is_refused_with_the_mode_named(tmp_path):
+    """Seed 002, Example 5.15: x3 (eigenvalue 5) is unobservable and unstable."""
+    def example_5_15(p):
+        p['model'].update(states=['x1', 'x2', 'x3'], inputs=['u'], outputs=['y1', 'y2'],
+                          A=[2.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 5.0],
+                          B=[3.0, 0.0, -1.0], C=[1.0, 0.0, 0.0, 1.0, 2.0, 0.0],
+                          D=[0.0, 1.0])
+        p['sensors'] = {'names': ['s'], 's': {
+            'topic': 'measurements', 'type': 'sensor_msgs/msg/JointState',
+            'fields': ['position.y1', 'position.y2'], 'outputs': ['y1', 'y2'],
+            'noise_std': [0.001, 0.001]}}
+        p['observer'] = {'type': 'full', 'poles': [-1.0, -2.0]}
+        p['controller'] = {'poles': [-1.0, -2.0, -3.0]}
+        p['simulator']['initial_state'] = [0.0, 0.0, 0.0]
+    path = _write_vehicle(tmp_path, example_5_15)
+    proc = Proc('observer_node', path, log_dir=tmp_path)
+    assert proc.popen.wait(timeout=60) == 2, proc.output()
+    out = proc.output()
+    assert 'x3' in out and '5' in out, out

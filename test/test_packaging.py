@@ -1,0 +1,133 @@
+# The package as a ROS 2 user gets it: colcon build, lib/observer_ros executables, share/.
+"""Packaging: colcon build, installed executables and config, declared dependencies."""
+
+import ast
+import json
+import os
+from pathlib import Path
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+
+import pytest
+
+from ros_helpers import Probe, REPO, ros_env
+
+EXECUTABLES = ('plant_simulator', 'observer', 'compensator', 'recorder', 'observer_design',
+               'observer_eval', 'observer_play', 'observer_run')
+
+# import name -> the package.xml key that provides it
+DEPENDENCY_KEYS = {
+    'rclpy': 'rclpy', 'std_msgs': 'std_msgs', 'sensor_msgs': 'sensor_msgs',
+    'diagnostic_msgs': 'diagnostic_msgs', 'rosgraph_msgs': 'rosgraph_msgs',
+    'builtin_interfaces': 'builtin_interfaces', 'rcl_interfaces': 'rcl_interfaces',
+    'ament_index_python': 'ament_index_python', 'numpy': 'python3-numpy',
+    'scipy': 'python3-scipy', 'yaml': 'python3-yaml', 'matplotlib': 'python3-matplotlib',
+    'control': 'python3-control-pip', 'rosbags': 'python3-rosbags-pip',
+}
+# optional imports guarded by ImportError (zstd and lz4 codecs for compressed chunks)
+OPTIONAL_IMPORTS = {'backports', 'compression', 'lz4'}
+
+
+@pytest.fixture(scope='module')
+def colcon_install(tmp_path_factory):
+    ws = tmp_path_factory.mktemp('ws')
+    colcon = Path(sys.executable).parent / 'colcon'
+    result = subprocess.run(
+        [str(colcon), 'build', '--base-paths', str(REPO), '--build-base', str(ws / 'build'),
+         '--install-base', str(ws / 'install')],
+        cwd=ws, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stdout + result.stderr
+    return ws / 'install' / 'observer_ros'
+
+
+def _installed_env(prefix):
+    env = ros_env()
+    site = next(prefix.glob('lib/python3*/site-packages'))
+    env['PYTHONPATH'] = os.pathsep.join([str(site), env.get('PYTHONPATH', '')])
+    env['AMENT_PREFIX_PATH'] = os.pathsep.join([str(prefix), sys.prefix])
+    return env
+
+
+def test_colcon_installs_executables_where_ros2_run_looks(colcon_install):
+    for exe in EXECUTABLES:
+        assert (colcon_install / 'lib' / 'observer_ros' / exe).is_file(), exe
+    share = colcon_install / 'share' / 'observer_ros'
+    assert (share / 'package.xml').is_file()
+    assert sorted(p.name for p in (share / 'config').glob('*.yaml')) == \
+        sorted(p.name for p in (REPO / 'config').glob('*.yaml'))
+    assert (colcon_install / 'share' / 'ament_index' / 'resource_index' / 'packages' /
+            'observer_ros').is_file()
+
+
+def test_installed_design_tool_runs_on_the_installed_config(colcon_install):
+    env = _installed_env(colcon_install)
+    exe = colcon_install / 'lib' / 'observer_ros' / 'observer_design'
+    config = colcon_install / 'share' / 'observer_ros' / 'config' / 'submarine.yaml'
+    result = subprocess.run([str(exe), str(config), '--json'], env=env, capture_output=True,
+                            text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert report['observable'] and report['separation_ok']
+    assert [v[0] for v in report['L']] == pytest.approx([-21.942, -2.2601, 0.7685], abs=1e-4)
+    # the installed copy is the one imported, and ament_index finds the package
+    where = subprocess.run(
+        [sys.executable, '-c', 'import observer_ros; '
+         'from ament_index_python.packages import get_package_share_directory as g; '
+         'print(observer_ros.__file__); print(g("observer_ros"))'],
+        env=env, capture_output=True, text=True, timeout=60, cwd=colcon_install)
+    assert where.returncode == 0, where.stderr
+    module, share = where.stdout.split()
+    assert module.startswith(str(colcon_install)) and share.startswith(str(colcon_install))
+
+
+def test_installed_observer_node_runs_with_the_installed_config(colcon_install):
+    env = _installed_env(colcon_install)
+    exe = colcon_install / 'lib' / 'observer_ros' / 'observer'
+    config = colcon_install / 'share' / 'observer_ros' / 'config' / 'submarine.yaml'
+    proc = subprocess.Popen([str(exe), '--ros-args', '--params-file', str(config)], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    probe = Probe()
+    try:
+        probe.wait_subscribers('imu/data')
+        probe.wait_publishers('state/estimate')
+    finally:
+        probe.close()
+        proc.send_signal(2)
+        out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0, out
+    assert 'observable=True' in out
+
+
+def test_core_and_offline_tools_import_no_ros():
+    code = ('import sys, observer_ros.core, observer_ros.vehicle, observer_ros.sensors, '
+            'observer_ros.bag.evaluate, observer_ros.tools.design_report; '
+            'bad = [m for m in sys.modules if m.split(".")[0] in '
+            '("rclpy", "std_msgs", "sensor_msgs", "rcl_interfaces")]; '
+            'assert not bad, bad')
+    result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 0, result.stderr
+
+
+def _third_party_imports():
+    found = set()
+    for path in (REPO / 'observer_ros').rglob('*.py'):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                found.update(alias.name.split('.')[0] for alias in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                found.add(node.module.split('.')[0])
+    stdlib = set(sys.stdlib_module_names)
+    return {name for name in found if name not in stdlib and name != 'observer_ros'}
+
+
+def test_package_xml_declares_every_runtime_dependency():
+    root = ET.parse(REPO / 'package.xml').getroot()
+    assert root.get('format') == '3'
+    declared = {e.text for e in root if e.tag in ('exec_depend', 'depend')}
+    imports = _third_party_imports() - OPTIONAL_IMPORTS
+    unknown = imports - set(DEPENDENCY_KEYS)
+    assert not unknown, f'imports with no known package.xml key: {unknown}'
+    missing = {DEPENDENCY_KEYS[name] for name in imports} - declared
+    assert not missing, f'package.xml lacks exec_depend {missing}'

@@ -1,0 +1,246 @@
+# The recorder against signals, SIGKILL, a full disk and an existing bag (reliability issue).
+"""The recorder keeps every message it reported on disk, whatever stops it."""
+
+import os
+from pathlib import Path
+import shutil
+import signal
+import subprocess
+import sys
+
+from diagnostic_msgs.msg import DiagnosticArray
+import pytest
+from rclpy.duration import Duration
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import get_typestore, Stores
+from sensor_msgs.msg import JointState
+
+from observer_ros.bagrecover import BagRecoveryError, recover_bag
+from observer_ros.nodes.common import STATE_PUB_QOS, STATE_QOS
+
+from ros_helpers import CONFIG, Probe, Proc
+
+VEHICLE = CONFIG / 'submarine.yaml'
+TOPIC = '/state/true'
+STORE = get_typestore(Stores.ROS2_JAZZY)
+
+
+class Feeder:
+    """A probe that publishes numbered JointState on state/true and reads the recorder."""
+
+    def __init__(self, name='recorder_feeder'):
+        self.probe = Probe(name)
+        node = self.probe.node
+        self.pub = node.create_publisher(JointState, 'state/true', STATE_PUB_QOS)
+        self.diagnostics = []
+        self.sub = node.create_subscription(DiagnosticArray, '/diagnostics',
+                                            self.diagnostics.append, STATE_QOS)
+        self.sent = 0
+
+    def wait_recorder(self):
+        """Wait until the recorder reads state/true and publishes /diagnostics."""
+        self.probe.spin_until(lambda: self.pub.get_subscription_count() >= 1, 30.0,
+                              'the recorder subscribed to state/true')
+        self.probe.spin_until(lambda: self.sub.get_publisher_count() >= 1, 30.0,
+                              'the recorder publishing /diagnostics')
+
+    def publish(self, n, width=1, ack=True):
+        """Publish n messages numbered from self.sent (position[0] = the number)."""
+        for _ in range(n):
+            msg = JointState()
+            msg.header.stamp.sec = 1 + self.sent
+            msg.name = [f'j{i}' for i in range(width)]
+            msg.position = [float(self.sent)] * width
+            self.pub.publish(msg)
+            self.sent += 1
+            if ack:
+                # reliable: delivered into the recorder's reader before the next one
+                assert self.pub.wait_for_all_acked(Duration(seconds=10))
+
+    def recorded(self, key=f'messages {TOPIC}'):
+        """The recorder's latest count of state/true messages on disk (-1 before any)."""
+        for array in reversed(self.diagnostics):
+            for status in array.status:
+                if status.name.endswith('/recorder'):
+                    for kv in status.values:
+                        if kv.key == key:
+                            return int(kv.value)
+        return -1
+
+    def wait_recorded(self, n, timeout=30.0):
+        """Wait until the recorder reports at least n state/true messages flushed."""
+        self.probe.spin_until(lambda: self.recorded() >= n, timeout,
+                              f'the recorder reporting {n} messages on {TOPIC}')
+
+    def close(self):
+        """Shut the probe down."""
+        self.probe.close()
+
+
+@pytest.fixture
+def feeder():
+    f = Feeder()
+    yield f
+    f.close()
+
+
+def _recorder(bag, storage, *params, log_dir=None):
+    return Proc('recorder', VEHICLE, f'output:={bag}', f'storage:={storage}',
+                'use_sim_time:=false', *params, log_dir=log_dir)
+
+
+def _numbers(bag):
+    """The numbers of the state/true messages in a bag, in bag order."""
+    with AnyReader([Path(bag)], default_typestore=STORE) as reader:
+        conns = [c for c in reader.connections if c.topic == TOPIC]
+        return [int(reader.deserialize(raw, c.msgtype).position[0])
+                for c, _, raw in reader.messages(connections=conns)]
+
+
+def _opens(bag):
+    try:
+        with AnyReader([Path(bag)], default_typestore=STORE) as reader:
+            sum(1 for _ in reader.messages())
+        return True
+    except Exception:   # noqa: BLE001 - any failure to read counts as not opening
+        return False
+
+
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+@pytest.mark.parametrize('sig', [signal.SIGTERM, signal.SIGINT], ids=['SIGTERM', 'SIGINT'])
+def test_a_signal_closes_the_bag_with_every_message(tmp_path, feeder, storage, sig):
+    bag = tmp_path / 'bag'
+    rec = _recorder(bag, storage, 'flush_period:=0.2', log_dir=tmp_path)
+    try:
+        feeder.wait_recorder()
+        n = 150
+        feeder.publish(n)
+        feeder.wait_recorded(n)
+        code = rec.stop(sig, timeout=20)
+    finally:
+        rec.stop(signal.SIGKILL)
+    assert code == 0, rec.output()
+    assert 'bag closed' in rec.output()
+    assert (bag / 'metadata.yaml').exists()
+    # closed cleanly: readable as it is, exactly the n messages, in order
+    assert _numbers(bag) == list(range(n))
+
+
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+def test_sigkill_loses_at_most_what_came_after_the_last_flush(tmp_path, feeder, storage):
+    bag = tmp_path / 'bag'
+    rec = _recorder(bag, storage, 'flush_period:=0.5', log_dir=tmp_path)
+    try:
+        feeder.wait_recorder()
+        flushed = 120
+        feeder.publish(flushed)
+        feeder.wait_recorded(flushed)        # reported after a flush: on disk
+        feeder.publish(40)                   # received, maybe not yet flushed
+        rec.stop(signal.SIGKILL)
+    finally:
+        rec.stop(signal.SIGKILL)
+    assert rec.popen.returncode == -signal.SIGKILL
+    assert not (bag / 'metadata.yaml').exists()
+    assert not _opens(bag)                   # what a killed writer leaves ...
+    report = recover_bag(bag)                # ... and what recovery makes of it
+    assert report['storage'] == storage
+    numbers = _numbers(bag)
+    assert flushed <= len(numbers) <= feeder.sent
+    assert numbers == list(range(len(numbers)))   # a prefix: nothing lost in between
+    assert report['messages'][TOPIC] == len(numbers)
+    # recovering again changes nothing
+    again = recover_bag(bag)
+    assert not again['repaired'] and _numbers(bag) == numbers
+
+
+def test_recover_command_line(tmp_path, feeder):
+    bag = tmp_path / 'bag'
+    rec = _recorder(bag, 'mcap', 'flush_period:=0.2', log_dir=tmp_path)
+    try:
+        feeder.wait_recorder()
+        feeder.publish(30)
+        feeder.wait_recorded(30)
+        rec.stop(signal.SIGKILL)
+    finally:
+        rec.stop(signal.SIGKILL)
+    out = subprocess.run([sys.executable, '-m', 'observer_ros.bagrecover', str(bag)],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert f'{TOPIC}: 30' in out.stdout
+    assert _numbers(bag) == list(range(30))
+    bad = subprocess.run([sys.executable, '-m', 'observer_ros.bagrecover',
+                          str(tmp_path / 'nothing')], capture_output=True, text=True,
+                         timeout=120)
+    assert bad.returncode == 2 and 'not a bag directory' in bad.stderr
+
+
+def test_an_existing_bag_is_never_overwritten(tmp_path):
+    bag = tmp_path / 'bag'
+    bag.mkdir()
+    (bag / 'keep.txt').write_text('precious')
+    rec = _recorder(bag, 'mcap', log_dir=tmp_path)
+    code = rec.popen.wait(timeout=60)
+    rec.stop()
+    assert code == 2
+    assert str(bag) in rec.output() and 'refusing to overwrite' in rec.output()
+    assert sorted(p.name for p in bag.iterdir()) == ['keep.txt']
+    assert (bag / 'keep.txt').read_text() == 'precious'
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 2 MiB tmpfs (root only)."""
+    if shutil.which('mount') is None:
+        pytest.skip('no mount command: cannot make a small disk')
+    disk = tmp_path / 'disk'
+    disk.mkdir()
+    out = subprocess.run(['mount', '-t', 'tmpfs', '-o', 'size=2m', 'tmpfs', str(disk)],
+                         capture_output=True, text=True)
+    if out.returncode != 0:
+        pytest.skip(f'cannot mount a 2 MiB tmpfs (needs root): {out.stderr.strip()}')
+    try:
+        yield disk
+    finally:
+        subprocess.run(['umount', '-l', str(disk)], check=False)
+
+
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+def test_a_full_disk_stops_the_recorder_with_a_clear_error(tmp_path, feeder, small_disk,
+                                                           storage):
+    bag = small_disk / 'bag'
+    rec = _recorder(bag, storage, 'flush_period:=0.2', log_dir=tmp_path)
+    try:
+        feeder.wait_recorder()
+        # ~40 KB per message: 2 MiB fill up after about 50
+        while rec.alive() and feeder.sent < 500:
+            feeder.publish(1, width=2500, ack=False)
+            feeder.pub.wait_for_all_acked(Duration(seconds=2))
+            feeder.probe.executor.spin_once(timeout_sec=0.05)   # take the diagnostics
+        code = rec.popen.wait(timeout=60)
+    finally:
+        rec.stop(signal.SIGKILL)
+    log = rec.output()
+    assert code == 1, log
+    assert str(bag) in log
+    assert ('No space left on device' in log) or ('disk is full' in log), log
+    on_disk = max(feeder.recorded(), 0)
+    # the recorder recovered the bag itself; recovering again must agree
+    assert 'recovered up to its last flush' in log, log
+    report = recover_bag(bag)
+    numbers = _numbers(bag)
+    assert numbers == list(range(len(numbers)))
+    assert on_disk <= len(numbers) < feeder.sent
+    assert report['total'] >= len(numbers)
+    assert os.statvfs(small_disk).f_bavail >= 0
+
+
+def test_recovery_refuses_what_is_not_a_bag(tmp_path):
+    with pytest.raises(BagRecoveryError, match='not a bag directory'):
+        recover_bag(tmp_path / 'missing')
+    (tmp_path / 'empty').mkdir()
+    with pytest.raises(BagRecoveryError, match='expected one .mcap or .db3'):
+        recover_bag(tmp_path / 'empty')
+    (tmp_path / 'junk').mkdir()
+    (tmp_path / 'junk' / 'junk.mcap').write_bytes(b'not an mcap file at all')
+    with pytest.raises(BagRecoveryError, match='not an mcap file'):
+        recover_bag(tmp_path / 'junk')
