@@ -6,7 +6,8 @@ The bag is a seeded open-loop simulation of ``config/submarine.yaml``
 (``core.simulate.PlantSimulator``: exact ZOH, the gyro's noise) at the vehicle's rate:
 ``/imu/data`` (sensor_msgs/Imu, one per step), and every 10th step ``/state/true`` and a
 new piecewise-constant command on ``/control/u`` (JointState), written with rosbags'
-Writer (mcap, version 9). It is generated once into ``benchmarks/.data/`` and reused.
+Writer (mcap, version 9). It is generated once into ``~/.cache/observer_ros/benchmarks``
+(``$OBSERVER_ROS_BENCH_DATA``) and reused.
 
 Three programs run in fresh processes, alternated over ``--rounds`` rounds (the order
 rotates each round); each reports its work time and its peak RSS (``VmHWM`` of /proc/self/status).
@@ -43,7 +44,9 @@ from _common import (REPO, common_parser, machine_info, ratio_line, summary,  # 
                      write_json)
 
 VEHICLE = REPO / 'config' / 'submarine.yaml'
-DATA = Path(__file__).resolve().parent / '.data'
+# generated data lives outside the repository (a 10^6-message bag is ~400 MB)
+DATA = Path(os.environ.get('OBSERVER_ROS_BENCH_DATA') or
+            Path.home() / '.cache' / 'observer_ros' / 'benchmarks')
 CMD_EVERY = 10           # steps between commands (and true states)
 FORMAT = 2               # bump when the bag's content changes
 

@@ -877,7 +877,7 @@ def test_gain_steps_bracket_the_step():
     assert est.gain_steps(0.0995)[:2] == (0.099, 0.1)          # across a decade
     assert est.gain_steps(0.000995)[:2] == (0.00099, 0.001)
     g0, g1, w = est.gain_steps(0.0039999999)
-    assert (g0, g1) == (0.0039, 0.004) and w == pytest.approx(1.0)
+    assert (g0, g1) == (0.0039, 0.004) and w == pytest.approx(0.999999)
     three = FullOrderEstimator(submarine(), poles=SUB_POLES, gain_digits=3)
     assert three.gain_steps(0.00104)[:2] == (0.00104, None)
     assert three.gain_steps(0.001045)[:2] == (0.00104, 0.00105)

@@ -119,8 +119,8 @@ def test_a_signal_closes_the_bag_with_every_message(tmp_path, feeder, storage, s
         code = rec.stop(sig, timeout=20)
     finally:
         rec.stop(signal.SIGKILL)
-    assert code == 0, rec.output()
-    assert 'bag closed' in rec.output()
+    assert code == 0, rec.log_path.read_text()
+    assert 'bag closed' in rec.log_path.read_text()
     assert (bag / 'metadata.yaml').exists()
     # closed cleanly: readable as it is, exactly the n messages, in order
     assert _numbers(bag) == list(range(n))
@@ -182,7 +182,7 @@ def test_an_existing_bag_is_never_overwritten(tmp_path):
     code = rec.popen.wait(timeout=60)
     rec.stop()
     assert code == 2
-    assert str(bag) in rec.output() and 'refusing to overwrite' in rec.output()
+    assert str(bag) in rec.log_path.read_text() and 'refusing to overwrite' in rec.log_path.read_text()
     assert sorted(p.name for p in bag.iterdir()) == ['keep.txt']
     assert (bag / 'keep.txt').read_text() == 'precious'
 
@@ -219,7 +219,7 @@ def test_a_full_disk_stops_the_recorder_with_a_clear_error(tmp_path, feeder, sma
         code = rec.popen.wait(timeout=60)
     finally:
         rec.stop(signal.SIGKILL)
-    log = rec.output()
+    log = rec.log_path.read_text()
     assert code == 1, log
     assert str(bag) in log
     assert ('No space left on device' in log) or ('disk is full' in log), log

@@ -106,7 +106,12 @@ class VehicleNode(Node):
     """
 
     def __init__(self, node_name, own_parameters=()):
-        super().__init__(node_name, automatically_declare_parameters_from_overrides=True)
+        try:
+            super().__init__(node_name, automatically_declare_parameters_from_overrides=True)
+        except ValueError as err:   # rclpy refuses some parameter values before we see them
+            raise ObserverError(
+                f'parameters: {err} (an empty list [] has no type in ROS 2: remove the key '
+                'or give it values; double arrays need floats, 1.0 not 1)') from None
         for name, default in own_parameters:
             if not self.has_parameter(name):
                 self.declare_parameter(name, default)

@@ -23,9 +23,11 @@ import numpy as np
 
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
-from ..vehicle import load_vehicle
+from ..vehicle import (apply_overrides, load_parameters, load_vehicle, parameters_to_yaml,
+                       vehicle_from_parameters)
 
-__all__ = ['main', 'run_closed_loop', 'node_command', 'summarize_bag']
+__all__ = ['main', 'run_closed_loop', 'node_command', 'summarize_bag', 'comparison_variants',
+           'lessons']
 
 NODES = ('plant_simulator', 'observer_node', 'compensator', 'recorder')
 
@@ -207,12 +209,13 @@ def main(argv=None):
                              '"observer.poles:=[-1.0,-1.1,-1.2]"')
     parser.add_argument('--evaluate', action='store_true',
                         help='replay the bag through the design, slower and faster poles and '
-                             'the open-loop observer, and print the comparison')
+                             'the open-loop observer; run the loop again with the slower '
+                             'poles; print the comparison')
     args = parser.parse_args(argv)
     vehicle_path = Path(args.vehicle) if args.vehicle else _default_vehicle()
     try:
         vehicle = load_vehicle(vehicle_path)
-        design_vehicle(vehicle)            # refuse an unusable file before starting anything
+        design = design_vehicle(vehicle)   # refuse an unusable file before starting anything
         stamp = datetime.datetime.now().strftime('%Y%m%d_%H%M%S')
         bag = Path(args.out) if args.out else Path('bags/runs') / f'{vehicle.name}_{stamp}'
         bag.parent.mkdir(parents=True, exist_ok=True)
@@ -220,31 +223,103 @@ def main(argv=None):
         run_closed_loop(vehicle_path, bag, storage=args.storage, namespace=args.namespace,
                         overrides=args.param)
         print(f'closed loop ran in {time.monotonic() - t0:.1f} s wall time')
-        _print_summary(vehicle, summarize_bag(bag, vehicle, args.namespace))
+        summary = summarize_bag(bag, vehicle, args.namespace)
+        _print_summary(vehicle, summary)
         if args.evaluate:
-            from ..bag.evaluate import main as eval_main
-            return eval_main([str(bag), '--vehicle', str(vehicle_path), *(
-                ['--namespace', args.namespace] if args.namespace else []),
-                *_comparison_variants(vehicle)])
+            _evaluate(vehicle_path, vehicle, design, bag, summary, args)
     except ObserverError as err:
         print(f'error: {err}', file=sys.stderr)
         return 2
     return 0
 
 
-def _comparison_variants(vehicle):
-    """The evaluation's comparison: slower and faster observer poles, and open loop."""
-    from ..core.compensator import design_vehicle as _design
-    poles = np.asarray(_design(vehicle).observer_poles, dtype=complex)
-    args = []
+def _evaluate(vehicle_path, vehicle, design, bag, summary, args):
+    """Replay the bag through several observers, rerun with slow poles, print the lessons."""
+    from ..bag.evaluate import evaluate_bag, format_table, write_results
+    variants = comparison_variants(vehicle, design)
+    result = evaluate_bag(bag, vehicle, variants, namespace=args.namespace)
+    out = bag.parent / (bag.name + '_eval')
+    files = write_results(result, out)
+    print()
+    print(format_table(result))
+    print(f'\nplots and tables: {out}/ ({", ".join(f.name for f in files)})')
+    # Seed 000: slow observer poles slow the whole loop: run the loop again with them.
+    slow_bag = bag.parent / (bag.name + '_slow_poles')
+    slow_file = bag.parent / (bag.name + '_slow_poles.yaml')
+    flat = apply_overrides(load_parameters(vehicle_path), variants['slow'])
+    vehicle_from_parameters(flat, source=str(slow_file))     # the variant is valid
+    slow_file.write_text(parameters_to_yaml(flat))
+    print(f'\nclosed loop again with the slow observer poles ({slow_file}) ...')
+    run_closed_loop(slow_file, slow_bag, storage=args.storage, namespace=args.namespace,
+                    overrides=args.param, quiet=True)
+    slow = summarize_bag(slow_bag, vehicle, args.namespace)
+    print(lessons(vehicle, design, result, summary, slow))
+
+
+def comparison_variants(vehicle, design):
+    """
+    The evaluation's comparison: observer poles 6x slower and 5x faster, and open loop.
+
+    Returns
+    -------
+    dict
+        ``{name: [overrides]}`` for ``evaluate_bag``.
+
+    """
+    poles = np.asarray(design.observer_poles, dtype=complex)
+    kind = vehicle.observer.kind if vehicle.observer.kind in ('full', 'reduced') else 'full'
+    variants = {}
     for name, factor in (('slow', 1.0 / 6.0), ('fast', 5.0)):
         p = poles ** factor if vehicle.plant.is_discrete else poles * factor
-        kind = vehicle.observer.kind if vehicle.observer.kind in ('full', 'reduced') \
-            else 'full'
-        args += ['--variant', f'{name}:observer.type:={kind},observer.gain:=[],'
-                 f'observer.poles:={_fmt(p.real)},observer.poles_imag:={_fmt(p.imag)}']
-    args += ['--variant', 'open_loop:observer.type:=open_loop']
-    return args
+        variants[name] = [f'observer.type:={kind}', 'observer.gain:=null',
+                          f'observer.poles:={_fmt(p.real)}',
+                          f'observer.poles_imag:={_fmt(p.imag)}']
+    variants['open_loop'] = ['observer.type:=open_loop']
+    return variants
+
+
+def lessons(vehicle, design, result, summary, slow_summary):
+    """
+    The seeds' lessons, read off this run: slow poles, fast poles, the open-loop observer.
+
+    Returns
+    -------
+    str
+
+    """
+    names = vehicle.plant.state_names
+    first = names[0]
+    lines = ['', "what the seeds' lessons look like on this run:"]
+    a, b = summary['settling_time'][first], slow_summary['settling_time'][first]
+    lines.append(f'- slow observer poles slow the whole loop (closed loop, live): {first} '
+                 f'settles (2%) in {a:.2f} s with the design, {b:.2f} s with the poles 6x '
+                 f'slower')
+    design_vr, fast_vr = result.variants['design'], result.variants['fast']
+    ratios = []
+    for name in names:
+        d, f = design_vr.states[name]['ss_std'], fast_vr.states[name]['ss_std']
+        if d > 0:
+            ratios.append((f / d, name, d, f))
+    if ratios:
+        r, name, d, f = max(ratios)
+        lines.append(f'- fast observer poles amplify noise (replay): steady-state spread of '
+                     f'{name} {d:.3g} with the design, {f:.3g} with poles 5x faster '
+                     f'({r:.1f}x)')
+    open_vr = result.variants['open_loop']
+    eig = np.linalg.eigvals(vehicle.plant.A)
+    unstable = np.any(np.abs(eig) >= 1.0) if vehicle.plant.is_discrete else \
+        np.any(eig.real >= 0.0)
+    err = open_vr.error
+    if err is not None and np.isfinite(err).any():
+        norms = np.linalg.norm(np.nan_to_num(err), axis=1)
+        k = max(1, len(norms) // 10)
+        start, end = float(np.mean(norms[:k])), float(np.mean(norms[-k:]))
+        verdict = ('drifts: the plant is unstable' if unstable else
+                   'converges only at the plant\'s own rate (its slowest eigenvalue '
+                   f'{max(eig.real):.3g}): no gain to speed it up')
+        lines.append(f'- the open-loop observer {verdict}: |x - x_hat| from {start:.3g} '
+                     f'(first 10%) to {end:.3g} (last 10%)')
+    return '\n'.join(lines)
 
 
 def _fmt(values):
