@@ -37,6 +37,15 @@ from _procs import node_command, start, stop_all  # noqa: E402
 TARGETS = {'relay': '/p1_relay', 'observer': '/p1_obs'}
 
 
+def _cpu_seconds(pid):
+    """User + system CPU time of a process (all its threads), from /proc."""
+    try:
+        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+    except OSError:
+        return float('nan')
+    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+
+
 def _wait(predicate, timeout, what):
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -114,13 +123,17 @@ def run(smoke=False, rate=None, count=None, pairs=None, observer_pythonpath=None
     def block(target, n):
         with lock:
             state['block'], state['lat'] = target, []
+        pid = pids.get(target)
+        cpu0 = _cpu_seconds(pid) if pid else float('nan')
         send(target, n)
         time.sleep(0.3)                    # drain
         with lock:
             lat, state['block'] = state['lat'], None
+        state['cpu'] = (_cpu_seconds(pid) - cpu0) if pid else float('nan')
         return lat
 
     results = {'relay': [], 'observer': []}
+    pids = {}
     try:
         procs.append(start([sys.executable, str(REPO / 'benchmarks' / 'relay_node.py'),
                             '--ros-args', '-r', f'__ns:={TARGETS["relay"]}'],
@@ -128,6 +141,7 @@ def run(smoke=False, rate=None, count=None, pairs=None, observer_pythonpath=None
         procs.append(start(node_command('observer_node', 'simulator.mode:=realtime',
                                         namespace=TARGETS['observer']),
                            logdir / 'observer.log', pythonpath=observer_pythonpath))
+        pids = {'relay': procs[0].pid, 'observer': procs[1].pid}
         spinner.start()
         for target in TARGETS:
             _wait(lambda t=target: pubs[t].get_subscription_count() >= 1
@@ -149,11 +163,12 @@ def run(smoke=False, rate=None, count=None, pairs=None, observer_pythonpath=None
                 results[target].append({
                     'sent': count, 'received': len(us),
                     'median_us': percentile(us, 50), 'p99_us': percentile(us, 99),
-                    'max_us': max(us) if us else float('nan')})
+                    'max_us': max(us) if us else float('nan'),
+                    'cpu_us_per_msg': state['cpu'] / count * 1e6})
                 r = results[target][-1]
                 log(f'  P1 pair {i + 1}/{pairs} {target:>8}: median {r["median_us"]:.0f} us, '
                     f'p99 {r["p99_us"]:.0f} us, max {r["max_us"]:.0f} us, '
-                    f'received {r["received"]}/{count}')
+                    f'received {r["received"]}/{count}, CPU {r["cpu_us_per_msg"]:.0f} us/msg')
     finally:
         executor.shutdown(timeout_sec=1.0)
         node.destroy_node()
@@ -167,6 +182,13 @@ def run(smoke=False, rate=None, count=None, pairs=None, observer_pythonpath=None
             'P1', f'{key[:-3]}_latency_observer/relay', ratios, '<=', target, smoke=smoke,
             note=f'observer {summary([o[key] for o in obs])["median"]:.0f} us, relay '
                  f'{summary([r[key] for r in rel])["median"]:.0f} us'))
+    figures.append(ratio_line(
+        'P1', 'cpu_per_message_observer/relay',
+        [o['cpu_us_per_msg'] / r['cpu_us_per_msg'] for o, r in zip(obs, rel)], '<=', None,
+        smoke=smoke,
+        note=f'observer {summary([o["cpu_us_per_msg"] for o in obs])["median"]:.0f} us, relay '
+             f'{summary([r["cpu_us_per_msg"] for r in rel])["median"]:.0f} us of CPU per message '
+             '(process utime + stime)'))
     lost = sum(o['sent'] - o['received'] for o in obs)
     lost_r = sum(r['sent'] - r['received'] for r in rel)
     figures.append(ratio_line(

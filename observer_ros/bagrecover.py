@@ -12,12 +12,13 @@ that:
   complete chunk (a chunk cut short, or damaged, and whatever follows it are dropped),
   the message indexes of that chunk are rebuilt, and a summary (schemas, channels, chunk
   indexes, statistics) and the footer are appended. Earlier bytes are not rewritten, so
-  recovery needs almost no free space (it works on the disk that filled up).
+  recovery needs little free space.
 - **sqlite3**: opening the database rolls back the transaction that was open (SQLite's
   journal), leaving what was committed.
 
-Then ``metadata.yaml`` (rosbag2 version 9) is written from what the storage holds, and the
-bag is opened with rosbags' AnyReader to check it. A bag that is already intact is left
+The recorder's ``.disk_reserve`` file is deleted first, so that this works on the disk
+that filled up. Then ``metadata.yaml`` (rosbag2 version 9) is written from what the
+storage holds, and the bag is opened with rosbags' AnyReader to check it. A bag that is already intact is left
 as it is. The original mcap, when it is cut, is not kept: copy the bag first to keep the
 damaged bytes.
 
@@ -401,9 +402,21 @@ def _metadata(storage, file_name, topics, t_min, t_max):
 
 
 def _write_metadata(bag, metadata):
+    """Write metadata.yaml (through a temporary file), unless it already says the same."""
+    text = yaml.safe_dump(metadata, default_flow_style=False, sort_keys=False)
+    target = bag / 'metadata.yaml'
+    try:
+        if target.read_text() == text:
+            return
+    except OSError:
+        pass
     tmp = bag / 'metadata.yaml.tmp'
-    tmp.write_text(yaml.safe_dump(metadata, default_flow_style=False, sort_keys=False))
-    tmp.replace(bag / 'metadata.yaml')
+    try:
+        tmp.write_text(text)
+        tmp.replace(target)
+    except OSError as err:
+        tmp.unlink(missing_ok=True)
+        raise BagRecoveryError(f'{bag}: cannot write metadata.yaml: {err}') from None
 
 
 def _mcap_topics(scan):
@@ -505,6 +518,8 @@ def recover_bag(path):
         raise BagRecoveryError(f'{bag}: expected one .mcap or .db3 file; found '
                                f'{[f.name for f in files] or "none"}')
     file = files[0]
+    # the space the recorder kept free for this moment (nodes.recorder, disk_reserve)
+    (bag / '.disk_reserve').unlink(missing_ok=True)
     if file.suffix == '.mcap':
         report = _recover_mcap(bag, file)
     else:

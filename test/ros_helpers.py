@@ -2,8 +2,10 @@
 """Processes, a probe node and discovery waits for the node tests (no fixed sleeps)."""
 
 import contextlib
+import ctypes
 import os
 from pathlib import Path
+import random
 import signal
 import subprocess
 import sys
@@ -20,7 +22,13 @@ REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / 'config'
 
 # One DDS domain per test session, so concurrent runs on the machine do not cross-talk.
-DOMAIN_ID = 100 + os.getpid() % 100
+DOMAIN_ID = random.SystemRandom().randint(100, 199)
+
+
+def _die_with_parent():
+    """In the child: get SIGTERM when the test process dies (no stray nodes)."""
+    libc = ctypes.CDLL('libc.so.6', use_errno=True)
+    libc.prctl(1, signal.SIGTERM)    # PR_SET_PDEATHSIG
 
 
 def ros_env():
@@ -54,7 +62,8 @@ class Proc:
         self._log = open(self.log_path, 'w')
         self.popen = subprocess.Popen(
             node_command(node, params_file, *params, namespace=namespace),
-            stdout=self._log, stderr=subprocess.STDOUT, env=ros_env())
+            stdout=self._log, stderr=subprocess.STDOUT, env=ros_env(),
+            preexec_fn=_die_with_parent)
 
     def alive(self):
         """Return True while the process runs."""

@@ -269,6 +269,92 @@ def test_bag_commands_off_the_estimate_stamps_are_replayed_call_by_call(runs, tm
     assert_allclose(bulk.x_hat, exact.x_hat, rtol=1e-9, atol=1e-10)
 
 
+def _swap_commands(messages, every=7):
+    """
+    The recorder's receive order in lockstep: u[k] after y[k+1], at every k % every == 3.
+
+    The command and the next step's messages come from different processes; the
+    command is moved after the next sensor message and received with it.
+
+    """
+    msgs = list(messages)
+    out, held = [], None
+    step = -1
+    for item in msgs:
+        topic, msgtype, ns, msg = item
+        if topic == '/clock':
+            step += 1
+        if topic == 'control/u' and step % every == 3:
+            held = item
+            continue
+        out.append(item)
+        if held is not None and topic not in ('/clock', 'state/true'):
+            out.append((held[0], held[1], ns, held[3]))     # received with y[k+1]
+            held = None
+    return out
+
+
+def test_bag_lockstep_replay_takes_the_nodes_order_not_the_receive_order(runs, tmp_path):
+    """The live run: y[k], x_hat[k], u[k], y[k+1]; the bag may hold y[k+1] before u[k]."""
+    vehicle, run = runs['sub_noisy']
+    swapped = _swap_commands(run['messages'])
+    bag = write_bag(tmp_path / 'swapped', swapped)
+    rec = read_recording(bag, vehicle)
+    live = live_replay(rec, vehicle)
+    u, y = rec.command, rec.sensors['gyro']
+    late = u.seq[:-1] > y.seq[1:len(u)]                    # u[k] received after y[k+1]
+    assert late.sum() == len(range(3, len(u) - 1, 7))
+    exact = replay(rec, vehicle, exact=True)
+    assert_array_equal(exact.x_hat, live.x_hat)
+    bulk = replay(rec, vehicle)
+    assert not bulk.warnings and bulk.bulk_steps >= len(bulk) - 1
+    assert_allclose(bulk.x_hat, live.x_hat, rtol=0, atol=1e-14)
+    # a free-running node takes messages as received: then the bag order is its order
+    free = load_vehicle(CONFIG / 'submarine.yaml', overrides=['simulator.mode:=realtime'])
+    as_received = replay(rec, free, exact=True)
+    assert np.max(np.abs(as_received.x_hat - live.x_hat)) > 1e-6
+    assert_allclose(replay(rec, free).x_hat, as_received.x_hat, rtol=0, atol=1e-14)
+
+
+def test_bag_bulk_self_check_catches_a_discrepancy_anywhere(runs, tmp_path, monkeypatch):
+    """A wrong input or a wrong step anywhere in a stretch: replayed call by call."""
+    import observer_ros.bag.replay as replay_module
+    vehicle, run = runs['sub_noisy']
+    rec = read_recording(write_bag(tmp_path / 'swapped', _swap_commands(run['messages'])),
+                         vehicle)
+    live = live_replay(rec, vehicle)
+
+    def bag_order_inputs(run, cmd, u0, a, b):
+        """The input of the last command before each measurement in bag order (wrong)."""
+        kind, seq, idx = run['kind'], run['seq'], run['idx']
+        pos = np.flatnonzero(kind < 0)
+        order = np.argsort(seq[pos], kind='stable')
+        c_seq, c_idx = seq[pos][order], idx[pos][order]
+        mseq = run['mseq']
+        U = np.empty((b - a, u0.size))
+        U[:] = u0
+        last = np.searchsorted(c_seq, mseq[a + 1:b + 1]) - 1
+        ok = last >= 0
+        ok[ok] = c_seq[last[ok]] > mseq[a]
+        U[ok] = cmd.values[c_idx[last[ok]]]
+        return U
+    monkeypatch.setattr(replay_module, '_held_inputs', bag_order_inputs)
+    rep = replay(rec, vehicle)
+    assert rep.bulk_steps == 0 and 'bulk replay disabled' in rep.warnings[0]
+    assert_array_equal(rep.x_hat, live.x_hat)
+    monkeypatch.undo()
+    scan = replay_module.affine_scan
+    for where in (0.3, 0.77, 0.999):
+        def bad_scan(F, W, x0, steps=None, chunk=1 << 16, where=where):
+            X = scan(F, W, x0, steps, chunk)
+            X[int(where * len(X)), 1] += 1e-8 * np.max(np.abs(X))      # one step
+            return X
+        monkeypatch.setattr(replay_module, 'affine_scan', bad_scan)
+        rep = replay(rec, vehicle)
+        assert rep.bulk_steps == 0 and 'bulk replay disabled' in rep.warnings[0], where
+        assert_array_equal(rep.x_hat, live.x_hat)
+
+
 def test_bag_clock_jump_back_resets_like_the_node(runs, tmp_path):
     """A looping bag: stamps jump back (receive times go on); the estimator restarts."""
     vehicle, run = runs['sub']
@@ -527,6 +613,28 @@ def test_bag_errors_definition_from_another_release(runs, tmp_path):
     _error(bad, vehicle, r'bad.db3: cannot read the bag: .*hash mismatch')
 
 
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+@pytest.mark.parametrize('version', [8, 9])
+def test_bag_written_by_rosbags_any_version_in_a_namespace(runs, tmp_path, storage, version):
+    """rosbags' own Writer, metadata version 8 (Iron) or 9 (Jazzy); topics under /sub1."""
+    vehicle, run = runs['sub_noisy']
+    bag = write_bag(tmp_path / f'v{version}', run['messages'], namespace='/sub1',
+                    storage=storage, version=version)
+    import yaml
+    meta = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    assert meta['version'] == version
+    assert meta['storage_identifier'] == storage
+    rec = read_recording(bag, vehicle)                      # namespace not given
+    assert rec.namespace == '/sub1' and rec.topics.sensors['gyro'] == '/sub1/imu/data'
+    assert not rec.warnings
+    live = live_replay(rec, vehicle)
+    assert len(live) == len(run['x_hat'])
+    assert_array_equal(replay(rec, vehicle, exact=True).x_hat, live.x_hat)
+    assert_allclose(replay(rec, vehicle).x_hat, live.x_hat, rtol=0, atol=1e-14)
+    info = bag_info(bag)
+    assert info.message_count == len(run['messages'])
+
+
 def test_bag_namespace_detection(runs, tmp_path):
     vehicle, run = runs['sub']
     both = tmp_path / 'two'
@@ -603,6 +711,35 @@ def test_bag_observer_eval_command(runs, bags, tmp_path, capsys):
     assert (other / 'thesis.tex').exists()
 
 
+def test_bag_observer_eval_output_goes_next_to_the_bag(runs, tmp_path, monkeypatch, capsys):
+    """Without --out: <bag>_eval beside the bag directory, whatever the current directory."""
+    vehicle, run = runs['sub']
+    bag = _bag(run, tmp_path / 'runs' / 'dive1')
+    elsewhere = tmp_path / 'elsewhere'
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    argv = [str(bag), '--vehicle', str(CONFIG / 'submarine.yaml'), '--no-plots', '--no-bag']
+    assert main(argv) == 0
+    out = tmp_path / 'runs' / 'dive1_eval'
+    assert (out / 'results.json').exists()
+    assert f'written to {out}/' in capsys.readouterr().out
+    assert not any(elsewhere.iterdir())
+    _cli_error(argv, capsys, f'{out} exists; refusing to overwrite it')
+    assert main(argv + ['--force']) == 0
+    # a relative bag path, and the bag's storage file: the same folder
+    monkeypatch.chdir(tmp_path / 'runs')
+    assert main(['dive1/', *argv[1:], '--force']) == 0
+    assert main([str(bag_file(bag)), *argv[1:], '--force']) == 0
+    assert sorted(p.name for p in (tmp_path / 'runs').iterdir()) == ['dive1', 'dive1_eval']
+    # a bare storage file (no metadata.yaml): <stem>_eval beside it
+    bare = tmp_path / 'loose' / 'dive2.mcap'
+    bare.parent.mkdir()
+    bare.write_bytes(bag_file(bag).read_bytes())
+    assert main([str(bare), *argv[1:]]) == 0
+    assert (tmp_path / 'loose' / 'dive2_eval' / 'results.json').exists()
+    capsys.readouterr()
+
+
 def test_bag_observer_eval_console_script(bags, tmp_path):
     exe = Path(sys.executable).parent / 'observer-eval'
     if not exe.exists():
@@ -619,6 +756,7 @@ def test_bag_observer_eval_console_script(bags, tmp_path):
     assert bad.stderr.startswith('error: ') and 'Traceback' not in bad.stderr
     helptext = subprocess.run([str(exe), '--help'], capture_output=True, text=True).stdout
     assert 'NAME:KEY:=VALUE' in helptext and '--tolerance' in helptext
+    assert '<bag>_eval next to the bag directory' in helptext
 
 
 def test_bag_tools_do_not_import_rclpy():

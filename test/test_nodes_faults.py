@@ -35,6 +35,11 @@ class Listener:
             '/diagnostics': node.create_subscription(
                 DiagnosticArray, '/diagnostics', self.diagnostics.append, 50)}
 
+    def wait_alive(self, node_name, timeout=30.0):
+        """Wait for a diagnostics message from the node under test (it is up and matched)."""
+        self.probe.spin_until(lambda: self.latest_status(node_name) is not None, timeout,
+                              f'diagnostics from {node_name}')
+
     def wait_matched(self, *topics):
         """Wait until each topic's subscription has a matched publisher."""
         for topic in topics:
@@ -45,9 +50,9 @@ class Listener:
     def estimate_at(self, t, timeout=10.0):
         """Wait for an estimate stamped t; return its values."""
         def found():
-            return any(abs(stamp_to_sec(m.header.stamp) - t) < 1e-9 for m in self.estimates)
+            return any(abs(stamp_to_sec(m.header.stamp) - t) < 1e-6 for m in self.estimates)
         self.probe.spin_until(found, timeout, f'an estimate stamped {t}')
-        msg = [m for m in self.estimates if abs(stamp_to_sec(m.header.stamp) - t) < 1e-9][-1]
+        msg = [m for m in self.estimates if abs(stamp_to_sec(m.header.stamp) - t) < 1e-6][-1]
         return np.array(msg.position)
 
     def counter(self, node_name, key):
@@ -96,6 +101,7 @@ def observer_setup(tmp_path):
     probe.spin_until(lambda: pub.get_subscription_count() >= 1, 20.0, 'imu/data matched')
     probe.spin_until(lambda: cmd.get_subscription_count() >= 1, 20.0, 'control/u matched')
     listener.wait_matched('state/estimate', '/diagnostics')
+    listener.wait_alive('observer')
     yield proc, probe, listener, pub, cmd
     probe.close()
     assert proc.stop() == 0, proc.output()
@@ -152,7 +158,7 @@ def test_observer_survives_every_bad_message(observer_setup):
     for _ in range(50):
         t += 0.001
         pub.publish(_imu(t, 0.0))
-    probe.spin_until(lambda: any(abs(stamp_to_sec(m.header.stamp) - t) < 1e-9
+    probe.spin_until(lambda: any(abs(stamp_to_sec(m.header.stamp) - t) < 1e-6
                                  for m in listener.estimates), 10.0, 'end of the burst')
     # the clock jumps back (a looping bag): the estimator resets and goes on
     t -= 30.0
@@ -203,6 +209,7 @@ def compensator_setup(tmp_path):
     est = probe.node.create_publisher(JointState, 'state/estimate', STATE_QOS)
     probe.spin_until(lambda: est.get_subscription_count() >= 1, 20.0, 'state/estimate matched')
     listener.wait_matched('control/u', '/diagnostics')
+    listener.wait_alive('compensator')
     yield proc, probe, listener, est
     probe.close()
     assert proc.stop() == 0, proc.output()
@@ -288,3 +295,16 @@ def test_undetectable_plant_is_refused_with_the_mode_named(tmp_path):
     assert proc.popen.wait(timeout=60) == 2, proc.output()
     out = proc.output()
     assert 'x3' in out and '5' in out, out
+
+
+def test_silent_sensor_means_predict_only(observer_setup):
+    """Stamps on the node's clock; the sensor stops: predictions are published, with a WARN."""
+    proc, probe, listener, pub, cmd = observer_setup
+    t = time.time()
+    pub.publish(_imu(t, 0.01))
+    listener.estimate_at(t)
+    listener.wait_counter('observer', 'predictions', 3)
+    later = [m for m in listener.estimates if stamp_to_sec(m.header.stamp) > t + 0.4]
+    assert later and all(np.all(np.isfinite(m.position)) for m in later)
+    status = listener.latest_status('observer')
+    assert status.level == DiagnosticStatus.WARN and 'predicting only' in status.message

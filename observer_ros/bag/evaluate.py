@@ -941,7 +941,8 @@ variants:
   The vehicle file's own design is always the variant "design"; the estimate recorded on
   state/estimate is scored as "live".
 
-output (folder --out, default bags/runs/<bag name>_eval; never overwritten without --force):
+output (folder --out; default <bag>_eval next to the bag directory, e.g. runs/sub1 ->
+runs/sub1_eval, wherever the command is run from; never overwritten without --force):
   the table on stdout and in results.txt, results.csv, results.json, states.png,
   error_norm.png, residuals.png, and results_bag/ (mcap) with /eval/<variant>/state/estimate,
   /eval/<variant>/state/error and /eval/state/true for PlotJuggler or Foxglove.
@@ -964,7 +965,8 @@ def _parser():
     parser.add_argument('--variant', action='append', default=[],
                         metavar='NAME:KEY:=VALUE[,...]',
                         help='an observer configuration to compare (see below)')
-    parser.add_argument('--out', help='output folder (default bags/runs/<bag name>_eval)')
+    parser.add_argument('--out', help='output folder (default: <bag>_eval next to the bag '
+                        'directory)')
     parser.add_argument('--namespace', help="the vehicle's namespace in the bag, e.g. /sub1 "
                         '(default: detected from the sensor topics)')
     parser.add_argument('--tolerance', help="settling band: a percentage of each state's "
@@ -984,9 +986,24 @@ def _parser():
 
 
 def _default_out(bag):
+    """
+    Return the default output folder: ``<bag>_eval`` next to the bag directory.
+
+    For a storage file inside a bag directory (one with metadata.yaml) that directory is
+    the bag; a bare ``.mcap``/``.db3`` file gets ``<stem>_eval`` next to it. The folder
+    does not depend on the current directory.
+
+    """
     bag = Path(bag)
-    name = bag.name if bag.is_dir() else bag.stem
-    return Path('bags') / 'runs' / f'{name or "bag"}_eval'
+    if bag.name in ('', '.', '..'):
+        bag = bag.resolve()
+    if bag.is_file():
+        if not (bag.parent / 'metadata.yaml').is_file():
+            return bag.with_name(f'{bag.stem or "bag"}_eval')
+        bag = bag.parent
+        if bag.name in ('', '.', '..'):
+            bag = bag.resolve()
+    return bag.parent / f'{bag.name or "bag"}_eval'
 
 
 def main(argv=None):

@@ -3,9 +3,12 @@
 Replay recorded measurements and commands through an estimator, as the observer node.
 
 The events (every sensor message and every ``control/u`` message of a
-:class:`~observer_ros.bag.reader.Recording`) are taken in bag order, which is the
-order the recorder received them; ties in receive time keep the order in the file.
-Each one is handled as ``observer_ros.nodes.observer_node`` handles it:
+:class:`~observer_ros.bag.reader.Recording`) are taken in the order the node took them:
+bag order, the order the recorder received them (ties in receive time keep the order in
+the file); for a vehicle whose ``simulator.mode`` is ``lockstep``, stamp order within
+each epoch of the bag (a measurement before a command at one stamp), since the recorder
+may receive a command after the next measurement (:class:`_Events`). Each one is handled
+as ``observer_ros.nodes.observer_node`` handles it:
 
 - a measurement at stamp t (``stamp_to_sec``; the receive time for a message without a
   header): a zero stamp or a message that does not give the outputs is skipped; a stamp
@@ -24,15 +27,23 @@ Long single-sensor stretches at a constant step are replayed in bulk for the
 current-form estimators (full and reduced order with poles, open loop): one step of
 such an estimator is the affine map ``x_k = F x_{k-1} + G y_k + H u_{k-1}``, whose
 matrices are measured by calling the estimator itself on unit vectors; the recursion is
-then evaluated in blocks with numpy. The input held at each step is the last command
-before it in the replay order (the order above, the order the main loop walks). Every
-stretch is checked against the estimator's own calls, with the recorded events handled
-as the main loop handles them (:func:`_check_windows`): its first and last steps, a
-spread of windows across it, windows at its irregular places (a gap with other than one
-command, a command received after a later measurement, a change of step length or
-sensor) and one step of each step class. A stretch that differs by more than round-off
-(:data:`CHECK_RTOL` of the largest state so far) anywhere checked is replayed call by
-call instead, with a warning; ``exact=True`` turns bulk replay off.
+then evaluated in blocks with numpy. The input held at each step is that of the last
+command before it in the replay order (the order above, which the main loop walks; in
+lockstep it is not the bag order). Every stretch is checked before it is used:
+
+- every step against its affine map, with the held input found again from the events
+  (:func:`_check_steps`);
+- windows of the estimator's own calls, the recorded events handled as the main loop
+  handles them (:func:`_check_windows`): the first and last steps, a spread across the
+  stretch, and its irregular places (a gap with other than one command, events whose bag
+  order is not the replay order, a change of step length or sensor);
+- one step of each step class from its bulk prior.
+
+A stretch that differs anywhere by more than round-off (:data:`CHECK_RTOL` of the size
+of the terms of its steps so far) is replayed call by call instead, with a warning.
+An unstable estimator (the open loop of an unstable plant) is replayed call by call when
+its growth to the end of the bag exceeds :data:`MAX_GROWTH`, since it would amplify the
+bulk's different round-off as much. ``exact=True`` turns bulk replay off.
 
 """
 
@@ -56,7 +67,8 @@ CHECK_STEPS = 16               # steps of each checked window of a bulk stretch
 CHECK_WINDOWS = 8              # windows spread over a stretch (first and last included)
 CHECK_IRREGULAR = 16           # most windows at irregular places of a stretch
 IRREGULAR_STEPS = 3            # steps of each of those
-CHECK_RTOL = 1e-11             # bulk vs call: relative to the largest |x_hat| so far
+MAX_GROWTH = 1e3               # unstable step maps: most growth to the end of the bag
+CHECK_RTOL = 1e-10             # bulk vs call, relative to the terms of the steps so far
 _PROGRESS_EVERY = 1 << 15
 
 
@@ -678,6 +690,61 @@ def _check_windows(est, run, streams, cmd, rows, X, U, scale):
     return None
 
 
+def _term_scale(maps, cls, sens, Y, Xprev, X, U):
+    """Running maximum over the steps of ``max(|F| |x_prev| + |G| |y| + |H| |u|, |x|)``."""
+    absF = np.abs(np.stack([mp[0] for mp in maps]))[cls]
+    absH = np.abs(np.stack([mp[2] for mp in maps]))[cls]
+    terms = (np.einsum('kij,kj->ki', absF, np.abs(Xprev))
+             + np.einsum('kij,kj->ki', absH, np.abs(U)))
+    for k, y in enumerate(Y):
+        if y is not None:
+            sel = np.flatnonzero(sens == k)
+            absG = np.abs(np.stack([mp[1] for mp in maps]))[cls[sel]]
+            terms[sel] += np.einsum('kij,kj->ki', absG, np.abs(y))
+    scale = np.maximum(np.max(terms, axis=1), np.max(np.abs(X), axis=1))
+    return np.maximum.accumulate(scale) + np.finfo(float).tiny
+
+
+def _check_steps(run, cmd, maps, cls, sens, Y, X, x0, u0, scale):
+    """
+    Check every step of a bulk run against its own affine map; None or a message.
+
+    ``x_k = F x_{k-1} + G y_k + H u_k`` with the maps measured on the estimator and
+    the held input u_k found again from the events, through the commands of each gap
+    (not the way :func:`_held_inputs` finds it), so a step given the wrong input or
+    mangled by the scan is caught wherever it is in the run.
+
+    """
+    a, b, K = run['a'], run['b'], X.shape[0]
+    mev, kind, idx = run['mev'], run['kind'], run['idx']
+    e0, e1 = int(mev[a]), int(mev[b])
+    pos = np.flatnonzero(kind[e0:e1] < 0) + e0          # the commands inside the run
+    gap = np.searchsorted(mev[a:b + 1], pos, side='right') - 1
+    last = np.full(K, -1, dtype=np.int64)
+    np.maximum.at(last, gap, pos)                      # the last command of each gap
+    last = np.maximum.accumulate(last)                 # held until the next one
+    U = np.empty((K, u0.size))
+    U[:] = u0
+    held = last >= 0
+    if held.any():
+        U[held] = cmd.values[idx[last[held]]]
+    F = np.stack([mp[0] for mp in maps])[cls]
+    H = np.stack([mp[2] for mp in maps])[cls]
+    Xprev = np.vstack([x0[None, :], X[:-1]])
+    pred = np.einsum('kij,kj->ki', F, Xprev) + np.einsum('kij,kj->ki', H, U)
+    for k, y in enumerate(Y):
+        if y is not None:
+            sel = np.flatnonzero(sens == k)
+            G = np.stack([mp[1] for mp in maps])[cls[sel]]
+            pred[sel] += np.einsum('kij,kj->ki', G, y)
+    err = np.max(np.abs(pred - X), axis=1)
+    bad = np.flatnonzero(err > CHECK_RTOL * scale)
+    if bad.size:
+        s = int(bad[0])
+        return f'{err[s]:.3g} at step {s} of {K} (its affine map; {bad.size} steps)'
+    return None
+
+
 def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
     """Replay measurements a+1..b of a run in bulk; hand the state back to est."""
     a, b = run['a'], run['b']
@@ -708,6 +775,11 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
             return None
         maps.append(mp)
         Fs[c] = mp[0]
+    # an unstable estimator (the open loop of an unstable plant) amplifies every
+    # difference in round-off until the end of the bag: call by call, as the node
+    rho = max(float(np.max(np.abs(np.linalg.eigvals(F)))) for F in Fs)
+    if rho > 1.0 and (run['tm'].size - a) * np.log(rho) > np.log(MAX_GROWTH):
+        return None
     for k in range(len(streams)):
         sel = sens == k
         if not sel.any():
@@ -735,13 +807,16 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
         r = (np.einsum('kij,kj->ki', Rx, Xprev[sel]) + np.einsum('kij,kj->ki', Ry, Y[k])
              + np.einsum('kij,kj->ki', Ru, U[sel]))
         R[np.ix_(sel, rows_idx[k])] = r
-    # round-off is relative to the size of the estimate so far (it may shrink to zero
-    # by cancellation, or grow without bound on an unstable open loop)
-    scale = np.maximum.accumulate(np.maximum(np.max(np.abs(X), axis=1),
-                                             np.max(np.abs(x0)))) + np.finfo(float).tiny
-    # check: windows of real calls over the recorded events, and one step of each class
-    # from its bulk prior
-    problem = _check_windows(est, run, streams, cmd, rows, X, U, scale)
+    # round-off is relative to the size of the terms of a step, |F| |x| + |G| |y| +
+    # |H| |u| (the map of a reduced-order observer in x coordinates has large entries
+    # that cancel), and to the largest of them so far: the estimate may shrink to zero
+    # by cancellation or grow without bound on an unstable open loop
+    scale = _term_scale(maps, cls, sens, Y, Xprev, X, U)
+    # check: every step against its map, windows of real calls over the recorded
+    # events, and one step of each class from its bulk prior
+    problem = _check_steps(run, cmd, maps, cls, sens, Y, X, x0, est.u, scale)
+    if problem is None:
+        problem = _check_windows(est, run, streams, cmd, rows, X, U, scale)
     check = copy.deepcopy(est)
     for f in first if problem is None else ():
         k = int(sens[f])

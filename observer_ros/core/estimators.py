@@ -41,7 +41,7 @@ import scipy.linalg
 from .analysis import is_stable_eigenvalue, observable_decomposition, stability_margin
 from .design import observer_gain, pole_placement_error, reduced_coordinates
 from .errors import DesignError, DimensionError, NotDetectableError, ObserverError
-from .model import as_matrix, as_poles, as_vector, Plant, zoh_matrices
+from .model import as_matrix, as_poles, as_vector, Plant
 from .spec import OBSERVER_TYPES, ObserverSpec
 
 __all__ = ['DT_DIGITS', 'GAIN_DIGITS', 'CACHE_SIZE', 'GAIN_CACHE_SIZE', 'TimeOrderError',
@@ -398,6 +398,11 @@ class StepCache:
         self._size = int(size)
         self._steps = OrderedDict()
         self._Ts = plant.dt
+        n, m = plant.n, plant.m
+        # [[A, B], [0, 0]]: expm(aug * h) holds Ad and Bd (zoh_matrices, without its checks)
+        self._aug = np.zeros((n + m, n + m))
+        self._aug[:n, :n] = plant.A
+        self._aug[:n, n:] = plant.B
 
     def __len__(self):
         return len(self._steps)
@@ -450,8 +455,9 @@ class StepCache:
             return step
         plant = self._plant
         if self._Ts is None:
-            Ad, Bd = zoh_matrices(plant.A, plant.B, key)
-            step = _Step(key, key, None, Ad, Bd)
+            n = plant.n
+            E = scipy.linalg.expm(self._aug * key)
+            step = _Step(key, key, None, E[:n, :n].copy(), E[:n, n:].copy())
         else:
             n = plant.n
             aug = np.eye(n + plant.m)
@@ -840,7 +846,8 @@ class Estimator:
         return y
 
     def _rows_info(self, rows, name):
-        key = rows if isinstance(rows, tuple) else None
+        kind = type(rows)
+        key = rows if kind is tuple else tuple(rows) if kind is list else None
         if key is not None:
             info = self._rows_cache.get(key)
             if info is not None:

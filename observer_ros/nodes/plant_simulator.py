@@ -249,12 +249,16 @@ class PlantSimulatorNode(VehicleNode):
     def _realtime_step(self):
         if self._done:
             return
-        if self.k > 0:
-            # the command answering the previous step should be here by now
-            if self._latest_cmd_stamp is None or \
-                    abs(self._latest_cmd_stamp - (self.t)) > 0.25 * self.dt:
+        if self._started:       # (k stays 0 until the first advance)
+            # the command answering the previous step should be here by now; before the
+            # first command the loop is not closed yet (peers starting, DDS matching):
+            # those steps are open_loop_steps, not late commands (benchmarks P2)
+            if self._latest_cmd_stamp is None:
+                self.count('open_loop_steps')
+            elif abs(self._latest_cmd_stamp - self.t) > 0.25 * self.dt:
                 self.count('late_commands')
             self._advance()
+        self._started = True
         self._begin_step()
         for sensor, pub, rows in self._due:
             pub.publish(self._measure(sensor, rows))

@@ -17,7 +17,10 @@ therefore loses at most the messages since the last flush, and ``observer-bag-re
 
 A write that fails (disk full, I/O error) stops the recorder with a logged error naming
 the bag and exit status 1; the bag is then recovered in place up to its last flush (or,
-when even that fails, left for ``observer-bag-recover``). An existing ``output`` is never
+when even that fails, left for ``observer-bag-recover``). So that recovery finds room on
+a full disk, the recorder holds ``disk_reserve`` bytes (default 1 MiB) in a file
+``.disk_reserve`` inside the bag, and frees them before recovering (a clean close and
+``observer-bag-recover`` delete the file). An existing ``output`` is never
 overwritten: the recorder refuses to start (status 2) and names the path.
 
 """
@@ -47,6 +50,24 @@ from .common import LATCHED_QOS, SENSOR_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS, V
 __all__ = ['RecorderNode', 'RecordingError', 'main', 'recorded_topics']
 
 STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
+
+
+def _hold_reserve(bag, size):
+    """Write ``size`` bytes to ``bag/.disk_reserve`` (really allocated); return its path."""
+    if size <= 0:
+        return None
+    path = bag / '.disk_reserve'
+    try:
+        with path.open('wb') as f:
+            try:
+                os.posix_fallocate(f.fileno(), 0, size)
+            except (AttributeError, OSError):
+                f.write(b'\0' * size)
+    except OSError as err:
+        path.unlink(missing_ok=True)
+        raise ObserverError(f'recorder: cannot reserve {size} bytes in {bag}: '
+                            f'{os.strerror(err.errno) if err.errno else err}') from None
+    return path
 
 
 class RecordingError(ObserverError):
@@ -124,7 +145,8 @@ class RecorderNode(VehicleNode):
             ('output', ''),                 # bag directory to create (must not exist)
             ('storage', 'mcap'),            # mcap | sqlite3
             ('extra_topics', ['']),         # "name:pkg/msg/Type"
-            ('flush_period', 1.0),
+            ('flush_period', 1.0),          # s (wall): flush to disk, report counts
+            ('disk_reserve', 1 << 20),      # bytes kept free for closing/recovering the bag
         ))
         output = self.param('output')
         if not output:
@@ -151,6 +173,7 @@ class RecorderNode(VehicleNode):
             raise ObserverError(f'recorder: cannot create the bag {path}: {err}') from None
         self.path = path
         self.failed = None
+        self._reserve = _hold_reserve(path, int(self.param('disk_reserve')))
         self.counts = {}
         self.flushes = 0
         self._subs = []
@@ -211,10 +234,16 @@ class RecorderNode(VehicleNode):
             self._fail(err)
         self.counts[connection.topic] += 1
 
+    def _release_reserve(self):
+        if self._reserve is not None:
+            self._reserve.unlink(missing_ok=True)
+            self._reserve = None
+
     def _fail(self, err):
         """A write failed: abort the bag, recover it up to its last flush, stop (raise)."""
         writer, self.writer = self.writer, None
         log = self.get_logger()
+        self._release_reserve()
         reason = os.strerror(err.errno) if isinstance(err, OSError) and err.errno else err
         text = f'cannot write the bag {self.path}: {reason}'
         log.error(f'{text}; recording stopped')
@@ -242,6 +271,7 @@ class RecorderNode(VehicleNode):
         """Close the bag (idempotent)."""
         if self.writer is not None:
             writer, self.writer = self.writer, None
+            self._release_reserve()
             try:
                 writer.close()
             except (OSError, sqlite3.Error) as err:
