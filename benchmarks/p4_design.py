@@ -51,8 +51,8 @@ def random_system(rng, n, p):
     while True:
         A = rng.standard_normal((n, n)) / np.sqrt(n)
         C = rng.standard_normal((p, n))
-        O = np.vstack([C @ np.linalg.matrix_power(A, k) for k in range(n)])
-        if np.linalg.matrix_rank(O) == n:
+        obsv = np.vstack([C @ np.linalg.matrix_power(A, k) for k in range(n)])
+        if np.linalg.matrix_rank(obsv) == n:
             break
     poles = []
     while len(poles) < n:
@@ -137,9 +137,10 @@ def run(smoke=False, seeds=None):
         rec['ratios'] = ratios
         figures.append(rec)
         errs = [r['ours_err'] for r in sel]
+        base = [r['place_err'] for r in sel]
         print(f'  P4 {label}: ours median error {summary(errs)["median"]:.2e}, worst '
-              f'{max(errs):.2e}; place median {summary([r["place_err"] for r in sel])["median"]:.2e}'
-              f', worst {max(r["place_err"] for r in sel):.2e}')
+              f'{max(errs):.2e}; place median {summary(base)["median"]:.2e}, worst '
+              f'{max(base):.2e}')
     single = [r for r in rows if r['p'] == 1]
     lossy = [r for r in single if r['acker_err'] > 100 * max(r['place_err'], FLOOR)
              and r['acker_err'] > 1e-9]

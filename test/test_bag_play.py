@@ -27,7 +27,9 @@ pytestmark = pytest.mark.filterwarnings('ignore::DeprecationWarning')
 
 rclpy = pytest.importorskip('rclpy')
 EXE = Path(sys.executable).parent / 'observer-play'
-DOMAIN = 1 + os.getpid() % 99      # 1..99: the node tests use 100..199
+# ROS_DOMAIN_ID when set (so that concurrent runs can be kept apart), else 1..99 (the
+# node tests use 100..199); /clock is not namespaced, so two players in one domain mix
+DOMAIN = int(os.environ.get('ROS_DOMAIN_ID') or 1 + os.getpid() % 99)
 NS = f'/play{os.getpid()}'
 DT = 0.05          # the submarine's step (20 Hz)
 

@@ -222,7 +222,10 @@ class Player:
                 pub = self.publishers.get(conn.topic)
                 if pub is not None:
                     if period is not None and next_clock <= time.monotonic():
+                        # behind: the clock at the message's time stands for the tick
+                        # that is due (one clock per period, not one per message)
                         self._publish_clock(log_ns)
+                        next_clock += period
                     pub.publish(bytes(raw))
                     self.played += 1
             if not opts.loop:

@@ -34,6 +34,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
 
 from .errors import BagToolError
+from .mcap_fast import fast_messages
 from ..timeutil import stamp_to_ns
 
 __all__ = ['IMU', 'JOINT_STATE', 'FLOAT64', 'CLOCK', 'VEHICLE_TOPICS', 'jazzy_typestore',
@@ -293,6 +294,11 @@ class BagReader:
         # one rosbag2 recording: read it directly (AnyReader merges several bags)
         source = readers[0] if len(readers) == 1 else self.reader
         try:
+            # an indexed mcap file: read chunk by chunk, same stream (benchmarks P3)
+            fast = fast_messages(source, conns, start) if len(readers) == 1 else None
+            if fast is not None:
+                yield from fast
+                return
             yield from source.messages(connections=conns, start=start)
         except BagToolError:
             raise

@@ -247,10 +247,10 @@ def _quick_gain(A, C, z, method):
 
 def _ackermann(A, C, z):
     n = A.shape[0]
-    O = np.empty((n, n))
+    obsv = np.empty((n, n))
     row = C[0]
     for i in range(n):
-        O[i] = row
+        obsv[i] = row
         row = row @ A
     coeffs = np.poly(z).real
     P = np.eye(n)
@@ -259,7 +259,7 @@ def _ackermann(A, C, z):
         P.flat[::n + 1] += c
     e = np.zeros(n)
     e[-1] = 1.0
-    return (P @ np.linalg.solve(O, e)).reshape(n, 1)
+    return (P @ np.linalg.solve(obsv, e)).reshape(n, 1)
 
 
 def _place_poles(A, C, z):

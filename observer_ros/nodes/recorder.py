@@ -6,7 +6,9 @@ Topics: the vehicle's sensors, ``state/true``, ``state/estimate``, ``observer/re
 ``control/u``, ``control/reference``, ``/clock`` and ``/diagnostics`` (resolved in the
 node's namespace), plus ``extra_topics`` ("name:pkg/msg/Type"). The storage is mcap
 (Jazzy's default) or sqlite3, metadata version 9, each topic's QoS recorded as offered.
-Messages are stamped with the node clock at reception (sim time with use_sim_time).
+Messages are stamped with the node clock at reception (sim time with use_sim_time). The
+readers keep up to ``queue_depth`` messages per topic (default 1000, whatever the
+publisher's depth), so that a burst, or a moment without CPU, loses nothing.
 
 SIGINT or SIGTERM closes the bag cleanly: every message received before the signal is
 in it. Every ``flush_period`` seconds (wall time) the writer flushes: mcap closes its
@@ -36,7 +38,7 @@ import warnings
 from diagnostic_msgs.msg import DiagnosticStatus
 import rclpy
 from rclpy.executors import ExternalShutdownException
-from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
                                 QosReliability, QosTime)
 from rosbags.rosbag2 import StoragePlugin, Writer
@@ -137,6 +139,12 @@ def _bag_qos(qos):
         avoid_ros_namespace_conventions=False)
 
 
+def _deeper(qos, depth):
+    """The same QoS with a reader queue of at least `depth` (compatibility is unchanged)."""
+    return QoSProfile(history=qos.history, depth=max(qos.depth, depth),
+                      reliability=qos.reliability, durability=qos.durability)
+
+
 class RecorderNode(VehicleNode):
     """Write the vehicle's topics to a bag."""
 
@@ -147,6 +155,7 @@ class RecorderNode(VehicleNode):
             ('extra_topics', ['']),         # "name:pkg/msg/Type"
             ('flush_period', 1.0),          # s (wall): flush to disk, report counts
             ('disk_reserve', 1 << 20),      # bytes kept free for closing/recovering the bag
+            ('queue_depth', 1000),          # per-topic reader queue (rides out bursts)
         ))
         output = self.param('output')
         if not output:
@@ -177,6 +186,7 @@ class RecorderNode(VehicleNode):
         self.counts = {}
         self.flushes = 0
         self._subs = []
+        depth = int(self.param('queue_depth'))
         for name, msgtype, qos in topics:
             resolved = self.resolve_topic_name(name)
             conn = self.writer.add_connection(resolved, msgtype, typestore=self.typestore,
@@ -184,7 +194,8 @@ class RecorderNode(VehicleNode):
             self.counts[resolved] = 0
             self._subs.append(self.create_subscription(
                 message_class(msgtype), name,
-                lambda data, c=conn: self._on_message(c, data), qos, raw=True))
+                lambda data, c=conn: self._on_message(c, data), _deeper(qos, depth),
+                raw=True))
         self.get_logger().info(f'recording {len(topics)} topics to {path} ({storage})')
         # the topic definitions go to disk at once: a bag killed before its first periodic
         # flush still recovers (with its topics, no messages)
