@@ -19,15 +19,20 @@ from ..core.errors import ObserverError
 from ..timeutil import sec_to_stamp_parts, stamp_to_sec
 from ..vehicle import vehicle_from_parameters
 
-__all__ = ['VEHICLE_SECTIONS', 'SENSOR_QOS', 'STATE_QOS', 'STATE_PUB_QOS', 'LATCHED_QOS',
-           'TOPICS',
-           'VehicleNode', 'joint_state', 'stamp_to_sec', 'to_stamp', 'run_node']
+__all__ = ['VEHICLE_SECTIONS', 'SENSOR_QOS', 'SENSOR_SUB_QOS', 'STATE_QOS', 'STATE_PUB_QOS',
+           'LATCHED_QOS', 'TOPICS', 'VehicleNode', 'joint_state', 'stamp_to_sec', 'to_stamp',
+           'run_node']
 
 # The parameter namespaces that belong to the vehicle file; anything else is a node's own.
 VEHICLE_SECTIONS = ('vehicle', 'model', 'sensors', 'observer', 'controller', 'simulator')
 
 # Measurements: the sensor-data profile (best effort, keep last 5), as real sensor drivers use.
 SENSOR_QOS = qos_profile_sensor_data
+# What the observer reads sensors with: the same best-effort profile, with a deeper queue so
+# that a burst or a moment of CPU starvation does not overwrite samples before we take them.
+SENSOR_SUB_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT,
+                            history=HistoryPolicy.KEEP_LAST,
+                            durability=DurabilityPolicy.VOLATILE)
 # Estimates, commands, true state: reliable, keep last 10 (talker_qos.py / STYLE.md §11).
 STATE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                        history=HistoryPolicy.KEEP_LAST)

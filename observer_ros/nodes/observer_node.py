@@ -20,7 +20,7 @@ from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 from ..core.estimators import make_estimator
 from ..sensors import extract_measurement
-from .common import (SENSOR_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS, VehicleNode, joint_state,
+from .common import (SENSOR_SUB_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS, VehicleNode, joint_state,
                      run_node, stamp_to_sec, vector_from_joint_state)
 
 __all__ = ['ObserverNode', 'main']
@@ -58,7 +58,7 @@ class ObserverNode(VehicleNode):
             cls = MESSAGE_CLASSES[sensor.msg_type]
             self._subs.append(self.create_subscription(
                 cls, sensor.topic, lambda msg, s=sensor: self._on_measurement(s, msg),
-                SENSOR_QOS))
+                SENSOR_SUB_QOS))
         self._cmd_sub = self.create_subscription(
             JointState, TOPICS['command'], self._on_command, STATE_QOS)
         self.add_on_set_parameters_callback(self._on_set_parameters)

@@ -1,0 +1,34 @@
+# test_benchmarks_smoke: the benchmarks still run (their short form); figures not judged.
+"""`benchmarks/run_all.py --smoke` exits 0 and every benchmark prints its ratio lines."""
+
+import os
+from pathlib import Path
+import re
+import subprocess
+import sys
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_run_all_smoke_prints_every_ratio():
+    env = dict(os.environ)
+    env['BENCH_ROS_DOMAIN_ID'] = '46'        # apart from a full benchmark run (47)
+    env['ROS_DOMAIN_ID'] = '46'
+    script = REPO / 'benchmarks' / 'run_all.py'
+    proc = subprocess.run(
+        [sys.executable, '-W', 'ignore::DeprecationWarning', str(script), '--smoke'],
+        cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out[-4000:]
+    for bench, names in {
+        'P1': ['median_latency_observer/relay', 'p99_latency_observer/relay'],
+        'P2': ['on_time_fraction_at_1kHz'],
+        'P3': ['eval/rosbags_read_deserialise', 'eval/control_forced_response'],
+        'P4': ['placement_error_ours/place_worst_single_output',
+               'placement_error_ours/place_worst_multi_output',
+               'acker_chosen_where_it_loses_digits'],
+    }.items():
+        for name in names:
+            assert re.search(rf'^RATIO {bench} {re.escape(name)} = \S+', out, re.M), \
+                f'{bench} {name} missing:\n{out[-4000:]}'
+    assert 'FAILED' not in out
