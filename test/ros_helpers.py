@@ -56,12 +56,12 @@ def domain_env():
 class Proc:
     """A node process with its output captured to a file."""
 
-    def __init__(self, node, params_file, *params, namespace=None, log_dir=None):
+    def __init__(self, node, params_file, *params, namespace=None, log_dir=None, remaps=()):
         log_dir = Path(log_dir or '/tmp')
         self.log_path = log_dir / f'{node}_{os.getpid()}_{time.monotonic_ns()}.log'
         self._log = open(self.log_path, 'w')
         self.popen = subprocess.Popen(
-            node_command(node, params_file, *params, namespace=namespace),
+            node_command(node, params_file, *params, namespace=namespace, remaps=remaps),
             stdout=self._log, stderr=subprocess.STDOUT, env=ros_env(),
             preexec_fn=_die_with_parent)
 
@@ -71,7 +71,8 @@ class Proc:
 
     def output(self):
         """Return what the process printed so far."""
-        self._log.flush()
+        if not self._log.closed:
+            self._log.flush()
         return self.log_path.read_text()
 
     def stop(self, sig=signal.SIGINT, timeout=10.0):

@@ -308,3 +308,23 @@ def test_silent_sensor_means_predict_only(observer_setup):
     assert later and all(np.all(np.isfinite(m.position)) for m in later)
     status = listener.latest_status('observer')
     assert status.level == DiagnosticStatus.WARN and 'predicting only' in status.message
+
+
+def test_observer_follows_remaps_and_overrides(tmp_path):
+    """`-r imu/data:=robot/gyro` points it at another topic; `-p` changes its poles."""
+    proc = Proc('observer_node', CONFIG / 'submarine.yaml', REALTIME,
+                'observer.poles:=[-2.0, -2.1, -2.2]', log_dir=tmp_path,
+                remaps=['imu/data:=robot/gyro'])
+    probe = Probe()
+    try:
+        listener = Listener(probe)
+        pub = probe.node.create_publisher(Imu, 'robot/gyro', SENSOR_QOS)
+        probe.spin_until(lambda: pub.get_subscription_count() >= 1, 30.0, 'robot/gyro matched')
+        listener.wait_matched('state/estimate', '/diagnostics')
+        listener.wait_alive('observer')
+        pub.publish(_imu(50.0, 0.0))
+        assert np.all(np.isfinite(listener.estimate_at(50.0)))
+    finally:
+        probe.close()
+        assert proc.stop() == 0, proc.output()
+    assert '-2.2, -2.1, -2' in proc.output() or '[-2.2' in proc.output(), proc.output()

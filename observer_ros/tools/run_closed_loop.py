@@ -32,7 +32,7 @@ __all__ = ['main', 'run_closed_loop', 'node_command', 'summarize_bag', 'comparis
 NODES = ('plant_simulator', 'observer_node', 'compensator', 'recorder')
 
 
-def node_command(node, params_file, *ros_args, namespace=None):
+def node_command(node, params_file, *ros_args, namespace=None, remaps=()):
     """
     Return the argv that runs one of the package's nodes with a vehicle file.
 
@@ -44,6 +44,8 @@ def node_command(node, params_file, *ros_args, namespace=None):
            f'observer_ros.nodes.{node}', '--ros-args', '--params-file', str(params_file)]
     if namespace:
         cmd += ['-r', f'__ns:={namespace}']
+    for remap in remaps:
+        cmd += ['-r', remap]
     for arg in ros_args:
         cmd += ['-p', arg]
     return cmd
