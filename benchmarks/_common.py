@@ -16,7 +16,6 @@ import os
 from pathlib import Path
 import platform
 import statistics
-import sys
 import time
 
 __all__ = ['REPO', 'machine_info', 'summary', 'ratio_line', 'write_json', 'ros_env',
@@ -59,7 +58,7 @@ def machine_info():
 
 
 def percentile(values, q):
-    """Return the q-th percentile (0..100) of values, linear interpolation."""
+    """Return the q-th percentile of values (q in 0..100), interpolated linearly."""
     xs = sorted(values)
     if not xs:
         return float('nan')
@@ -94,8 +93,12 @@ def ratio_line(bench_id, name, ratios, op, target, unit='x', smoke=False, note='
         How the median is judged against the target.
     target : float or None
         None: a figure given for information (not judged).
+    unit : str
+        Printed after the values (``x`` for a ratio).
     smoke : bool
         Smoke run: the line is printed, the target is not judged.
+    note : str
+        Printed in brackets after the verdict (absolute figures).
 
     """
     s = summary(ratios)
@@ -137,7 +140,7 @@ def ros_env(domain_id=None):
 
 
 def common_parser(description):
-    """An argparse parser with ``--smoke`` and ``--json``."""
+    """Return an argparse parser with ``--smoke`` and ``--json``."""
     import argparse
     parser = argparse.ArgumentParser(description=description)
     parser.add_argument('--smoke', action='store_true',
@@ -156,8 +159,3 @@ class Timer:
     def __exit__(self, *exc):
         self.seconds = time.perf_counter() - self._start
         return False
-
-
-def python():
-    """The interpreter running the benchmarks (the repository's .venv under make bench)."""
-    return sys.executable

@@ -2,6 +2,7 @@
 """Child processes of a benchmark: started in their own session, stopped by their id."""
 
 import os
+from pathlib import Path
 import signal
 import subprocess
 import sys
@@ -13,7 +14,7 @@ __all__ = ['node_command', 'start', 'stop_all']
 
 
 def node_command(node, *params, namespace=None, vehicle='config/submarine.yaml'):
-    """argv of one of the package's nodes with the vehicle file and -p overrides."""
+    """Return the argv of one of the package's nodes with the vehicle file and overrides."""
     cmd = [sys.executable, '-W', 'ignore::DeprecationWarning', '-m',
            f'observer_ros.nodes.{node}', '--ros-args', '--params-file', str(REPO / vehicle)]
     if namespace:
@@ -26,10 +27,12 @@ def node_command(node, *params, namespace=None, vehicle='config/submarine.yaml')
 def start(cmd, log_path, pythonpath=None):
     """Start a process (own session, output to log_path) with the benchmark's ROS domain."""
     env = ros_env()
+    cwd = REPO
     if pythonpath:
         env['PYTHONPATH'] = os.pathsep.join([str(pythonpath), env.get('PYTHONPATH', '')])
+        cwd = Path(log_path).parent        # python -m puts the cwd first on sys.path
     log = open(log_path, 'w')
-    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, cwd=REPO,
+    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, cwd=cwd,
                             start_new_session=True)
     proc._bench_log = log
     return proc

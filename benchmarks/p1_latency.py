@@ -30,8 +30,8 @@ import time
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import (REPO, common_parser, machine_info, percentile, ratio_line,  # noqa: E402
-                     ros_env, summary, write_json)
+from _common import (common_parser, machine_info, percentile, ratio_line,  # noqa: E402
+                     REPO, ros_env, summary, write_json)
 from _procs import node_command, start, stop_all  # noqa: E402
 
 TARGETS = {'relay': '/p1_relay', 'observer': '/p1_obs'}
@@ -78,17 +78,18 @@ def run(smoke=False, rate=None, count=None, pairs=None, observer_pythonpath=None
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     spinner = threading.Thread(target=executor.spin, daemon=True)
-    state = {'block': None, 'lat': [], 'got': 0}
+    state = {'block': None, 'lat': [], 'since': 0}
     lock = threading.Lock()
 
     def on_estimate(target):
         def cb(msg):
             now = time.time_ns()
             s = msg.header.stamp
-            lat = now - (s.sec * 1_000_000_000 + s.nanosec)
+            stamp = s.sec * 1_000_000_000 + s.nanosec
             with lock:
-                if state['block'] == target:
-                    state['lat'].append(lat)
+                # answers to this block only (not a late one from the warm-up)
+                if state['block'] == target and stamp >= state['since']:
+                    state['lat'].append(now - stamp)
         return cb
 
     pubs, subs = {}, {}
@@ -123,6 +124,7 @@ def run(smoke=False, rate=None, count=None, pairs=None, observer_pythonpath=None
     def block(target, n):
         with lock:
             state['block'], state['lat'] = target, []
+            state['since'] = time.time_ns() - 1_000_000
         pid = pids.get(target)
         cpu0 = _cpu_seconds(pid) if pid else float('nan')
         send(target, n)

@@ -33,15 +33,15 @@ from _procs import node_command, start, stop_all  # noqa: E402
 NS = '/p2'
 
 
-def _one_run(node, state, duration, rate, logdir, run):
+def _one_run(node, state, duration, rate, logdir, run, pythonpath=None):
     """Start observer and compensator, then the simulator; wait for it to finish."""
     common = ['simulator.mode:=realtime', f'simulator.rate_hz:={float(rate)}']
     procs = []
     try:
         procs.append(start(node_command('observer_node', *common, namespace=NS),
-                           logdir / f'observer_{run}.log'))
+                           logdir / f'observer_{run}.log', pythonpath))
         procs.append(start(node_command('compensator', *common, namespace=NS),
-                           logdir / f'compensator_{run}.log'))
+                           logdir / f'compensator_{run}.log', pythonpath))
         deadline = time.monotonic() + 60.0
         while time.monotonic() < deadline:
             if node.count_publishers(f'{NS}/state/estimate') >= 1 and \
@@ -57,7 +57,7 @@ def _one_run(node, state, duration, rate, logdir, run):
         sim = start(node_command('plant_simulator', *common,
                                  f'simulator.duration:={float(duration)}',
                                  'diagnostics_period:=0.25', namespace=NS),
-                    logdir / f'plant_simulator_{run}.log')
+                    logdir / f'plant_simulator_{run}.log', pythonpath)
         procs.append(sim)
         try:
             sim.wait(duration + 60.0)
@@ -88,7 +88,7 @@ def _one_run(node, state, duration, rate, logdir, run):
             'rate_achieved_hz': rate_achieved, 'exit_code': sim.returncode}
 
 
-def run(smoke=False, runs=None, duration=None, rate=1000.0, log=print):
+def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=None, log=print):
     runs = runs or (1 if smoke else 3)
     # the simulator steps from its start; DDS matching takes it 1-3 s here, and those
     # open-loop steps are not judged: the run is that much longer than what is measured
@@ -123,7 +123,7 @@ def run(smoke=False, runs=None, duration=None, rate=1000.0, log=print):
     results = []
     try:
         for r in range(runs):
-            res = _one_run(node, state, duration, rate, logdir, r)
+            res = _one_run(node, state, duration, rate, logdir, r, nodes_pythonpath)
             results.append(res)
             log(f'  P2 run {r + 1}/{runs}: {res["steps"]} steps at {rate:g} Hz, '
                 f'{res["open_loop_steps"]} before the loop closed, {res["late_commands"]} '
@@ -149,10 +149,13 @@ def main(argv=None):
     parser.add_argument('--duration', type=float,
                         help='seconds per run, start-up included (default 15)')
     parser.add_argument('--rate', type=float, default=1000.0, help='step rate, Hz')
+    parser.add_argument('--nodes-pythonpath', metavar='DIR',
+                        help='run the nodes with this copy of observer_ros first on '
+                             'PYTHONPATH (to measure a previous version)')
     args = parser.parse_args(argv)
     print('P2: closed loop in free-running real time', flush=True)
     data = run(smoke=args.smoke, runs=args.runs, duration=args.duration, rate=args.rate,
-               log=lambda s: print(s, flush=True))
+               nodes_pythonpath=args.nodes_pythonpath, log=lambda s: print(s, flush=True))
     data['machine'] = machine_info()
     write_json(args.json, data)
     return 0

@@ -40,7 +40,7 @@ import time
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import (REPO, common_parser, machine_info, ratio_line, summary,  # noqa: E402
+from _common import (common_parser, machine_info, ratio_line, REPO, summary,  # noqa: E402
                      write_json)
 
 VEHICLE = REPO / 'config' / 'submarine.yaml'
@@ -176,12 +176,12 @@ def generate(messages, seed=0, data=DATA, log=print):
     n, m = plant.n, plant.m
     st_markers = [marker * (i + 2) for i in range(n)]
     st_raw, st_off = _template(store, JS, vector(plant.state_names, st_markers)[0],
-                               {i: v for i, v in enumerate(st_markers)})
+                               dict(enumerate(st_markers)))
     st_sec, st_nsec = _stamp_offsets(store, lambda s, ns: vector(plant.state_names,
                                                                  np.zeros(n), s, ns))
     u_markers = [marker * (i + 20) for i in range(m)]
     u_raw, u_off = _template(store, JS, vector(plant.input_names, u_markers)[0],
-                             {i: v for i, v in enumerate(u_markers)})
+                             dict(enumerate(u_markers)))
     u_sec, u_nsec = _stamp_offsets(store, lambda s, ns: vector(plant.input_names,
                                                                np.zeros(m), s, ns))
     imu_rows = _fill(imu_raw, messages, stamps, imu_sec, imu_nsec, [(imu_off['y'], y)])

@@ -25,16 +25,15 @@ Figures (target in brackets):
 
 """
 
+from pathlib import Path
 import sys
 import time
 import warnings
-from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import numpy as np  # noqa: E402
-
 from _common import common_parser, machine_info, ratio_line, summary, write_json  # noqa: E402
+import numpy as np  # noqa: E402
 
 FLOOR = 1e-15      # errors below this are round-off: compared as equal
 
@@ -47,7 +46,7 @@ def placement_error(A, L, C, poles):
 
 
 def random_system(rng, n, p):
-    """A random observable (A, C) and n distinct stable poles (a few complex pairs)."""
+    """Return a random observable (A, C) and n distinct stable poles (some complex)."""
     while True:
         A = rng.standard_normal((n, n)) / np.sqrt(n)
         C = rng.standard_normal((p, n))

@@ -17,13 +17,12 @@ import warnings
 
 warnings.filterwarnings('ignore', category=DeprecationWarning)
 
+from observer_ros.nodes.common import (joint_state, SENSOR_QOS, stamp_to_sec,  # noqa: E402
+                                       STATE_QOS, TOPICS)
 import rclpy  # noqa: E402
 from rclpy.executors import ExternalShutdownException  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from sensor_msgs.msg import Imu, JointState  # noqa: E402
-
-from observer_ros.nodes.common import (SENSOR_QOS, STATE_QOS, TOPICS, joint_state,  # noqa: E402
-                                       stamp_to_sec)
 
 STATE_NAMES = ('theta', 'w', 'q')       # config/submarine.yaml model.states
 

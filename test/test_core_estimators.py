@@ -76,12 +76,12 @@ def run(plant, est, x0, times, ufun, rows=None, sim=None, before_update=None):
 
 
 def sub_input(t):
-    """An arbitrary known input (elevator deflection, rad)."""
+    """Return an arbitrary known input (elevator deflection, rad)."""
     return 0.05 * np.sin(0.7 * t) + 0.02 * np.cos(2.3 * t)
 
 
 def cart_input(t):
-    """An arbitrary known input (force)."""
+    """Return an arbitrary known input (force)."""
     return 0.5 * np.sin(2.0 * t) - 0.2
 
 
@@ -825,13 +825,13 @@ def test_make_estimator_kinds():
 
 
 def jittered_times(n, dt, jitter, seed=0):
-    """Stamps of a sensor at 1/dt Hz whose steps jitter uniformly by +-jitter (s)."""
+    """Return stamps of a sensor at 1/dt Hz whose steps jitter uniformly by +-jitter (s)."""
     rng = np.random.default_rng(seed)
     return np.concatenate([[0.0], np.cumsum(dt + rng.uniform(-jitter, jitter, n - 1))])
 
 
 def count_designs(monkeypatch):
-    """Count the pole placements the estimators run (list grows by one per design)."""
+    """Count the pole placements the estimators run (the list grows by one per design)."""
     import observer_ros.core.estimators as estimators
     designs = []
     real = estimators._place

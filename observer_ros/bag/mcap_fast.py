@@ -26,7 +26,7 @@ _HEADER = 1 + 8 + 2 + 4 + 8 + 8         # op, len, channel, sequence, log_time, 
 
 
 def _storage(reader):
-    """The one McapReader behind a rosbags rosbag2.Reader (its DirectoryReader), or None."""
+    """Return the one McapReader behind a rosbags rosbag2.Reader, or None."""
     inner = getattr(reader, 'storage', reader)          # rosbags 0.11: a DirectoryReader
     storages = getattr(inner, 'storages', None)
     if not storages or len(storages) != 1:

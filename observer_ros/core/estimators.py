@@ -154,7 +154,7 @@ def _discrete_noise(A, GQG, k):
 
 
 def _grid_step(mant, exp):
-    """The float of the decimal number mant * 10**exp (correctly rounded)."""
+    """Return the float of the decimal number mant * 10**exp (correctly rounded)."""
     return float(f'{mant}e{exp}')
 
 
@@ -649,7 +649,7 @@ class Estimator:
 
     def _gain_value(self, key, name, design):
         """
-        A gain (or Kalman noise) of the step ``key``: ``design(step)`` on the grid, interpolated.
+        Return a gain (or Kalman noise) of a step: designed on the grid, interpolated.
 
         ``name`` identifies the value in the steps' ``extra`` dicts; the interpolated
         value is cached on the step of ``key`` itself.

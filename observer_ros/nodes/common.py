@@ -13,14 +13,15 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import Imu, JointState
+from std_msgs.msg import Float64
 
 from ..core.errors import ObserverError
 from ..timeutil import sec_to_stamp_parts, stamp_to_sec
 from ..vehicle import vehicle_from_parameters
 
 __all__ = ['VEHICLE_SECTIONS', 'SENSOR_QOS', 'SENSOR_SUB_QOS', 'STATE_QOS', 'STATE_PUB_QOS',
-           'LATCHED_QOS', 'TOPICS', 'VehicleNode', 'joint_state', 'stamp_to_sec', 'to_stamp',
+           'LATCHED_QOS', 'MESSAGE_CLASSES', 'TOPICS', 'VehicleNode', 'joint_state', 'stamp_to_sec', 'to_stamp',
            'run_node']
 
 # The parameter namespaces that belong to the vehicle file; anything else is a node's own.
@@ -46,6 +47,13 @@ STATE_PUB_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          history=HistoryPolicy.KEEP_LAST,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+# The sensor message types a vehicle file may name.
+MESSAGE_CLASSES = {
+    'sensor_msgs/msg/Imu': Imu,
+    'sensor_msgs/msg/JointState': JointState,
+    'std_msgs/msg/Float64': Float64,
+}
 
 # Relative topic names: they follow the node's namespace (-r __ns:=/sub1).
 TOPICS = {

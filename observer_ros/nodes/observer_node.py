@@ -13,24 +13,16 @@ import time
 from diagnostic_msgs.msg import DiagnosticStatus
 import numpy as np
 from rcl_interfaces.msg import SetParametersResult
-from sensor_msgs.msg import Imu, JointState
-from std_msgs.msg import Float64
+from sensor_msgs.msg import JointState
 
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 from ..core.estimators import make_estimator
 from ..sensors import extract_measurement
-from .common import (SENSOR_SUB_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS, VehicleNode, joint_state,
-                     run_node, stamp_to_sec, vector_from_joint_state)
+from .common import (MESSAGE_CLASSES, SENSOR_SUB_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS,
+                     VehicleNode, joint_state, run_node, stamp_to_sec, vector_from_joint_state)
 
 __all__ = ['ObserverNode', 'main']
-
-MESSAGE_CLASSES = {
-    'sensor_msgs/msg/Imu': Imu,
-    'sensor_msgs/msg/JointState': JointState,
-    'std_msgs/msg/Float64': Float64,
-}
-
 
 class ObserverNode(VehicleNode):
     """Estimate the state from the vehicle's sensors and commands."""

@@ -22,22 +22,16 @@ import time
 from diagnostic_msgs.msg import DiagnosticStatus
 import numpy as np
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import Imu, JointState
-from std_msgs.msg import Bool, Float64
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Bool
 
 from ..core.model import zoh_matrices
 from ..sensors import fill_measurement
-from .common import (LATCHED_QOS, SENSOR_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS, VehicleNode,
-                     joint_state, run_node, stamp_to_sec, to_stamp, vector_from_joint_state)
+from .common import (LATCHED_QOS, MESSAGE_CLASSES, SENSOR_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS,
+                     VehicleNode, joint_state, run_node, stamp_to_sec, to_stamp,
+                     vector_from_joint_state)
 
 __all__ = ['PlantSimulatorNode', 'main']
-
-MESSAGE_CLASSES = {
-    'sensor_msgs/msg/Imu': Imu,
-    'sensor_msgs/msg/JointState': JointState,
-    'std_msgs/msg/Float64': Float64,
-}
-
 
 class PlantSimulatorNode(VehicleNode):
     """Simulate the vehicle and publish what its sensors would measure."""
