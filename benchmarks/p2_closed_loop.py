@@ -26,8 +26,8 @@ import time
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import (common_parser, machine_info, ratio_line, ros_env, summary,  # noqa: E402
-                     write_json)
+from _common import (common_parser, machine_info, percentile, ratio_line,  # noqa: E402
+                     ros_env, summary, write_json)
 from _procs import node_command, start, stop_all  # noqa: E402
 
 NS = '/p2'
@@ -54,6 +54,7 @@ def _one_run(node, state, duration, rate, logdir, run, pythonpath=None):
             raise RuntimeError('P2: observer and compensator did not come up')
         with state['lock']:
             state['diag'] = []
+            state['seen'], state['loop'] = {}, []
         sim = start(node_command('plant_simulator', *common,
                                  f'simulator.duration:={float(duration)}',
                                  'diagnostics_period:=0.25', namespace=NS),
@@ -68,6 +69,8 @@ def _one_run(node, state, duration, rate, logdir, run, pythonpath=None):
         stop_all(procs)
     with state['lock']:
         diag = list(state['diag'])
+    with state['lock']:
+        loop = sorted(state['loop'])
     if not diag:
         raise RuntimeError(f'P2: no diagnostics from the simulator; see {logdir}')
     last = max(diag, key=lambda d: int(d['values'].get('steps', 0)))
@@ -83,7 +86,10 @@ def _one_run(node, state, duration, rate, logdir, run, pythonpath=None):
         span = b['stamp'] - a['stamp']
         if span > 0:
             rate_achieved = (int(b['values']['steps']) - int(a['values']['steps'])) / span
-    return {'steps': steps, 'late_commands': late, 'open_loop_steps': open_loop,
+    loop_us = [x / 1000.0 for x in loop]
+    return {'loop_median_us': percentile(loop_us, 50), 'loop_p99_us': percentile(loop_us, 99),
+            'loop_samples': len(loop_us),
+            'steps': steps, 'late_commands': late, 'open_loop_steps': open_loop,
             'checked': checked, 'on_time': 1.0 - late / checked if checked else float('nan'),
             'rate_achieved_hz': rate_achieved, 'exit_code': sim.returncode}
 
@@ -100,11 +106,14 @@ def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=Non
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
+    from sensor_msgs.msg import Imu, JointState
+
+    from observer_ros.nodes.common import SENSOR_QOS, STATE_QOS
 
     logdir = Path(tempfile.mkdtemp(prefix='p2_logs_'))
     rclpy.init()
     node = Node('p2_driver')
-    state = {'lock': threading.Lock(), 'diag': []}
+    state = {'lock': threading.Lock(), 'diag': [], 'seen': {}, 'loop': []}
 
     def on_diag(msg):
         for status in msg.status:
@@ -116,6 +125,23 @@ def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=Non
                     state['diag'].append(rec)
 
     node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 50)
+
+    # the loop as this process sees it: a gyro message, then the command with its stamp
+    def on_imu(msg):
+        s = msg.header.stamp
+        with state['lock']:
+            state['seen'][(s.sec, s.nanosec)] = time.perf_counter_ns()
+
+    def on_command(msg):
+        now = time.perf_counter_ns()
+        s = msg.header.stamp
+        with state['lock']:
+            sent = state['seen'].pop((s.sec, s.nanosec), None)
+            if sent is not None:
+                state['loop'].append(now - sent)
+
+    node.create_subscription(Imu, f'{NS}/imu/data', on_imu, SENSOR_QOS)
+    node.create_subscription(JointState, f'{NS}/control/u', on_command, STATE_QOS)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     spinner = threading.Thread(target=executor.spin, daemon=True)
@@ -128,7 +154,8 @@ def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=Non
             log(f'  P2 run {r + 1}/{runs}: {res["steps"]} steps at {rate:g} Hz, '
                 f'{res["open_loop_steps"]} before the loop closed, {res["late_commands"]} '
                 f'late of {res["checked"]} -> on time {res["on_time"]:.5f}; achieved '
-                f'{res["rate_achieved_hz"]:.0f} Hz')
+                f'{res["rate_achieved_hz"]:.0f} Hz; loop gyro -> command seen here: median '
+                f'{res["loop_median_us"]:.0f} us, p99 {res["loop_p99_us"]:.0f} us')
     finally:
         executor.shutdown(timeout_sec=1.0)
         node.destroy_node()
@@ -139,6 +166,14 @@ def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=Non
         note=f'{sum(r["late_commands"] for r in results)} late of '
              f'{sum(r["checked"] for r in results)} steps; achieved step rate median '
              f'{summary([r["rate_achieved_hz"] for r in results])["median"]:.0f} Hz')]
+    period_us = 1e6 / rate
+    figures.append(ratio_line(
+        'P2', 'loop_round_trip_median/step_period',
+        [r['loop_median_us'] / period_us for r in results], '<=', None, smoke=smoke,
+        note=f'gyro published -> command received, seen from a 4th process: median '
+             f'{summary([r["loop_median_us"] for r in results])["median"]:.0f} us, p99 '
+             f'{summary([r["loop_p99_us"] for r in results])["median"]:.0f} us; period '
+             f'{period_us:.0f} us'))
     return {'benchmark': 'P2', 'smoke': smoke, 'rate_hz': rate, 'duration_s': duration,
             'figures': figures, 'runs': results, 'logs': str(logdir)}
 
