@@ -32,13 +32,15 @@ from pathlib import Path
 import signal
 import sqlite3
 import sys
+import time
 import traceback
 import warnings
 
 from diagnostic_msgs.msg import DiagnosticStatus
 import rclpy
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
                                 QosReliability, QosTime)
 from rosbags.rosbag2 import StoragePlugin, Writer
@@ -303,6 +305,19 @@ class RecorderNode(VehicleNode):
         return super().destroy_node()
 
 
+def _drain(executor, node, quiet=0.3, limit=10.0):
+    """Keep taking delivered messages until none came for `quiet` s (at most `limit` s)."""
+    deadline = time.monotonic() + limit
+    last_total, last_change = -1, time.monotonic()
+    while time.monotonic() < deadline and not node.failed:
+        executor.spin_once(timeout_sec=0.05)
+        total = sum(node.counts.values())
+        if total != last_total:
+            last_total, last_change = total, time.monotonic()
+        elif time.monotonic() - last_change > quiet:
+            return
+
+
 def main(args=None):
     """
     Run the recorder node; return the exit status.
@@ -312,12 +327,21 @@ def main(args=None):
 
     """
     warnings.filterwarnings('ignore', category=DeprecationWarning)
-    rclpy.init(args=args)
+    # Our own SIGINT/SIGTERM handling: a signal stops the spinning, then the messages DDS
+    # already delivered (a recorder lags a fast lock-step run) are drained into the bag.
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.append(True))
     node = None
     code = 0
     try:
         node = RecorderNode()
-        rclpy.spin(node)
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while not stop and not node.failed:
+            executor.spin_once(timeout_sec=0.1)
+        _drain(executor, node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RecordingError as err:
