@@ -122,6 +122,7 @@ class Driver:
         self.counters = {}           # the observer's latest diagnostics values
         self.diag_count = 0
         self.stop = threading.Event()
+        self.first_due = None
 
     def _on_estimate(self, data):
         now = time.perf_counter()
@@ -162,8 +163,9 @@ class Driver:
         msg.header.frame_id = 'base_link_frd'
         msg.orientation_covariance[0] = -1.0
         msg.linear_acceleration_covariance[0] = -1.0
-        t0_ns = (time.time_ns() // self.period_ns + 1) * self.period_ns + 200_000_000
+        t0_ns = (time.time_ns() // self.period_ns + 1) * self.period_ns
         p0 = time.perf_counter() + (t0_ns - time.time_ns()) * 1e-9
+        self.first_due = p0
         k = 0
         n = int(duration * 1e9 / self.period_ns)
         while k < n and not self.stop.is_set():
@@ -234,14 +236,21 @@ def main(argv=None):
         duration = args.minutes * 60.0
         pub_thread = threading.Thread(target=driver.publish_loop, args=(duration,),
                                       daemon=True)
-        start = time.monotonic()
-        cpu0 = cpu_seconds(proc.pid)
-        rss = [(0.0, rss_kib(proc.pid))]
+        load_start = os.getloadavg()
+        rss0 = rss_kib(proc.pid)
         pub_thread.start()
+        while driver.first_due is None:
+            time.sleep(0.001)
+        # the minutes count from the first publish (perf_counter and monotonic are the
+        # same clock on Linux; only differences are used)
+        start = time.monotonic() + (driver.first_due - time.perf_counter())
+        cpu0 = cpu_seconds(proc.pid)
+        own0 = time.process_time()
+        rss = [(0.0, rss0)]
         minutes = []
         next_rss, next_minute = start + 10.0, start + 60.0
         last_pub = last_rcv = 0
-        last_cpu, last_t = cpu0, start
+        last_cpu, last_t, last_own = cpu0, start, own0
         while True:
             driver.executor.spin_once(timeout_sec=0.01)
             now = time.monotonic()
@@ -259,11 +268,14 @@ def main(argv=None):
                     'latency_ms_max': 1e3 * max(lat) if lat else float('nan'),
                     'publish_late_ms_p99': 1e3 * percentile(late, 99),
                     'observer_cpu': (cpu - last_cpu) / (now - last_t),
+                    'driver_cpu': (time.process_time() - last_own) / (now - last_t),
+                    'loadavg_1min': os.getloadavg()[0],
                     'observer_rss_kib': rss_kib(proc.pid),
                 }
                 minutes.append(row)
                 print(json.dumps(row), flush=True)
                 last_pub, last_rcv, last_cpu, last_t = pub, rcv, cpu, now
+                last_own = time.process_time()
                 next_minute += 60.0
                 if not pub_thread.is_alive():
                     break
@@ -296,11 +308,14 @@ def main(argv=None):
             'rss_kib_per_minute': 60.0 * slope([t for t, _ in rss[1:]],
                                                [r for _, r in rss[1:]]),
             'per_minute': minutes,
+            'rss_kib_samples': rss,
             'observer_counters': counters,
-            'machine': {'nproc': os.cpu_count(), 'loadavg_end': os.getloadavg(),
+            'machine': {'nproc': os.cpu_count(), 'loadavg_start': load_start,
+                        'loadavg_end': os.getloadavg(),
                         'python': sys.version.split()[0]},
         }
-        print(json.dumps({k: v for k, v in result.items() if k != 'per_minute'}, indent=1,
+        print(json.dumps({k: v for k, v in result.items()
+                          if k not in ('per_minute', 'rss_kib_samples')}, indent=1,
                          default=str))
         if args.json:
             Path(args.json).write_text(json.dumps(result, indent=2, default=str))

@@ -224,6 +224,7 @@ def fill_measurement(msg, sensor, values):
     msg : message
         A message instance of the sensor's type (rclpy, rosbags or a stand-in).
     sensor : SensorSpec
+        The sensor: its fields, noise and frame.
     values : array_like
         One value per field of the sensor.
 
@@ -306,6 +307,7 @@ def euler_to_quaternion(roll, pitch, yaw):
     Parameters
     ----------
     roll, pitch, yaw : float
+        Rotations about x, y and z in rad.
 
     Returns
     -------

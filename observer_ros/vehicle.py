@@ -1071,6 +1071,7 @@ def vehicle_to_parameters(vehicle):
     Parameters
     ----------
     vehicle : Vehicle
+        The vehicle to describe.
 
     Returns
     -------

@@ -159,11 +159,18 @@ def write_bag(path, messages, namespace='', storage='mcap', skip=(), retype=None
 
     Parameters
     ----------
+    path : path-like
+        Directory of the new bag.
+    messages : iterable of tuple
+        (relative topic, msgtype, receive ns, msg), in receive order.
     namespace : str
         Prefix of relative topics ('' or '/sub1').
     storage : {'mcap', 'sqlite3'}
-    skip : topics (relative) left out.
-    retype : dict relative topic -> (msgtype, msg factory(msg) -> msg), optional
+        Storage plugin.
+    skip : collection of str
+        Topics (relative) left out.
+    retype : dict, optional
+        Relative topic -> (msgtype, msg factory(msg) -> msg).
     log_ns : sequence of int, optional
         Receive times to use instead of the recorded ones (one per message).
     version : {8, 9}

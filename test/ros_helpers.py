@@ -12,11 +12,10 @@ import sys
 import time
 import warnings
 
+from observer_ros.tools.run_closed_loop import node_command
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
-
-from observer_ros.tools.run_closed_loop import node_command
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / 'config'
@@ -125,5 +124,5 @@ class Probe:
 
 
 def python():
-    """The interpreter the tests run with (the .venv one)."""
+    """Return the interpreter the tests run with (the .venv one)."""
     return sys.executable

@@ -53,13 +53,13 @@ class _Lazy(dict):
 
 
 _RUNS = {
-    'sub': ('submarine', None, dict(noise=False)),
-    'sub_noisy': ('submarine', None, dict(noise=True, seed=3)),
+    'sub': ('submarine', None, {'noise': False}),
+    'sub_noisy': ('submarine', None, {'noise': True, 'seed': 3}),
     'cart': ('cart_pendulum', ['simulator.initial_state:=[0.05, 0.0, 0.0, 0.0]'],
-             dict(noise=False)),
+             {'noise': False}),
     'cart_noisy': ('cart_pendulum', ['simulator.initial_state:=[0.05, 0.0, 0.0, 0.0]'],
-                   dict(noise=True, seed=1)),
-    'sub_reduced': ('submarine_reduced', None, dict(noise=True)),
+                   {'noise': True, 'seed': 1}),
+    'sub_reduced': ('submarine_reduced', None, {'noise': True}),
     # two sensors, one a std_msgs/Float64 without a header (the node stamps it on receipt)
     'sub_two': ('submarine', ['model.outputs:=[theta, q]', 'model.C:=[1.0,0.0,0.0, 0.0,0.0,1.0]',
                               'model.D:=[0.0, 0.0]', 'sensors.names:=[gyro, pitch]',
@@ -67,14 +67,14 @@ _RUNS = {
                               'sensors.pitch.type:=std_msgs/msg/Float64',
                               'sensors.pitch.fields:=[data]', 'sensors.pitch.outputs:=[theta]',
                               'sensors.pitch.noise_std:=[0.001]',
-                              'sensors.pitch.rate_divider:=2'], dict(noise=True)),
-    'cart_reduced': ('cart_pendulum_reduced', None, dict(steps=400, noise=True)),
+                              'sensors.pitch.rate_divider:=2'], {'noise': True}),
+    'cart_reduced': ('cart_pendulum_reduced', None, {'steps': 400, 'noise': True}),
 }
 
 
 @pytest.fixture(scope='module')
 def runs():
-    """Simulated runs (vehicle, run), computed on first use."""
+    """Return the simulated (vehicle, run) pairs, computed on first use."""
     def make(key):
         name, overrides, kwargs = _RUNS[key]
         vehicle = _vehicle(name, overrides)
@@ -271,7 +271,7 @@ def test_bag_commands_off_the_estimate_stamps_are_replayed_call_by_call(runs, tm
 
 def _swap_commands(messages, every=7):
     """
-    The recorder's receive order in lockstep: u[k] after y[k+1], at every k % every == 3.
+    Reorder as the recorder receives in lockstep: u[k] after y[k+1], at every k % every == 3.
 
     The command and the next step's messages come from different processes; the
     command is moved after the next sensor message and received with it.
@@ -325,7 +325,7 @@ def test_bag_bulk_self_check_catches_a_discrepancy_anywhere(runs, tmp_path, monk
     live = live_replay(rec, vehicle)
 
     def bag_order_inputs(run, cmd, u0, a, b):
-        """The input of the last command before each measurement in bag order (wrong)."""
+        """Return the input of the last command before each measurement in bag order (wrong)."""
         kind, seq, idx = run['kind'], run['seq'], run['idx']
         pos = np.flatnonzero(kind < 0)
         order = np.argsort(seq[pos], kind='stable')
@@ -616,7 +616,7 @@ def test_bag_errors_definition_from_another_release(runs, tmp_path):
 @pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
 @pytest.mark.parametrize('version', [8, 9])
 def test_bag_written_by_rosbags_any_version_in_a_namespace(runs, tmp_path, storage, version):
-    """rosbags' own Writer, metadata version 8 (Iron) or 9 (Jazzy); topics under /sub1."""
+    """Read rosbags' own Writer's bag, metadata version 8 (Iron) or 9 (Jazzy), in /sub1."""
     vehicle, run = runs['sub_noisy']
     bag = write_bag(tmp_path / f'v{version}', run['messages'], namespace='/sub1',
                     storage=storage, version=version)

@@ -36,7 +36,7 @@ DT = 0.05          # the submarine's step (20 Hz)
 
 @pytest.fixture(scope='module')
 def bag(tmp_path_factory):
-    """A 5 s submarine run in namespace NS (mcap)."""
+    """Record a 5 s submarine run in namespace NS (mcap)."""
     vehicle = load_vehicle(CONFIG / 'submarine.yaml')
     run = simulate(vehicle, steps=100, noise=True)
     return write_bag(tmp_path_factory.mktemp('play') / 'sub', run['messages'], namespace=NS)
@@ -218,7 +218,7 @@ def test_bag_play_helpers():
 
 
 def test_bag_play_uses_the_recorded_qos(tmp_path):
-    """QoS from the bag's metadata when recorded (as the recorder node writes it)."""
+    """Use the QoS from the bag's metadata when recorded (as the recorder node writes it)."""
     from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
     from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
                                     QosReliability, QosTime)

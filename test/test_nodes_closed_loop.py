@@ -4,18 +4,16 @@
 import concurrent.futures
 
 import numpy as np
-import pytest
-from rosbags.highlevel import AnyReader
-from rosbags.typesys import get_typestore, Stores
-
 from observer_ros.bag.vectors import read_vector_topic
 from observer_ros.core.compensator import design_vehicle
 from observer_ros.core.estimators import make_estimator
 from observer_ros.nodes.recorder import recorded_topics
 from observer_ros.tools.run_closed_loop import run_closed_loop
 from observer_ros.vehicle import load_vehicle
-
+import pytest
 from ros_helpers import CONFIG, domain_env
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import get_typestore, Stores
 
 NOISE_OFF = 'simulator.noise:=false'
 
@@ -45,7 +43,7 @@ def _at_common_stamps(ta, xa, tb, xb):
 
 @pytest.fixture(scope='module')
 def submarine_bag(tmp_path_factory):
-    """A noise-free submarine run, 20 s simulated (400 lock-step exchanges)."""
+    """Record a noise-free submarine run, 20 s simulated (400 lock-step exchanges)."""
     tmp = tmp_path_factory.mktemp('sub')
     return _run(tmp, 'submarine.yaml', NOISE_OFF, 'simulator.duration:=20.0')
 

@@ -6,16 +6,14 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import numpy as np
+from observer_ros.nodes.common import joint_state, SENSOR_QOS, STATE_QOS
+from observer_ros.timeutil import stamp_to_sec
 import pytest
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
+from ros_helpers import CONFIG, Probe, Proc
 from sensor_msgs.msg import Imu, JointState
 import yaml
-
-from observer_ros.nodes.common import SENSOR_QOS, STATE_QOS, joint_state
-from observer_ros.timeutil import stamp_to_sec
-
-from ros_helpers import CONFIG, Probe, Proc
 
 REALTIME = 'simulator.mode:=realtime'   # no lock-step waiting for commands in these tests
 

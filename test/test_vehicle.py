@@ -12,9 +12,6 @@ import types
 from hypothesis import given, HealthCheck, settings, strategies as st
 import numpy as np
 from numpy.testing import assert_allclose
-import pytest
-import yaml
-
 from observer_ros.core.errors import ObserverError, VehicleFileError
 from observer_ros.core.spec import SensorSpec
 from observer_ros.sensors import (extract_measurement, fill_measurement, MeasurementError,
@@ -23,6 +20,8 @@ from observer_ros.vehicle import (apply_overrides, KNOWN_KEYS, load_parameters,
                                   load_vehicle, parameter_schema, parameters_to_yaml,
                                   SENSOR_KEYS, vehicle_from_parameters,
                                   vehicle_to_parameters)
+import pytest
+import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = sorted((ROOT / 'config').glob('*.yaml'))

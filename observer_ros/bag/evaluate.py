@@ -94,12 +94,12 @@ class VariantResult:
 
     @property
     def x_hat(self):
-        """The estimates, (N, n)."""
+        """Return the estimates, (N, n)."""
         return self.replay.x_hat
 
     @property
     def residual(self):
-        """The residuals, (N, p), NaN for outputs a message did not carry."""
+        """Return the residuals, (N, p), NaN for outputs a message did not carry."""
         return self.replay.residual
 
 
@@ -119,17 +119,17 @@ class EvalResult:
 
     @property
     def state_names(self):
-        """The vehicle's state names."""
+        """Return the vehicle's state names."""
         return tuple(self.vehicle.plant.state_names)
 
     @property
     def output_names(self):
-        """The vehicle's output names."""
+        """Return the vehicle's output names."""
         return tuple(self.vehicle.plant.output_names)
 
     @property
     def namespace(self):
-        """The vehicle's namespace in the bag."""
+        """Return the vehicle's namespace in the bag."""
         return self.recording.namespace
 
     def to_dict(self):
@@ -327,8 +327,8 @@ def state_metrics(t, error, epoch, tolerance, steady_fraction=STEADY_FRACTION):
     n = error.shape[1]
     out = []
     if not t.size:
-        return [dict(samples=0, rmse=math.nan, max_abs_error=math.nan,
-                     settling_time=math.nan, ss_std=math.nan, ss_mean=math.nan)
+        return [{'samples': 0, 'rmse': math.nan, 'max_abs_error': math.nan,
+                 'settling_time': math.nan, 'ss_std': math.nan, 'ss_mean': math.nan}
                 for _ in range(n)]
     settle = np.zeros(n)
     steady = np.zeros(t.size, dtype=bool)
@@ -348,14 +348,14 @@ def state_metrics(t, error, epoch, tolerance, steady_fraction=STEADY_FRACTION):
     ss = error[steady]
     for i in range(n):
         e = error[:, i]
-        out.append(dict(
-            samples=int(e.size),
-            rmse=float(np.sqrt(np.mean(e * e))),
-            max_abs_error=float(np.max(np.abs(e))),
-            settling_time=float(settle[i]),
-            ss_std=float(np.std(ss[:, i])) if ss.shape[0] > 1 else math.nan,
-            ss_mean=float(np.mean(ss[:, i])) if ss.shape[0] else math.nan,
-        ))
+        out.append({
+            'samples': int(e.size),
+            'rmse': float(np.sqrt(np.mean(e * e))),
+            'max_abs_error': float(np.max(np.abs(e))),
+            'settling_time': float(settle[i]),
+            'ss_std': float(np.std(ss[:, i])) if ss.shape[0] > 1 else math.nan,
+            'ss_mean': float(np.mean(ss[:, i])) if ss.shape[0] else math.nan,
+        })
     return out
 
 
@@ -382,9 +382,9 @@ def whiteness(r, lags=WHITENESS_LAGS):
     r = np.asarray(r, dtype=float)
     r = r[np.isfinite(r)]
     N = r.size
-    out = dict(samples=int(N), residual_rms=float(np.sqrt(np.mean(r * r))) if N else math.nan,
-               lags=0, acf=[], ljung_box_q=math.nan, ljung_box_p=math.nan,
-               acf_outside=math.nan)
+    out = {'samples': int(N), 'residual_rms': float(np.sqrt(np.mean(r * r))) if N else math.nan,
+           'lags': 0, 'acf': [], 'ljung_box_q': math.nan, 'ljung_box_p': math.nan,
+           'acf_outside': math.nan}
     k = min(int(lags), N // 4)
     if k < 1:
         return out
@@ -657,10 +657,10 @@ def _csv_rows(result):
             rows.append(dict(variant=name, observer=vr.kind, kind='state', name=state,
                              tolerance=result.tolerance.get(state), **m))
         for output, m in vr.outputs.items():
-            rows.append(dict(variant=name, observer=vr.kind, kind='output', name=output,
-                             samples=m['samples'], residual_rms=m['residual_rms'],
-                             ljung_box_q=m['ljung_box_q'], ljung_box_p=m['ljung_box_p'],
-                             acf_outside=m['acf_outside']))
+            rows.append({'variant': name, 'observer': vr.kind, 'kind': 'output', 'name': output,
+                         'samples': m['samples'], 'residual_rms': m['residual_rms'],
+                         'ljung_box_q': m['ljung_box_q'], 'ljung_box_p': m['ljung_box_p'],
+                         'acf_outside': m['acf_outside']})
     return rows
 
 
@@ -699,9 +699,12 @@ def write_results(result, out, force=False, plots=True, results_bag=True,
     Parameters
     ----------
     result : EvalResult
+        The evaluation, from :func:`evaluate_bag`.
     out : str or Path
         The folder; it must not exist unless ``force`` (then an earlier observer-eval
         output there is replaced).
+    force : bool
+        Replace an earlier observer-eval output folder at ``out``.
     plots : bool
         Write ``states.png``, ``error_norm.png`` (with ground truth) and
         ``residuals.png``.
@@ -767,8 +770,8 @@ def _plots(result, out):
     for c, (name, vr) in enumerate(result.variants.items()):
         rep = vr.replay
         d = _decimate(len(rep), PLOT_MAX_POINTS)
-        style = dict(ls='--', lw=1.2, color='0.4') if name == 'live' else \
-            dict(lw=1.0, color=colors[c % len(colors)])
+        style = {'ls': '--', 'lw': 1.2, 'color': '0.4'} if name == 'live' else \
+            {'lw': 1.0, 'color': colors[c % len(colors)]}
         for i, ax in enumerate(axes[:, 0]):
             ax.plot((rep.stamp_ns[d] - t0) * 1e-9, rep.x_hat[d, i], label=name, **style)
     for i, ax in enumerate(axes[:, 0]):
@@ -790,8 +793,8 @@ def _plots(result, out):
             norm = np.linalg.norm(vr.error[ok], axis=1)
             ts = (vr.replay.stamp_ns[ok] - t0) * 1e-9
             d = _decimate(norm.size, PLOT_MAX_POINTS)
-            style = dict(ls='--', color='0.4') if name == 'live' else \
-                dict(color=colors[c % len(colors)])
+            style = {'ls': '--', 'color': '0.4'} if name == 'live' else \
+                {'color': colors[c % len(colors)]}
             ax.semilogy(ts[d], np.maximum(norm[d], 1e-16), label=name, **style)
         ax.set_xlabel('time since the start of the bag [s]')
         ax.set_ylabel('|x_hat - x|')
@@ -812,8 +815,8 @@ def _plots(result, out):
             if not ok.any():
                 continue
             d = _decimate(int(ok.sum()), PLOT_MAX_POINTS)
-            style = dict(ls='--', color='0.4') if name == 'live' else \
-                dict(color=colors[c % len(colors)])
+            style = {'ls': '--', 'color': '0.4'} if name == 'live' else \
+                {'color': colors[c % len(colors)]}
             ax.plot((rep.stamp_ns[ok][d] - t0) * 1e-9, rep.residual[ok, j][d], lw=0.8,
                     label=name, **style)
     for j, ax in enumerate(axes[:, 0]):

@@ -357,6 +357,7 @@ def bag_info(path):
     Parameters
     ----------
     path : str or Path
+        The bag: its folder or a storage file, as :class:`BagReader` takes it.
 
     Returns
     -------
@@ -395,7 +396,9 @@ def resolve_topics(info, vehicle, namespace=None):
     Parameters
     ----------
     info : BagInfo
+        The bag's topics and counts, from :func:`bag_info`.
     vehicle : Vehicle
+        Its sensors say which topics to find.
     namespace : str, optional
         The vehicle's namespace (``/sub1``); detected when None: the one namespace under
         which every sensor topic of the vehicle is in the bag.
@@ -821,7 +824,7 @@ class Recording:
 
     @property
     def namespace(self):
-        """The vehicle's namespace in the bag ('' for the root)."""
+        """Return the vehicle's namespace in the bag ('' for the root)."""
         return self.topics.namespace
 
     def streams(self):

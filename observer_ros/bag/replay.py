@@ -583,7 +583,7 @@ def _probe(est, t0, t1, rows):
 
 def _held_inputs(run, cmd, u0, a, b):
     """
-    The input held at each correction a+1..b: that of the last command before it.
+    Return the input held at each correction a+1..b: that of the last command before it.
 
     The last command before measurement j in the replay order, if it comes after
     measurement a; else ``u0``, the input the estimator held at a.
@@ -622,7 +622,7 @@ def _call_events(check, run, streams, cmd, rows, e0, e1):
 
 def _windows(run, K):
     """
-    The stretches (s0, s1) of steps of a bulk run checked call by call.
+    Return the stretches (s0, s1) of steps of a bulk run checked call by call.
 
     Steps s0..s1-1 (step s is measurement a+1+s): the first and the last
     :data:`CHECK_STEPS`, :data:`CHECK_WINDOWS` in all spread evenly, and up to
@@ -691,7 +691,7 @@ def _check_windows(est, run, streams, cmd, rows, X, U, scale):
 
 
 def _term_scale(maps, cls, sens, Y, Xprev, X, U):
-    """Running maximum over the steps of ``max(|F| |x_prev| + |G| |y| + |H| |u|, |x|)``."""
+    """Return the running maximum over steps of ``max(|F| |x_prev| + |G| |y| + |H| |u|, |x|)``."""
     absF = np.abs(np.stack([mp[0] for mp in maps]))[cls]
     absH = np.abs(np.stack([mp[2] for mp in maps]))[cls]
     terms = (np.einsum('kij,kj->ki', absF, np.abs(Xprev))
@@ -828,7 +828,7 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
             problem = f'{err:.3g} at step {f} of {K} (one step of its class)'
             break
     if problem is not None:
-        warnings.append('bulk replay disabled: it differs from the estimator\'s calls by '
+        warnings.append("bulk replay disabled: it differs from the estimator's calls by "
                         f'{problem}; replaying call by call')
         return None
     out_ns, out_x, out_r, out_seq, out_sensor = out
@@ -855,8 +855,12 @@ def live_replay(recording, vehicle, clock_jump_tolerance=CLOCK_JUMP_TOLERANCE):
     Parameters
     ----------
     recording : Recording
+        From :func:`observer_ros.bag.reader.read_recording`.
     vehicle : Vehicle
+        The vehicle the bag was recorded with (its plant).
     clock_jump_tolerance : float
+        A step back of the estimate's stamp by more than this many seconds is a clock
+        jump (a new epoch, see :func:`epochs_of`).
 
     Returns
     -------

@@ -14,15 +14,14 @@ from .design import *       # noqa: F401,F403
 from .design import __all__ as _design_all
 from .errors import *       # noqa: F401,F403
 from .errors import __all__ as _errors_all
-from .model import *        # noqa: F401,F403
-from .model import __all__ as _model_all
-from .spec import *         # noqa: F401,F403
-from .spec import __all__ as _spec_all
-
 from .estimators import *   # noqa: F401,F403
 from .estimators import __all__ as _estimators_all
+from .model import *        # noqa: F401,F403
+from .model import __all__ as _model_all
 from .simulate import *     # noqa: F401,F403
 from .simulate import __all__ as _simulate_all
+from .spec import *         # noqa: F401,F403
+from .spec import __all__ as _spec_all
 
 __all__ = (list(_errors_all) + list(_model_all) + list(_spec_all) + list(_analysis_all)
            + list(_design_all) + list(_compensator_all) + list(_estimators_all)

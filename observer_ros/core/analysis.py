@@ -646,7 +646,7 @@ class Mode:
 
     @property
     def stable(self):
-        """True when the mode decays."""
+        """Return True when the mode decays."""
         return self.status == 'stable'
 
     def describe(self):

@@ -772,7 +772,7 @@ class VehicleDesign:
 
     @property
     def observer(self):
-        """What the closed-loop helpers take: L (full order) or the ReducedOrderDesign."""
+        """Return what the closed-loop helpers take: L (full order) or the ReducedOrderDesign."""
         return self.reduced if self.reduced is not None else self.L
 
 

@@ -513,12 +513,12 @@ class ReducedOrderDesign:
 
     @property
     def n(self):
-        """Number of plant states."""
+        """Return the number of plant states."""
         return self.T.shape[0]
 
     @property
     def order(self):
-        """Number of observer states, n - p."""
+        """Return the number of observer states, n - p."""
         return self.F.shape[0]
 
     @property

@@ -574,22 +574,22 @@ class Estimator:
 
     @property
     def plant(self):
-        """The model (Plant)."""
+        """Return the model (Plant)."""
         return self._plant
 
     @property
     def n(self):
-        """Number of states."""
+        """Return the number of states."""
         return self._plant.n
 
     @property
     def measured_rows(self):
-        """The output rows this estimator accepts (tuple of int)."""
+        """Return the output rows this estimator accepts (tuple of int)."""
         return self._measured
 
     @property
     def x_hat(self):
-        """The estimate at time :attr:`t` (a copy, ndarray of n)."""
+        """Return the estimate at time :attr:`t` (a copy, ndarray of n)."""
         return self._x.copy()
 
     @property
@@ -599,7 +599,7 @@ class Estimator:
 
     @property
     def u(self):
-        """The held input (a copy, ndarray of m); zeros until set."""
+        """Return the held input (a copy, ndarray of m); zeros until set."""
         return self._u.copy()
 
     @property
@@ -609,17 +609,17 @@ class Estimator:
 
     @property
     def residual_rows(self):
-        """The output rows of :attr:`residual` (tuple of int), or None."""
+        """Return the output rows of :attr:`residual` (tuple of int), or None."""
         return self._residual_rows
 
     @property
     def cache(self):
-        """The :class:`StepCache` of this estimator (propagation matrices)."""
+        """Return the :class:`StepCache` of this estimator (propagation matrices)."""
         return self._cache
 
     @property
     def gain_cache(self):
-        """The :class:`StepCache` the gains are designed on (:attr:`cache` when the same)."""
+        """Return the :class:`StepCache` the gains are designed on (:attr:`cache` if the same)."""
         return self._cache if self._gain_cache is None else self._gain_cache
 
     def gain_steps(self, key):
@@ -1325,7 +1325,7 @@ class ReducedOrderEstimator(_CurrentForm):
 
     @property
     def coordinates(self):
-        """Copies of T, Tinv and rest as given by design.reduced_coordinates."""
+        """Return copies of T, Tinv and rest as given by design.reduced_coordinates."""
         return self._T.copy(), self._Tinv.copy(), list(self._rest)
 
     @property

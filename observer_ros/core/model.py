@@ -153,7 +153,9 @@ def zoh_matrices(A, B, dt):
     Parameters
     ----------
     A : (n, n) array_like
+        State matrix.
     B : (n, m) array_like
+        Input matrix.
     dt : float
         Sample time, > 0.
 
@@ -184,7 +186,9 @@ def map_poles_to_discrete(poles, dt):
     Parameters
     ----------
     poles : array_like of complex
+        Continuous-time poles s.
     dt : float
+        Sample time.
 
     Returns
     -------
@@ -238,22 +242,22 @@ class Plant:
 
     @property
     def n(self):
-        """Number of states."""
+        """Return the number of states."""
         return self.A.shape[0]
 
     @property
     def m(self):
-        """Number of inputs."""
+        """Return the number of inputs."""
         return self.B.shape[1]
 
     @property
     def p(self):
-        """Number of outputs."""
+        """Return the number of outputs."""
         return self.C.shape[0]
 
     @property
     def is_discrete(self):
-        """True for a discrete-time plant."""
+        """Return True for a discrete-time plant."""
         return self.dt is not None
 
     def output_rows(self, names: Sequence[str]):

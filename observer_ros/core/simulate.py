@@ -85,22 +85,22 @@ class PlantSimulator:
 
     @property
     def plant(self):
-        """The simulated model."""
+        """Return the simulated model."""
         return self._plant
 
     @property
     def x(self):
-        """The true state (a copy)."""
+        """Return the true state (a copy)."""
         return self._x.copy()
 
     @property
     def t(self):
-        """Simulated time in seconds."""
+        """Return the simulated time in seconds."""
         return self._t
 
     @property
     def u(self):
-        """The input applied over the last step (a copy)."""
+        """Return the input applied over the last step (a copy)."""
         return self._u.copy()
 
     def reset(self, x0=None, t0=None):

@@ -100,5 +100,5 @@ class Vehicle:
 
     @property
     def sample_time(self):
-        """The simulator's step (the model's own for a discrete model)."""
+        """Return the simulator's step (the model's own for a discrete model)."""
         return self.plant.dt if self.plant.is_discrete else 1.0 / self.simulator.rate_hz

@@ -2,6 +2,7 @@
 """Shared pieces of the observer_ros nodes: vehicle parameters, QoS, conversions, main()."""
 
 import sys
+import time
 import traceback
 import warnings
 
@@ -11,8 +12,8 @@ import rclpy
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
-                       qos_profile_sensor_data)
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data, QoSProfile,
+                       ReliabilityPolicy)
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64
 
@@ -21,8 +22,8 @@ from ..timeutil import sec_to_stamp_parts, stamp_to_sec
 from ..vehicle import vehicle_from_parameters
 
 __all__ = ['VEHICLE_SECTIONS', 'SENSOR_QOS', 'SENSOR_SUB_QOS', 'STATE_QOS', 'STATE_PUB_QOS',
-           'LATCHED_QOS', 'MESSAGE_CLASSES', 'TOPICS', 'VehicleNode', 'joint_state', 'stamp_to_sec', 'to_stamp',
-           'run_node']
+           'LATCHED_QOS', 'MESSAGE_CLASSES', 'TOPICS', 'VehicleNode', 'joint_state',
+           'stamp_to_sec', 'to_stamp', 'run_node']
 
 # The parameter namespaces that belong to the vehicle file; anything else is a node's own.
 VEHICLE_SECTIONS = ('vehicle', 'model', 'sensors', 'observer', 'controller', 'simulator')
@@ -140,9 +141,10 @@ class VehicleNode(Node):
         """Create a timer on the steady (wall) clock."""
         return self.create_timer(period, callback, clock=self.steady_clock)
 
-    def wall_now(self):
-        """Return steady-clock seconds (for ages and timeouts)."""
-        return self.steady_clock.now().nanoseconds * 1e-9
+    @staticmethod
+    def wall_now():
+        """Return steady-clock seconds (for ages and timeouts; cheap on the hot path)."""
+        return time.monotonic()
 
     def vehicle_parameters(self):
         """Return the vehicle-file parameters of this node as a flat dict."""

@@ -15,10 +15,10 @@ from rcl_interfaces.msg import SetParametersResult
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
+from .common import (joint_state, LATCHED_QOS, run_node, stamp_to_sec, STATE_PUB_QOS, STATE_QOS,
+                     TOPICS, vector_from_joint_state, VehicleNode)
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
-from .common import (LATCHED_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS, VehicleNode, joint_state,
-                     run_node, stamp_to_sec, vector_from_joint_state)
 
 __all__ = ['CompensatorNode', 'control_law', 'main']
 
@@ -30,8 +30,11 @@ def control_law(K, x_hat, x_d, Kd, u_min=None, u_max=None):
     Parameters
     ----------
     K, Kd : (m, n) ndarray
+        Feedback gain and desired-state gain.
     x_hat, x_d : (n,) ndarray
+        State estimate and desired state.
     u_min, u_max : (m,) ndarray, optional
+        Input limits (None: no limit on that side).
 
     Returns
     -------

@@ -15,14 +15,15 @@ import numpy as np
 from rcl_interfaces.msg import SetParametersResult
 from sensor_msgs.msg import JointState
 
+from .common import (joint_state, MESSAGE_CLASSES, run_node, SENSOR_SUB_QOS, stamp_to_sec,
+                     STATE_PUB_QOS, STATE_QOS, TOPICS, vector_from_joint_state, VehicleNode)
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 from ..core.estimators import make_estimator
 from ..sensors import extract_measurement
-from .common import (MESSAGE_CLASSES, SENSOR_SUB_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS,
-                     VehicleNode, joint_state, run_node, stamp_to_sec, vector_from_joint_state)
 
 __all__ = ['ObserverNode', 'main']
+
 
 class ObserverNode(VehicleNode):
     """Estimate the state from the vehicle's sensors and commands."""
@@ -145,7 +146,7 @@ class ObserverNode(VehicleNode):
         # the estimate first: it is what the compensator waits for (benchmarks P1)
         self._publish_estimate(t, sensor.frame_id)
         residual = self.estimator.residual
-        if residual is not None:
+        if residual is not None and self._res_pub.get_subscription_count():
             self._res_pub.publish(joint_state(sensor.outputs, residual, t, sensor.frame_id))
 
     def _publish_estimate(self, t, frame_id):

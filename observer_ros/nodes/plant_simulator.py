@@ -25,13 +25,14 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool
 
+from .common import (joint_state, LATCHED_QOS, MESSAGE_CLASSES, run_node, SENSOR_QOS,
+                     stamp_to_sec, STATE_PUB_QOS, STATE_QOS, to_stamp, TOPICS,
+                     vector_from_joint_state, VehicleNode)
 from ..core.model import zoh_matrices
 from ..sensors import fill_measurement
-from .common import (LATCHED_QOS, MESSAGE_CLASSES, SENSOR_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS,
-                     VehicleNode, joint_state, run_node, stamp_to_sec, to_stamp,
-                     vector_from_joint_state)
 
 __all__ = ['PlantSimulatorNode', 'main']
+
 
 class PlantSimulatorNode(VehicleNode):
     """Simulate the vehicle and publish what its sensors would measure."""
@@ -94,7 +95,7 @@ class PlantSimulatorNode(VehicleNode):
             self._step_timer = self.wall_timer(period, self._realtime_step)
             self.count('late_commands', 0)
         self._diag_timer = self.wall_timer(self.param('diagnostics_period'),
-                                             self._on_diagnostics)
+                                           self._on_diagnostics)
 
     def _on_recorder_ready(self, msg):
         self._recorder_ready = bool(msg.data)
@@ -102,7 +103,7 @@ class PlantSimulatorNode(VehicleNode):
     # -- time and measurement ---------------------------------------------------------------
     @property
     def t(self):
-        """Simulated time of the current step."""
+        """Return the simulated time of the current step."""
         return self.t0 + self.k * self.dt
 
     def _publish_clock(self):

@@ -1,7 +1,9 @@
 # observer_ros.tools.design_report: `observer-design VEHICLE.yaml [--json]`.
 """
-Design report of a vehicle file: observability and detectability (modes named), gains,
-observer, controller and closed-loop poles, the separation check, D(s) and warnings.
+Design report of a vehicle file.
+
+Observability and detectability (modes named), gains, observer, controller and
+closed-loop poles, the separation check, D(s) and warnings.
 
 Exits 2 with one ``error: ...`` line for a file that is invalid, undetectable or
 otherwise unusable.

@@ -1,9 +1,11 @@
 # observer_ros.tools.run_closed_loop: the main job, a recorded closed-loop run of a vehicle.
 """
-``observer-run VEHICLE.yaml``: simulator, observer, compensator and recorder as four
-processes over DDS, in lock-step, for the vehicle's simulated duration; the bag is written
-under bags/runs/ (or ``--out``) and a summary is read back from it. With ``--evaluate``
-the bag is then replayed through the vehicle's design and other observers.
+``observer-run VEHICLE.yaml``: a recorded closed-loop run of a vehicle.
+
+Simulator, observer, compensator and recorder as four processes over DDS, in lock-step,
+for the vehicle's simulated duration; the bag is written under bags/runs/ (or ``--out``)
+and a summary is read back from it. With ``--evaluate`` the bag is then replayed through
+the vehicle's design and other observers.
 
 The vehicle file is checked (loaded and designed) before any process starts.
 
@@ -63,6 +65,7 @@ def run_closed_loop(params_file, bag_path, storage='mcap', namespace=None, overr
     bag_path : path
         Bag directory to create (must not exist).
     storage : {'mcap', 'sqlite3'}
+        The recorder's storage plugin.
     namespace : str, optional
         Run the vehicle in this namespace.
     overrides : sequence of str
@@ -71,6 +74,8 @@ def run_closed_loop(params_file, bag_path, storage='mcap', namespace=None, overr
         Wall-time limit in seconds (default: 60 s plus 20 ms per simulated step).
     log_dir : path, optional
         Where each process's output goes (default: next to the bag).
+    quiet : bool
+        Do not print the bag and log paths at the end.
 
     Returns
     -------
@@ -93,7 +98,7 @@ def run_closed_loop(params_file, bag_path, storage='mcap', namespace=None, overr
     def start(name, *args):
         out = open(log_dir / f'{name}.log', 'w')
         procs[name] = (subprocess.Popen(node_command(name, params_file, *args,
-                                                    namespace=namespace),
+                                                     namespace=namespace),
                                         stdout=out, stderr=subprocess.STDOUT, env=env), out)
 
     try:
@@ -260,7 +265,7 @@ def _evaluate(vehicle_path, vehicle, design, bag, summary, args):
 
 def comparison_variants(vehicle, design):
     """
-    The evaluation's comparison: observer poles 6x slower and 5x faster, and open loop.
+    Return the evaluation's comparison: observer poles 6x slower and 5x faster, and open loop.
 
     Returns
     -------
@@ -282,7 +287,7 @@ def comparison_variants(vehicle, design):
 
 def lessons(vehicle, design, result, summary, slow_summary):
     """
-    The seeds' lessons, read off this run: slow poles, fast poles, the open-loop observer.
+    Return the seeds' lessons, read off this run: slow poles, fast poles, the open-loop observer.
 
     Returns
     -------
@@ -317,7 +322,7 @@ def lessons(vehicle, design, result, summary, slow_summary):
         k = max(1, len(norms) // 10)
         start, end = float(np.mean(norms[:k])), float(np.mean(norms[-k:]))
         verdict = ('drifts: the plant is unstable' if unstable else
-                   'converges only at the plant\'s own rate (its slowest eigenvalue '
+                   "converges only at the plant's own rate (its slowest eigenvalue "
                    f'{max(eig.real):.3g}): no gain to speed it up')
         lines.append(f'- the open-loop observer {verdict}: |x - x_hat| from {start:.3g} '
                      f'(first 10%) to {end:.3g} (last 10%)')
