@@ -46,7 +46,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def percentile(values, q):
-    """Return the q-th percentile (0..100) of values, linear interpolation."""
+    """Return the q-th percentile of values, q in 0..100, with linear interpolation."""
     xs = sorted(values)
     if not xs:
         return float('nan')
@@ -57,7 +57,7 @@ def percentile(values, q):
 
 
 def rss_kib(pid):
-    """VmRSS of a process in KiB (None once it is gone)."""
+    """Return the resident set size (VmRSS) of a process in KiB (None once it is gone)."""
     try:
         for line in Path(f'/proc/{pid}/status').read_text().splitlines():
             if line.startswith('VmRSS:'):

@@ -18,9 +18,9 @@ that:
 
 The recorder's ``.disk_reserve`` file is deleted first, so that this works on the disk
 that filled up. Then ``metadata.yaml`` (rosbag2 version 9) is written from what the
-storage holds, and the bag is opened with rosbags' AnyReader to check it. A bag that is already intact is left
-as it is. The original mcap, when it is cut, is not kept: copy the bag first to keep the
-damaged bytes.
+storage holds, and the bag is opened with rosbags' AnyReader to check it. A bag that is
+already intact is left as it is. The original mcap, when it is cut, is not kept: copy the
+bag first to keep the damaged bytes.
 
 """
 
@@ -288,9 +288,8 @@ def _repair_mcap(path, scan, metadata_text):
             last['index_end'] = base + len(data)
             out.write(data)
         metadata_start = base + out.tell()
-        meta = _string('rosbag2') + _u32(len(_string('serialized_metadata')
-                                            + _string(metadata_text)))
-        meta += _string('serialized_metadata') + _string(metadata_text)
+        pairs = _string('serialized_metadata') + _string(metadata_text)
+        meta = _string('rosbag2') + _u32(len(pairs)) + pairs
         out.write(_record(OP_METADATA, meta))
         metadata_end = base + out.tell()
         out.write(_record(OP_DATA_END, _u32(0)))
@@ -346,7 +345,7 @@ def _repair_mcap(path, scan, metadata_text):
 
 
 def _channel_counts(scan):
-    counts = {cid: 0 for cid in scan['channels']}
+    counts = dict.fromkeys(scan['channels'], 0)
     for chunk in scan['chunks']:
         for cid, entries in chunk['messages'].items():
             counts[cid] = counts.get(cid, 0) + len(entries)

@@ -21,11 +21,9 @@ import sys
 import threading
 
 import numpy as np
-import pytest
-
-from ros_helpers import CONFIG, DOMAIN_ID
-
 from observer_ros.tools.run_closed_loop import node_command
+import pytest
+from ros_helpers import CONFIG, DOMAIN_ID
 
 VEHICLE = CONFIG / 'submarine.yaml'
 SIM = ['simulator.mode:=realtime', 'simulator.realtime_factor:=2.0',

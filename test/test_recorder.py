@@ -9,15 +9,13 @@ import subprocess
 import sys
 
 from diagnostic_msgs.msg import DiagnosticArray
+from observer_ros.bagrecover import BagRecoveryError, recover_bag
+from observer_ros.nodes.common import STATE_PUB_QOS, STATE_QOS
 import pytest
+from ros_helpers import CONFIG, Probe, Proc
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
 from sensor_msgs.msg import JointState
-
-from observer_ros.bagrecover import BagRecoveryError, recover_bag
-from observer_ros.nodes.common import STATE_PUB_QOS, STATE_QOS
-
-from ros_helpers import CONFIG, Probe, Proc
 
 VEHICLE = CONFIG / 'submarine.yaml'
 TOPIC = '/state/true'
@@ -63,7 +61,7 @@ class Feeder:
                 self.wait_recorded(self.sent)
 
     def recorded(self, key=f'messages {TOPIC}'):
-        """The recorder's latest count of state/true messages on disk (-1 before any)."""
+        """Return the recorder's latest count of state/true messages on disk (-1: none)."""
         for array in reversed(self.diagnostics):
             for status in array.status:
                 if status.name.endswith('/recorder'):
@@ -95,7 +93,7 @@ def _recorder(bag, storage, *params, log_dir=None):
 
 
 def _numbers(bag):
-    """The numbers of the state/true messages in a bag, in bag order."""
+    """Return the numbers of the state/true messages in a bag, in bag order."""
     with AnyReader([Path(bag)], default_typestore=STORE) as reader:
         conns = [c for c in reader.connections if c.topic == TOPIC]
         return [int(reader.deserialize(raw, c.msgtype).position[0])
@@ -190,14 +188,15 @@ def test_an_existing_bag_is_never_overwritten(tmp_path):
     code = rec.popen.wait(timeout=60)
     rec.stop()
     assert code == 2
-    assert str(bag) in rec.log_path.read_text() and 'refusing to overwrite' in rec.log_path.read_text()
+    log = rec.log_path.read_text()
+    assert str(bag) in log and 'refusing to overwrite' in log
     assert sorted(p.name for p in bag.iterdir()) == ['keep.txt']
     assert (bag / 'keep.txt').read_text() == 'precious'
 
 
 @pytest.fixture
 def small_disk(tmp_path):
-    """A 2 MiB tmpfs (root only)."""
+    """Mount a 2 MiB tmpfs (root only); unmount it afterwards."""
     if shutil.which('mount') is None:
         pytest.skip('no mount command: cannot make a small disk')
     disk = tmp_path / 'disk'

@@ -5,17 +5,15 @@ import signal
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import numpy as np
-import pytest
-from rosbags.highlevel import AnyReader
-from rosbags.typesys import get_typestore, Stores
-from sensor_msgs.msg import JointState
-
 from observer_ros.core.compensator import design_vehicle
 from observer_ros.nodes.common import STATE_QOS
 from observer_ros.timeutil import stamp_to_ns
 from observer_ros.vehicle import load_vehicle
-
+import pytest
 from ros_helpers import CONFIG, Probe, Proc
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import get_typestore, Stores
+from sensor_msgs.msg import JointState
 
 VEHICLE = CONFIG / 'submarine.yaml'
 # realtime for every node (nobody waits for anybody), 2x faster than the wall clock, noise
@@ -82,7 +80,7 @@ class Loop:
                 if t in self.true]
 
     def status(self, node_name, since=0):
-        """The node's latest DiagnosticStatus among diagnostics[since:] (or None)."""
+        """Return the node's latest DiagnosticStatus among diagnostics[since:] (or None)."""
         for array in reversed(self.diagnostics[since:]):
             for status in array.status:
                 if status.name.endswith('/' + node_name):

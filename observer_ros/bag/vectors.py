@@ -29,7 +29,7 @@ def read_vector_topic(bag_path, topic, names):
     Returns
     -------
     t : (N,) ndarray
-        header stamps in seconds.
+        header stamps in seconds, in increasing order (ties keep bag order).
     X : (N, len(names)) ndarray
 
     """
@@ -47,4 +47,7 @@ def read_vector_topic(bag_path, topic, names):
                 rows.append([msg.position[index[n]] for n in names])
     except Exception as err:   # noqa: BLE001 - rosbags raises several types
         raise ObserverError(f'{bag_path}: cannot read {topic}: {err}') from None
-    return np.array(times), np.array(rows, dtype=float).reshape(len(rows), len(names))
+    # stamp order: a transient-local history sample can arrive after newer live ones
+    times = np.array(times)
+    order = np.argsort(times, kind='stable')
+    return times[order], np.array(rows, dtype=float).reshape(len(rows), len(names))[order]

@@ -38,10 +38,12 @@ SENSOR_SUB_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT
 # Estimates, commands, true state: reliable, keep last 10 (talker_qos.py / STYLE.md §11).
 STATE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                        history=HistoryPolicy.KEEP_LAST)
-# What publishers of estimates, commands and the true state offer: the same, plus the last
-# 10 messages kept for late-joining transient-local readers (the recorder), so that nothing
-# sent while DDS is still matching a reader is lost to it. Volatile readers are unaffected.
-STATE_PUB_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+# What publishers of estimates, commands and the true state offer: reliable, and the last
+# 1000 messages kept for transient-local readers (the recorder): a sample is re-sent until
+# that reader has it, so nothing sent while DDS is still matching it, or while it lags a
+# fast lock-step run, is lost to it (a reliable KEEP_LAST writer drops the oldest sample,
+# acknowledged or not, once its history is full). Volatile readers are unaffected.
+STATE_PUB_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
                            history=HistoryPolicy.KEEP_LAST,
                            durability=DurabilityPolicy.TRANSIENT_LOCAL)
 # The reference x_d: latched, so a late subscriber gets it.

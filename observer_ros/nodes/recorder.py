@@ -47,9 +47,9 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import get_typestore, Stores
 from std_msgs.msg import Bool
 
+from .common import LATCHED_QOS, SENSOR_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS, VehicleNode
 from ..bag.play import message_class
 from ..core.errors import ObserverError
-from .common import LATCHED_QOS, SENSOR_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS, VehicleNode
 
 __all__ = ['RecorderNode', 'RecordingError', 'main', 'recorded_topics']
 
@@ -111,6 +111,7 @@ def recorded_topics(vehicle):
     Parameters
     ----------
     vehicle : observer_ros.core.spec.Vehicle
+        The vehicle (its sensors give the sensor topics).
 
     Returns
     -------
@@ -142,7 +143,7 @@ def _bag_qos(qos):
 
 
 def _deeper(qos, depth):
-    """The same QoS with a reader queue of at least `depth` (compatibility is unchanged)."""
+    """Return the same QoS with a reader queue of at least `depth` (still compatible)."""
     return QoSProfile(history=qos.history, depth=max(qos.depth, depth),
                       reliability=qos.reliability, durability=qos.durability)
 
@@ -253,7 +254,7 @@ class RecorderNode(VehicleNode):
             self._reserve = None
 
     def _fail(self, err):
-        """A write failed: abort the bag, recover it up to its last flush, stop (raise)."""
+        """Abort the bag after a failed write, recover it up to its last flush, raise."""
         writer, self.writer = self.writer, None
         log = self.get_logger()
         self._release_reserve()
@@ -306,16 +307,26 @@ class RecorderNode(VehicleNode):
 
 
 def _drain(executor, node, quiet=0.3, limit=10.0):
-    """Keep taking delivered messages until none came for `quiet` s (at most `limit` s)."""
+    """
+    Take what DDS already delivered, then stop: the backlog, and stragglers for `quiet` s.
+
+    First every callback that is ready is run, until a few non-blocking spins in a row take
+    no message (the recorder has caught up: a lagging recorder writes its whole backlog).
+    Then messages are taken for `quiet` s more (a reliable sample still under way). Both
+    together never take longer than `limit` s, and a live system, whose messages never
+    stop, is not recorded for longer than that: the bag closes within about `quiet` s
+    once the backlog is written.
+
+    """
     deadline = time.monotonic() + limit
-    last_total, last_change = -1, time.monotonic()
-    while time.monotonic() < deadline and not node.failed:
-        executor.spin_once(timeout_sec=0.05)
-        total = sum(node.counts.values())
-        if total != last_total:
-            last_total, last_change = total, time.monotonic()
-        elif time.monotonic() - last_change > quiet:
-            return
+    idle = 0
+    while idle < 3 and time.monotonic() < deadline and not node.failed:
+        before = sum(node.counts.values())
+        executor.spin_once(timeout_sec=0.0)
+        idle = idle + 1 if sum(node.counts.values()) == before else 0
+    end = min(deadline, time.monotonic() + quiet)
+    while time.monotonic() < end and not node.failed:
+        executor.spin_once(timeout_sec=max(0.0, end - time.monotonic()))
 
 
 def main(args=None):
