@@ -11,7 +11,7 @@ whole run:
 
 - messages: published; processed by the observer (its ``measurements`` counter and the
   rejection counters); estimates received back. Lost on the way in (best-effort sensor
-  QoS, keep last 5) = published - processed - rejected; not answered (lost by our code,
+  QoS) = published - processed - rejected; not answered (lost by our code,
   in the observer or on the reliable way back) = processed - estimates received.
 - latency: publish of a measurement -> arrival of the estimate with the same stamp
   (median, p99, max), in this process's monotonic clock.
