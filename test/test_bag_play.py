@@ -180,7 +180,7 @@ def test_bag_play_topics_and_remap(bag):
     from rclpy.qos import QoSProfile
     from sensor_msgs.msg import JointState
     stamp = lambda m: m.header.stamp   # noqa: E731
-    listener = Listener({'/replay/truth': (JointState, QoSProfile(depth=100), stamp)})
+    listener = Listener({'/replay/truth': (JointState, QoSProfile(depth=1000), stamp)})
     proc = _player(bag, '--rate', '20', '--topics', f'{NS}/state/true',
                    '--remap', f'{NS}/state/true:=/replay/truth', '--wait-subscribers', '1')
     try:
