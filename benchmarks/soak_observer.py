@@ -33,7 +33,6 @@ import argparse
 import json
 import os
 from pathlib import Path
-import signal
 import statistics
 import struct
 import subprocess
@@ -41,6 +40,8 @@ import sys
 import threading
 import time
 import warnings
+
+from observer_ros.tools.run_closed_loop import stop_process
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -324,13 +325,7 @@ def main(argv=None):
         if driver is not None:
             driver.stop.set()
             driver.close()
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        stop_process(proc)
         log.close()
 
 

@@ -21,7 +21,7 @@ import sys
 import threading
 
 import numpy as np
-from observer_ros.tools.run_closed_loop import node_command
+from observer_ros.tools.run_closed_loop import node_command, stop_process
 import pytest
 from ros_helpers import CONFIG, DOMAIN_ID
 
@@ -137,13 +137,7 @@ def _start(ns, node, params, log_dir):
 
 
 def _stop(proc, log):
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+    stop_process(proc)
     log.close()
 
 

@@ -28,8 +28,8 @@ from ..core.errors import ObserverError
 from ..vehicle import (apply_overrides, load_parameters, load_vehicle, parameters_to_yaml,
                        vehicle_from_parameters)
 
-__all__ = ['main', 'run_closed_loop', 'node_command', 'summarize_bag', 'comparison_variants',
-           'lessons']
+__all__ = ['main', 'run_closed_loop', 'node_command', 'stop_process', 'summarize_bag',
+           'comparison_variants', 'lessons']
 
 NODES = ('plant_simulator', 'observer_node', 'compensator', 'recorder')
 
@@ -137,14 +137,35 @@ def _stop_all(procs):
         if name not in procs:
             continue
         proc, out = procs[name]
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        stop_process(proc)
         out.close()
+
+
+def stop_process(proc, timeout=10.0):
+    """
+    Stop a node process as Ctrl-C would: SIGINT, then SIGKILL after `timeout` s.
+
+    Parameters
+    ----------
+    proc : subprocess.Popen
+        The process (a node started with node_command).
+    timeout : float
+        Seconds to wait after SIGINT before SIGKILL.
+
+    Returns
+    -------
+    int
+        The exit status.
+
+    """
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    return proc.returncode
 
 
 def summarize_bag(bag_path, vehicle, namespace=None):
