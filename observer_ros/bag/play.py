@@ -191,6 +191,22 @@ class Player:
         self.clock_pub.publish(self._Clock(clock=Time(sec=int(bag_ns // _NS_PER_S),
                                                       nanosec=int(bag_ns % _NS_PER_S))))
 
+    def flush(self, timeout=2.0):
+        """Wait until reliable subscribers acknowledged what was published (at most timeout)."""
+        import rclpy
+        from rclpy.duration import Duration
+        if not rclpy.ok():
+            return
+        deadline = time.monotonic() + timeout
+        for pub in self.publishers.values():
+            remaining = deadline - time.monotonic()
+            if remaining <= 0.0:
+                return
+            try:
+                pub.wait_for_all_acked(Duration(seconds=remaining))
+            except Exception:   # noqa: BLE001 - best effort publishers, a shut-down context
+                pass
+
     def play(self):
         """Play once (or until stopped / forever with loop); return messages published."""
         import rclpy
@@ -316,6 +332,7 @@ def main(argv=None):
     finally:
         signal.signal(signal.SIGINT, signal.SIG_IGN)     # a second Ctrl-C: clean up anyway
         if player is not None:
+            player.flush()
             print(f'published {player.played} messages', file=sys.stderr, flush=True)
         bag.close()
         if node is not None:
