@@ -41,20 +41,11 @@ import threading
 import time
 import warnings
 
-from observer_ros.tools.run_closed_loop import stop_process
-
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / 'benchmarks'))   # benchmarks/ is not a package
 
-
-def percentile(values, q):
-    """Return the q-th percentile of values, q in 0..100, with linear interpolation."""
-    xs = sorted(values)
-    if not xs:
-        return float('nan')
-    pos = (len(xs) - 1) * q / 100.0
-    lo = int(pos)
-    hi = min(lo + 1, len(xs) - 1)
-    return xs[lo] + (xs[hi] - xs[lo]) * (pos - lo)
+from _common import percentile  # noqa: E402
+from observer_ros.tools.run_closed_loop import stop_process  # noqa: E402
 
 
 def rss_kib(pid):

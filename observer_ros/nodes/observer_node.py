@@ -81,6 +81,8 @@ class ObserverNode(VehicleNode):
         self.design = design
         self.estimator = make_estimator(vehicle.plant, vehicle.observer)
         self.vehicle = vehicle
+        # each sensor's rows of C, looked up once rather than per message
+        self._rows = {s.name: vehicle.plant.output_rows(s.outputs) for s in vehicle.sensors}
 
     def _on_set_parameters(self, params):
         observer_params = [p for p in params if p.name.startswith('observer.')]
@@ -112,7 +114,6 @@ class ObserverNode(VehicleNode):
         self._process_measurement(sensor, msg)
 
     def _process_measurement(self, sensor, msg):
-        plant = self.vehicle.plant
         t = None
         try:
             if hasattr(msg, 'header'):
@@ -128,7 +129,7 @@ class ObserverNode(VehicleNode):
             return
         if not self._check_time(sensor, t):
             return
-        rows = plant.output_rows(sensor.outputs)
+        rows = self._rows[sensor.name]
         try:
             x_hat = self.estimator.correct(t, y, rows)
         except (ObserverError, ValueError) as err:
