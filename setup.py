@@ -29,6 +29,7 @@ setup(
             'observer = observer_ros.nodes.observer_node:main',
             'compensator = observer_ros.nodes.compensator:main',
             'recorder = observer_ros.nodes.recorder:main',
+            'container = observer_ros.nodes.container:main',
             'observer_design = observer_ros.tools.design_report:main',
             'observer-design = observer_ros.tools.design_report:main',
             'observer_eval = observer_ros.bag.evaluate:main',

@@ -2,18 +2,27 @@
 """
 P2: simulator -> observer -> compensator -> simulator, free-running at 1 kHz.
 
-The three nodes of ``config/submarine.yaml`` run as separate processes (namespace
-``/p2``) with ``simulator.mode:=realtime`` and ``simulator.rate_hz:=1000.0``: the
-simulator steps on a wall-clock timer, publishes the gyro, and applies the latest
-command it has; the observer answers each measurement at once; the compensator
-answers each estimate. The simulator counts, at each step, whether the command
-answering the previous step has arrived (``late_commands``; steps before the first
-command ever arrives are ``open_loop_steps``: the peers were still starting), and
-reports its counters on /diagnostics, which this driver reads.
+The three nodes of ``config/submarine.yaml`` run in namespace ``/p2`` with
+``simulator.mode:=realtime`` and ``simulator.rate_hz:=1000.0``: the simulator steps on
+a wall-clock timer, publishes the gyro, and applies the latest command it has; the
+observer answers each measurement at once; the compensator answers each estimate. The
+simulator counts, at each step, whether the command answering the previous step has
+arrived (``late_commands``; steps before the first command ever arrives are
+``open_loop_steps``: the peers were still starting), times each measurement -> command
+round trip, and reports both on /diagnostics, which this driver reads (it subscribes to
+nothing else, so that it does not load the loop it measures).
 
-Figure: on-time fraction ``1 - late / checked steps`` per run [>= 0.999], over
-``--runs`` runs. Also reported: the step rate achieved (rcl timers skip periods the
-process was too busy to serve, so a late step is not counted twice).
+Layouts (``--layouts``, each run ``--runs`` times):
+
+- ``processes``: three processes, one per node (``ros2 run`` each);
+- ``container``: the observer and the compensator in one process (``ros2 run
+  observer_ros container observer compensator``), the simulator in its own, as a
+  vehicle's estimator and controller would run beside a separate driver;
+- ``one_process``: all three in one container.
+
+Figure per layout: on-time fraction ``1 - late / checked steps`` per run [>= 0.999].
+Also reported: the loop round trip and the step rate achieved (rcl timers skip periods
+the process was too busy to serve, so a late step is not counted twice).
 
 """
 
@@ -33,17 +42,37 @@ from _procs import node_command, start, stop_all  # noqa: E402
 NS = '/p2'
 
 
-def _one_run(node, state, duration, rate, logdir, run, pythonpath=None):
-    """Start observer and compensator, then the simulator; wait for it to finish."""
+LAYOUTS = {
+    'processes': (('observer_node',), ('compensator',), ('plant_simulator',)),
+    'container': (('container', 'observer', 'compensator'), ('plant_simulator',)),
+    'one_process': (('container', 'observer', 'compensator', 'plant_simulator'),),
+}
+
+
+def _command(parts, params):
+    """Return the argv of one process of a layout: a node, or the container and its nodes."""
+    cmd = node_command(parts[0], *params, namespace=NS)
+    if len(parts) > 1:
+        i = cmd.index('--ros-args')
+        cmd[i:i] = list(parts[1:])
+    return cmd
+
+
+def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None):
+    """Start the layout's processes, the simulator last; wait for the simulator's end."""
     common = ['simulator.mode:=realtime', f'simulator.rate_hz:={float(rate)}']
+    sim_params = [f'simulator.duration:={float(duration)}', 'diagnostics_period:=0.25']
     procs = []
     try:
-        procs.append(start(node_command('observer_node', *common, namespace=NS),
-                           logdir / f'observer_{run}.log', pythonpath))
-        procs.append(start(node_command('compensator', *common, namespace=NS),
-                           logdir / f'compensator_{run}.log', pythonpath))
+        for parts in LAYOUTS[layout]:
+            if 'plant_simulator' in parts:
+                continue
+            procs.append(start(_command(parts, common), logdir / f'{parts[-1]}_{run}.log',
+                               pythonpath))
+        with state['lock']:
+            state['diag'] = []
         deadline = time.monotonic() + 60.0
-        while time.monotonic() < deadline:
+        while procs and time.monotonic() < deadline:
             if node.count_publishers(f'{NS}/state/estimate') >= 1 and \
                     node.count_publishers(f'{NS}/control/u') >= 1 and \
                     node.count_subscribers(f'{NS}/imu/data') >= 1 and \
@@ -51,14 +80,11 @@ def _one_run(node, state, duration, rate, logdir, run, pythonpath=None):
                 break
             time.sleep(0.05)
         else:
-            raise RuntimeError('P2: observer and compensator did not come up')
-        with state['lock']:
-            state['diag'] = []
-            state['seen'], state['loop'] = {}, []
-        sim = start(node_command('plant_simulator', *common,
-                                 f'simulator.duration:={float(duration)}',
-                                 'diagnostics_period:=0.25', namespace=NS),
-                    logdir / f'plant_simulator_{run}.log', pythonpath)
+            if procs:
+                raise RuntimeError('P2: observer and compensator did not come up')
+        sim_parts = next(p for p in LAYOUTS[layout] if 'plant_simulator' in p)
+        sim = start(_command(sim_parts, common + sim_params),
+                    logdir / f'{layout}_simulator_{run}.log', pythonpath)
         procs.append(sim)
         try:
             sim.wait(duration + 60.0)
@@ -69,8 +95,6 @@ def _one_run(node, state, duration, rate, logdir, run, pythonpath=None):
         stop_all(procs)
     with state['lock']:
         diag = list(state['diag'])
-    with state['lock']:
-        loop = sorted(state['loop'])
     if not diag:
         raise RuntimeError(f'P2: no diagnostics from the simulator; see {logdir}')
     last = max(diag, key=lambda d: int(d['values'].get('steps', 0)))
@@ -86,16 +110,22 @@ def _one_run(node, state, duration, rate, logdir, run, pythonpath=None):
         span = b['stamp'] - a['stamp']
         if span > 0:
             rate_achieved = (int(b['values']['steps']) - int(a['values']['steps'])) / span
-    loop_us = [x / 1000.0 for x in loop]
-    return {'loop_median_us': percentile(loop_us, 50), 'loop_p99_us': percentile(loop_us, 99),
-            'loop_samples': len(loop_us),
+    # the simulator's loop timing, one report per diagnostics period (0.25 s)
+    windows = [d['values'] for d in running if 'loop_us_p50' in d['values']]
+    return {'loop_median_us': percentile([float(w['loop_us_p50']) for w in windows], 50),
+            'loop_p99_us': percentile([float(w['loop_us_p99']) for w in windows], 50),
+            'loop_max_us': max((float(w['loop_us_max']) for w in windows),
+                               default=float('nan')),
+            'loop_samples': sum(int(w['loop_samples']) for w in windows),
             'steps': steps, 'late_commands': late, 'open_loop_steps': open_loop,
             'checked': checked, 'on_time': 1.0 - late / checked if checked else float('nan'),
             'rate_achieved_hz': rate_achieved, 'exit_code': sim.returncode}
 
 
-def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=None, log=print):
+def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=None,
+        layouts=None, log=print):
     runs = runs or (1 if smoke else 3)
+    layouts = list(layouts or LAYOUTS)
     # the simulator steps from its start; DDS matching takes it 1-3 s here, and those
     # open-loop steps are not judged: the run is that much longer than what is measured
     duration = duration or (5.0 if smoke else 15.0)
@@ -106,14 +136,11 @@ def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=Non
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
-    from sensor_msgs.msg import Imu, JointState
-
-    from observer_ros.nodes.common import SENSOR_QOS, STATE_QOS
 
     logdir = Path(tempfile.mkdtemp(prefix='p2_logs_'))
     rclpy.init()
     node = Node('p2_driver')
-    state = {'lock': threading.Lock(), 'diag': [], 'seen': {}, 'loop': []}
+    state = {'lock': threading.Lock(), 'diag': []}
 
     def on_diag(msg):
         for status in msg.status:
@@ -125,55 +152,45 @@ def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=Non
                     state['diag'].append(rec)
 
     node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 50)
-
-    # the loop as this process sees it: a gyro message, then the command with its stamp
-    def on_imu(msg):
-        s = msg.header.stamp
-        with state['lock']:
-            state['seen'][(s.sec, s.nanosec)] = time.perf_counter_ns()
-
-    def on_command(msg):
-        now = time.perf_counter_ns()
-        s = msg.header.stamp
-        with state['lock']:
-            sent = state['seen'].pop((s.sec, s.nanosec), None)
-            if sent is not None:
-                state['loop'].append(now - sent)
-
-    node.create_subscription(Imu, f'{NS}/imu/data', on_imu, SENSOR_QOS)
-    node.create_subscription(JointState, f'{NS}/control/u', on_command, STATE_QOS)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     spinner = threading.Thread(target=executor.spin, daemon=True)
     spinner.start()
-    results = []
+    results = {layout: [] for layout in layouts}
     try:
         for r in range(runs):
-            res = _one_run(node, state, duration, rate, logdir, r, nodes_pythonpath)
-            results.append(res)
-            log(f'  P2 run {r + 1}/{runs}: {res["steps"]} steps at {rate:g} Hz, '
-                f'{res["open_loop_steps"]} before the loop closed, {res["late_commands"]} '
-                f'late of {res["checked"]} -> on time {res["on_time"]:.5f}; achieved '
-                f'{res["rate_achieved_hz"]:.0f} Hz; loop gyro -> command seen here: median '
-                f'{res["loop_median_us"]:.0f} us, p99 {res["loop_p99_us"]:.0f} us')
+            # alternate the order of the layouts from run to run
+            for layout in (layouts if r % 2 == 0 else layouts[::-1]):
+                res = _one_run(node, state, layout, duration, rate, logdir, r,
+                               nodes_pythonpath)
+                results[layout].append(res)
+                log(f'  P2 {layout:>11} run {r + 1}/{runs}: {res["steps"]} steps at '
+                    f'{rate:g} Hz, {res["open_loop_steps"]} before the loop closed, '
+                    f'{res["late_commands"]} late of {res["checked"]} -> on time '
+                    f'{res["on_time"]:.5f}; achieved {res["rate_achieved_hz"]:.0f} Hz; '
+                    f'loop measurement -> command: median {res["loop_median_us"]:.0f} us, '
+                    f'p99 {res["loop_p99_us"]:.0f} us, max {res["loop_max_us"]:.0f} us')
     finally:
         executor.shutdown(timeout_sec=1.0)
         node.destroy_node()
         rclpy.try_shutdown()
-    figures = [ratio_line(
-        'P2', 'on_time_fraction_at_1kHz', [r['on_time'] for r in results], '>=', 0.999,
-        unit='', smoke=smoke,
-        note=f'{sum(r["late_commands"] for r in results)} late of '
-             f'{sum(r["checked"] for r in results)} steps; achieved step rate median '
-             f'{summary([r["rate_achieved_hz"] for r in results])["median"]:.0f} Hz')]
+    figures = []
     period_us = 1e6 / rate
-    figures.append(ratio_line(
-        'P2', 'loop_round_trip_median/step_period',
-        [r['loop_median_us'] / period_us for r in results], '<=', None, smoke=smoke,
-        note=f'gyro published -> command received, seen from a 4th process: median '
-             f'{summary([r["loop_median_us"] for r in results])["median"]:.0f} us, p99 '
-             f'{summary([r["loop_p99_us"] for r in results])["median"]:.0f} us; period '
-             f'{period_us:.0f} us'))
+    for layout in layouts:
+        res = results[layout]
+        figures.append(ratio_line(
+            'P2', f'on_time_fraction_at_1kHz[{layout}]', [r['on_time'] for r in res], '>=',
+            0.999, unit='', smoke=smoke,
+            note=f'{sum(r["late_commands"] for r in res)} late of '
+                 f'{sum(r["checked"] for r in res)} steps; achieved step rate median '
+                 f'{summary([r["rate_achieved_hz"] for r in res])["median"]:.0f} Hz'))
+        figures.append(ratio_line(
+            'P2', f'loop_round_trip_median/step_period[{layout}]',
+            [r['loop_median_us'] / period_us for r in res], '<=', None, smoke=smoke,
+            note=f'measurement published -> its command received, timed by the simulator: '
+                 f'median {summary([r["loop_median_us"] for r in res])["median"]:.0f} us, '
+                 f'p99 {summary([r["loop_p99_us"] for r in res])["median"]:.0f} us; period '
+                 f'{period_us:.0f} us'))
     return {'benchmark': 'P2', 'smoke': smoke, 'rate_hz': rate, 'duration_s': duration,
             'figures': figures, 'runs': results, 'logs': str(logdir)}
 
@@ -184,13 +201,17 @@ def main(argv=None):
     parser.add_argument('--duration', type=float,
                         help='seconds per run, start-up included (default 15)')
     parser.add_argument('--rate', type=float, default=1000.0, help='step rate, Hz')
+    parser.add_argument('--layouts', default=','.join(LAYOUTS),
+                        help=f'comma-separated, of {", ".join(LAYOUTS)} (default: all)')
     parser.add_argument('--nodes-pythonpath', metavar='DIR',
                         help='run the nodes with this copy of observer_ros first on '
                              'PYTHONPATH (to measure a previous version)')
     args = parser.parse_args(argv)
     print('P2: closed loop in free-running real time', flush=True)
     data = run(smoke=args.smoke, runs=args.runs, duration=args.duration, rate=args.rate,
-               nodes_pythonpath=args.nodes_pythonpath, log=lambda s: print(s, flush=True))
+               nodes_pythonpath=args.nodes_pythonpath,
+               layouts=[x for x in args.layouts.split(',') if x],
+               log=lambda s: print(s, flush=True))
     data['machine'] = machine_info()
     write_json(args.json, data)
     return 0

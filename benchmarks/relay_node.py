@@ -5,8 +5,10 @@ A bare relay: ``imu/data`` (Imu, sensor-data QoS) in, ``state/estimate`` out at 
 It republishes each Imu as the JointState the observer node publishes (the vehicle's
 three state names, the three angular rates as positions, the message's stamp and
 frame_id), built by the same helper (``nodes.common.joint_state``) and with the same
-QoS, in a node spun like the package's nodes (``rclpy.spin``). So observer / relay is
-the cost of the estimator and its bookkeeping over the middleware's own.
+QoS (what the observer subscribes and publishes with), in a node spun as the package's
+nodes are (``nodes.common.make_executor``: the EventsExecutor unless
+``OBSERVER_ROS_EXECUTOR`` says otherwise). So observer / relay is the cost of the
+estimator and its bookkeeping over the middleware's own.
 
 Run: ``python benchmarks/relay_node.py --ros-args -r __ns:=/p1_relay``.
 
@@ -17,8 +19,8 @@ import warnings
 
 warnings.filterwarnings('ignore', category=DeprecationWarning)
 
-from observer_ros.nodes.common import (joint_state, SENSOR_QOS, stamp_to_sec,  # noqa: E402
-                                       STATE_QOS, TOPICS)
+from observer_ros.nodes.common import (joint_state, make_executor, SENSOR_SUB_QOS,  # noqa: E402
+                                       spin_until, stamp_to_sec, STATE_PUB_QOS, TOPICS)
 import rclpy  # noqa: E402
 from rclpy.executors import ExternalShutdownException  # noqa: E402
 from rclpy.node import Node  # noqa: E402
@@ -32,8 +34,8 @@ class Relay(Node):
 
     def __init__(self):
         super().__init__('relay')
-        self._pub = self.create_publisher(JointState, TOPICS['estimate'], STATE_QOS)
-        self._sub = self.create_subscription(Imu, 'imu/data', self._on_imu, SENSOR_QOS)
+        self._pub = self.create_publisher(JointState, TOPICS['estimate'], STATE_PUB_QOS)
+        self._sub = self.create_subscription(Imu, 'imu/data', self._on_imu, SENSOR_SUB_QOS)
 
     def _on_imu(self, msg):
         w = msg.angular_velocity
@@ -45,11 +47,14 @@ def main(args=None):
     """Spin the relay until interrupted."""
     rclpy.init(args=args)
     node = Relay()
+    executor, _ = make_executor()
+    executor.add_node(node)
     try:
-        rclpy.spin(node)
+        spin_until(executor)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown()
     return 0

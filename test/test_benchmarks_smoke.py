@@ -22,7 +22,8 @@ def test_run_all_smoke_prints_every_ratio():
     assert proc.returncode == 0, out[-4000:]
     for bench, names in {
         'P1': ['median_latency_observer/relay', 'p99_latency_observer/relay'],
-        'P2': ['on_time_fraction_at_1kHz'],
+        'P2': [f'on_time_fraction_at_1kHz[{layout}]'
+               for layout in ('processes', 'container', 'one_process')],
         'P3': ['eval/rosbags_read_deserialise', 'eval/control_forced_response'],
         'P4': ['placement_error_ours/place_worst_single_output',
                'placement_error_ours/place_worst_multi_output',

@@ -18,10 +18,12 @@ from rosbags.typesys import get_typestore, Stores
 NOISE_OFF = 'simulator.noise:=false'
 
 
-def _run(tmp_path, vehicle, *params, name='bag', namespace=None, storage='mcap'):
+def _run(tmp_path, vehicle, *params, name='bag', namespace=None, storage='mcap',
+         container=False):
     with domain_env():
         return run_closed_loop(CONFIG / vehicle, tmp_path / name, storage=storage,
-                               namespace=namespace, overrides=params, quiet=True)
+                               namespace=namespace, overrides=params, quiet=True,
+                               container=container)
 
 
 def _vectors(bag, topic, names):
@@ -116,6 +118,31 @@ def test_lockstep_run_is_reproducible_bit_for_bit(tmp_path):
     (e1, xh1), (e2, xh2) = [_unique(*_vectors(b, '/state/estimate', names)) for b in runs]
     assert np.array_equal(t1, t2) and np.array_equal(x1, x2)
     assert np.array_equal(e1, e2) and np.array_equal(xh1, xh2)
+
+
+def test_container_and_either_executor_give_the_same_run_bit_for_bit(tmp_path, monkeypatch):
+    """
+    The same lock-step run from every layout and executor.
+
+    Observer and compensator in one process (``container``), or each node spun by rclpy's
+    SingleThreadedExecutor instead of the EventsExecutor.
+
+    """
+    vehicle = load_vehicle(CONFIG / 'submarine.yaml')
+    names = vehicle.plant.state_names
+    runs = [_run(tmp_path, 'submarine.yaml', 'simulator.duration:=5.0', name='processes'),
+            _run(tmp_path, 'submarine.yaml', 'simulator.duration:=5.0', name='container',
+                 container=True)]
+    monkeypatch.setenv('OBSERVER_ROS_EXECUTOR', 'single_threaded')
+    runs.append(_run(tmp_path, 'submarine.yaml', 'simulator.duration:=5.0', name='single'))
+    true = [_unique(*_vectors(b, '/state/true', names)) for b in runs]
+    est = [_unique(*_vectors(b, '/state/estimate', names)) for b in runs]
+    assert len(true[0][0]) == 101          # 5 s of 0.05 s steps, and the initial state
+    for (t, x), (e, xh) in zip(true[1:], est[1:]):
+        assert np.array_equal(t, true[0][0]) and np.array_equal(x, true[0][1])
+        assert np.array_equal(e, est[0][0]) and np.array_equal(xh, est[0][1])
+    log = (runs[1].parent / 'container_logs' / 'container.log').read_text()
+    assert 'observer' in log and 'cannot start' not in log
 
 
 def test_reduced_order_observer_reproduces_the_measured_state(tmp_path):

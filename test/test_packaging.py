@@ -99,15 +99,31 @@ def test_installed_observer_node_runs_with_the_installed_config(colcon_install):
     assert 'observable=True' in out
 
 
-def test_core_and_offline_tools_import_no_ros():
-    code = ('import sys, observer_ros.core, observer_ros.vehicle, observer_ros.sensors, '
-            'observer_ros.bag.evaluate, observer_ros.tools.design_report; '
-            'bad = [m for m in sys.modules if m.split(".")[0] in '
-            '("rclpy", "std_msgs", "sensor_msgs", "rcl_interfaces")]; '
-            'assert not bad, bad')
+def _assert_runs_in_a_fresh_interpreter(code):
     result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
                             timeout=120)
     assert result.returncode == 0, result.stderr
+
+
+def test_core_and_offline_tools_import_no_ros():
+    _assert_runs_in_a_fresh_interpreter(
+        'import sys, observer_ros.core, observer_ros.vehicle, observer_ros.sensors, '
+        'observer_ros.bag.evaluate, observer_ros.tools.design_report; '
+        'bad = [m for m in sys.modules if m.split(".")[0] in '
+        '("rclpy", "std_msgs", "sensor_msgs", "rcl_interfaces")]; '
+        'assert not bad, bad')
+
+
+def test_offline_tools_import_python_control_only_when_they_design():
+    """observer-eval replays with the file's gains: python-control (~1 s) is not loaded."""
+    _assert_runs_in_a_fresh_interpreter(
+        'import sys, observer_ros.core, observer_ros.bag.evaluate; '
+        'assert "control" not in sys.modules, "imported at start"; '
+        'from observer_ros.core import observer_gain; '
+        'L = observer_gain([[0.0, 1.0], [0.0, 0.0]], [[1.0, 0.0]], [-1.0, -2.0], '
+        'method="place"); '
+        'assert "control" in sys.modules; '
+        'assert abs(L[0, 0] - 3.0) < 1e-12 and abs(L[1, 0] - 2.0) < 1e-12, L')
 
 
 def _third_party_imports():

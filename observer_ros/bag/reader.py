@@ -56,7 +56,7 @@ VEHICLE_TOPICS = {
 }
 
 _STORAGE_SUFFIXES = {'.mcap': 'mcap', '.db3': 'sqlite3'}
-_FLUSH = 1 << 18            # decode a topic's raw messages every this many
+_FLUSH = 1 << 16            # decode a topic's raw messages every this many (bounds memory)
 _PROGRESS_EVERY = 1 << 16   # call the progress callback every this many messages
 
 
@@ -648,7 +648,8 @@ def decode_messages(raws, msgtype, fields, mode='sensor', fallback=None, max_lay
         lengths = np.array(list(map(len, raws)), dtype=np.int64)
         starts = np.zeros(n, dtype=np.int64)
         np.cumsum(lengths[:-1], out=starts[1:])
-        flat = np.frombuffer(b''.join(raws) + bytes(_PAD), dtype=np.uint8)
+        # one copy of the batch (joining, then appending the padding, made two)
+        flat = np.frombuffer(b''.join(itertools.chain(raws, (bytes(_PAD),))), dtype=np.uint8)
         little = (lengths >= 4) & (flat[starts] == 0) & (flat[starts + 1] == 1)
         if msgtype == IMU and all(f in _IMU_OFFSETS or f in _IMU_EULER for f in fields):
             _decode_imu(flat, starts, lengths, little, fields, stamps, values, done)

@@ -690,17 +690,32 @@ def _check_windows(est, run, streams, cmd, rows, X, U, scale):
     return None
 
 
+def _class_matvec(M, classes, V, chunk=1 << 16):
+    """
+    Return ``out[k] = M[classes[k]] @ V[k]`` for every step k.
+
+    In chunks of steps, so that the per-step matrices ``M[classes]`` never exist for a
+    whole run at once (a run of 10^6 steps would hold one n x n matrix per step).
+
+    """
+    K = V.shape[0]
+    out = np.empty((K, M.shape[1]))
+    for lo in range(0, K, chunk):
+        hi = min(K, lo + chunk)
+        np.einsum('kij,kj->ki', M[classes[lo:hi]], V[lo:hi], out=out[lo:hi])
+    return out
+
+
 def _term_scale(maps, cls, sens, Y, Xprev, X, U):
     """Return the running maximum over steps of ``max(|F| |x_prev| + |G| |y| + |H| |u|, |x|)``."""
-    absF = np.abs(np.stack([mp[0] for mp in maps]))[cls]
-    absH = np.abs(np.stack([mp[2] for mp in maps]))[cls]
-    terms = (np.einsum('kij,kj->ki', absF, np.abs(Xprev))
-             + np.einsum('kij,kj->ki', absH, np.abs(U)))
+    absF = np.abs(np.stack([mp[0] for mp in maps]))
+    absH = np.abs(np.stack([mp[2] for mp in maps]))
+    absG = np.abs(np.stack([mp[1] for mp in maps]))
+    terms = _class_matvec(absF, cls, np.abs(Xprev)) + _class_matvec(absH, cls, np.abs(U))
     for k, y in enumerate(Y):
         if y is not None:
             sel = np.flatnonzero(sens == k)
-            absG = np.abs(np.stack([mp[1] for mp in maps]))[cls[sel]]
-            terms[sel] += np.einsum('kij,kj->ki', absG, np.abs(y))
+            terms[sel] += _class_matvec(absG, cls[sel], np.abs(y))
     scale = np.maximum(np.max(terms, axis=1), np.max(np.abs(X), axis=1))
     return np.maximum.accumulate(scale) + np.finfo(float).tiny
 
@@ -728,15 +743,15 @@ def _check_steps(run, cmd, maps, cls, sens, Y, X, x0, u0, scale):
     held = last >= 0
     if held.any():
         U[held] = cmd.values[idx[last[held]]]
-    F = np.stack([mp[0] for mp in maps])[cls]
-    H = np.stack([mp[2] for mp in maps])[cls]
+    F = np.stack([mp[0] for mp in maps])
+    H = np.stack([mp[2] for mp in maps])
+    G = np.stack([mp[1] for mp in maps])
     Xprev = np.vstack([x0[None, :], X[:-1]])
-    pred = np.einsum('kij,kj->ki', F, Xprev) + np.einsum('kij,kj->ki', H, U)
+    pred = _class_matvec(F, cls, Xprev) + _class_matvec(H, cls, U)
     for k, y in enumerate(Y):
         if y is not None:
             sel = np.flatnonzero(sens == k)
-            G = np.stack([mp[1] for mp in maps])[cls[sel]]
-            pred[sel] += np.einsum('kij,kj->ki', G, y)
+            pred[sel] += _class_matvec(G, cls[sel], y)
     err = np.max(np.abs(pred - X), axis=1)
     bad = np.flatnonzero(err > CHECK_RTOL * scale)
     if bad.size:
@@ -788,8 +803,7 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
         Gk = np.stack([maps[c][1] for c in range(classes.size)])
         Hk = np.stack([maps[c][2] for c in range(classes.size)])
         ck = cls[sel]
-        W[sel] = (np.einsum('kij,kj->ki', Gk[ck], Y[k])
-                  + np.einsum('kij,kj->ki', Hk[ck], U[sel]))
+        W[sel] = _class_matvec(Gk, ck, Y[k]) + _class_matvec(Hk, ck, U[sel])
     x0 = est.x_hat
     X = affine_scan(Fs, W, x0, cls)
     if not np.all(np.isfinite(X)):
@@ -801,11 +815,11 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
         if not sel.size:
             continue
         ck = cls[sel]
-        Rx = np.stack([mp[3] for mp in maps])[ck]
-        Ry = np.stack([mp[4] for mp in maps])[ck]
-        Ru = np.stack([mp[5] for mp in maps])[ck]
-        r = (np.einsum('kij,kj->ki', Rx, Xprev[sel]) + np.einsum('kij,kj->ki', Ry, Y[k])
-             + np.einsum('kij,kj->ki', Ru, U[sel]))
+        Rx = np.stack([mp[3] for mp in maps])
+        Ry = np.stack([mp[4] for mp in maps])
+        Ru = np.stack([mp[5] for mp in maps])
+        r = (_class_matvec(Rx, ck, Xprev[sel]) + _class_matvec(Ry, ck, Y[k])
+             + _class_matvec(Ru, ck, U[sel]))
         R[np.ix_(sel, rows_idx[k])] = r
     # round-off is relative to the size of the terms of a step, |F| |x| + |G| |y| +
     # |H| |u| (the map of a reduced-order observer in x coordinates has large entries

@@ -14,10 +14,10 @@ from dataclasses import dataclass, field
 import math
 from typing import Tuple
 
-import control
 import numpy as np
 import scipy.linalg
 
+from ._lazy import control
 from .errors import DimensionError, ObserverError
 from .model import as_matrix
 

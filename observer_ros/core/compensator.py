@@ -13,11 +13,11 @@ import math
 from typing import Optional, Tuple
 import warnings
 
-import control
 import numpy as np
 import scipy.linalg
 import scipy.optimize
 
+from ._lazy import control
 from .analysis import (controllability_report, ControllabilityReport, format_complex,
                        is_stable_eigenvalue, observability_report, ObservabilityReport,
                        stability_margin)
@@ -760,7 +760,7 @@ class VehicleDesign:
     closed_loop_poles: np.ndarray
     expected_poles: np.ndarray
     separation_ok: Optional[bool]
-    compensator: Optional[control.StateSpace]
+    compensator: Optional['control.StateSpace']
     compensator_poles: np.ndarray
     reduced: Optional[ReducedOrderDesign] = None
     P: Optional[np.ndarray] = None

@@ -5,11 +5,11 @@ from dataclasses import dataclass
 from typing import Tuple
 import warnings
 
-import control
 import numpy as np
 import scipy.linalg
 import scipy.optimize
 
+from ._lazy import control
 from .analysis import (controllable_decomposition, format_complex, numerical_rank,
                        observability_report)
 from .errors import (DesignError, DimensionError, NotControllableError, NotDetectableError,

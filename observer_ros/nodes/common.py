@@ -1,11 +1,14 @@
 # observer_ros.nodes.common: what the three nodes share (parameters, QoS, messages, main).
 """Shared pieces of the observer_ros nodes: vehicle parameters, QoS, conversions, main()."""
 
+import array
+import os
 import sys
 import time
 import traceback
 import warnings
 
+from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
 import rclpy
@@ -23,7 +26,12 @@ from ..vehicle import vehicle_from_parameters
 
 __all__ = ['VEHICLE_SECTIONS', 'SENSOR_QOS', 'SENSOR_SUB_QOS', 'STATE_QOS', 'STATE_PUB_QOS',
            'LATCHED_QOS', 'MESSAGE_CLASSES', 'TOPICS', 'VehicleNode', 'joint_state',
-           'stamp_to_sec', 'to_stamp', 'run_node']
+           'stamp_to_sec', 'to_stamp', 'make_executor', 'spin_until', 'run_node',
+           'run_nodes']
+
+# Which executor spins the nodes: OBSERVER_ROS_EXECUTOR=events (default) or single_threaded.
+EXECUTOR_ENV = 'OBSERVER_ROS_EXECUTOR'
+EXECUTORS = ('events', 'single_threaded')
 
 # The parameter namespaces that belong to the vehicle file; anything else is a node's own.
 VEHICLE_SECTIONS = ('vehicle', 'model', 'sensors', 'observer', 'controller', 'simulator')
@@ -71,7 +79,6 @@ TOPICS = {
 
 def to_stamp(t):
     """Return a builtin_interfaces/Time for t seconds."""
-    from builtin_interfaces.msg import Time
     sec, nanosec = sec_to_stamp_parts(t)
     return Time(sec=sec, nanosec=nanosec)
 
@@ -82,7 +89,10 @@ def joint_state(names, values, t, frame_id=''):
     msg.header.stamp = to_stamp(t)
     msg.header.frame_id = frame_id
     msg.name = list(names)
-    msg.position = [float(v) for v in values]
+    # an array('d') is taken as it is; a list is checked element by element (on the hot
+    # path of every node: 4 us instead of 11 per message here)
+    msg.position = array.array('d', values.tolist() if isinstance(values, np.ndarray)
+                               else values)
     return msg
 
 
@@ -97,16 +107,17 @@ def vector_from_joint_state(msg, names, topic):
     if len(msg.position) != len(msg.name):
         raise ObserverError(f'{topic}: {len(msg.name)} names but {len(msg.position)} '
                             'positions')
-    index = {name: i for i, name in enumerate(msg.name)}
-    if not msg.name and len(msg.position) == len(names):
+    if (msg.name == list(names)) if msg.name else len(msg.position) == len(names):
+        # the usual case, the names in order (or none): no lookup
         values = np.array(msg.position, dtype=float)
     else:
+        index = {name: i for i, name in enumerate(msg.name)}
         missing = [name for name in names if name not in index]
         if missing:
             raise ObserverError(f'{topic}: missing component(s) {missing}; '
                                 f'got names {list(msg.name)}')
         values = np.array([msg.position[index[name]] for name in names], dtype=float)
-    if not np.all(np.isfinite(values)):
+    if not np.isfinite(values).all():
         raise ObserverError(f'{topic}: non-finite value in {values.tolist()}')
     return values
 
@@ -190,6 +201,52 @@ class VehicleNode(Node):
         self._diag_pub.publish(array)
 
 
+def make_executor(kind=None):
+    """
+    Return the executor the package's nodes spin in, and its name.
+
+    ``events`` (the default): rclpy's C++ ``EventsExecutor`` (rclpy.experimental, in
+    Jazzy since rclpy 7.1.4). It dispatches each ready callback from C++ instead of
+    rebuilding a wait set in Python on every spin, which halves the latency and the CPU
+    per message of a small node here (benchmarks/README.md, P1 and P2). It ignores callback
+    groups; the nodes of this package use one group each. ``single_threaded``: rclpy's
+    ``SingleThreadedExecutor``, also used when rclpy has no EventsExecutor.
+
+    Parameters
+    ----------
+    kind : str, optional
+        ``events`` or ``single_threaded``; default ``$OBSERVER_ROS_EXECUTOR``, else
+        ``events``.
+
+    """
+    kind = kind or os.environ.get(EXECUTOR_ENV) or 'events'
+    if kind not in EXECUTORS:
+        raise ObserverError(f'{EXECUTOR_ENV}={kind!r}: expected one of {list(EXECUTORS)}')
+    if kind == 'events':
+        try:
+            from rclpy.experimental import EventsExecutor
+        except ImportError:     # rclpy before 7.1.4
+            kind = 'single_threaded'
+        else:
+            return EventsExecutor(), kind
+    from rclpy.executors import SingleThreadedExecutor
+    return SingleThreadedExecutor(), kind
+
+
+def spin_until(executor, stop=None, period=0.1):
+    """
+    Spin until the context shuts down (or ``stop()`` is true).
+
+    ``spin_once`` with a timeout rather than ``executor.spin()``: this EventsExecutor's
+    ``spin()`` never returns control to Python, so neither signal handlers nor a stop
+    flag would run.
+
+    """
+    context = executor.context
+    while context.ok() and not (stop and stop()):
+        executor.spin_once(timeout_sec=period)
+
+
 def run_node(node_factory, args=None):
     """
     Run a node as ros2/demos do: init, spin, clean shutdown; exit 2 on an unusable file.
@@ -202,17 +259,46 @@ def run_node(node_factory, args=None):
         Command-line arguments (ROS arguments included).
 
     """
+    return run_nodes([node_factory], args)
+
+
+def run_nodes(node_factories, args=None, names=None):
+    """
+    Run nodes in one process and one executor: :func:`run_node` for several.
+
+    The nodes are built in order; a file one of them cannot use stops the process (exit 2,
+    one ``error:`` line) before the executor spins. A node's ``SystemExit`` (the simulator
+    when its run is done) ends the process with its code.
+
+    Parameters
+    ----------
+    node_factories : sequence of callable
+        Build the nodes (after rclpy.init).
+    args : list of str, optional
+        Command-line arguments (ROS arguments included).
+    names : sequence of str, optional
+        The nodes' names for a start-up error (default ``observer_ros``).
+
+    """
     warnings.filterwarnings('ignore', category=DeprecationWarning)
     rclpy.init(args=args)
-    node = None
+    nodes = []
+    executor = None
     code = 0
     try:
-        node = node_factory()
-        rclpy.spin(node)
+        for factory in node_factories:
+            nodes.append(factory())
+        executor, _ = make_executor()
+        for node in nodes:
+            executor.add_node(node)
+        spin_until(executor)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except SystemExit as done:      # the simulator's exit_when_done
+        code = done.code if isinstance(done.code, int) else 0
     except ObserverError as err:
-        name = node.get_name() if node is not None else 'observer_ros'
+        failed = len(nodes) if len(nodes) < len(node_factories) else None
+        name = names[failed] if names and failed is not None else 'observer_ros'
         rclpy.logging.get_logger(name).fatal(f'cannot start: {err}')
         print(f'error: {err}', file=sys.stderr)
         code = 2
@@ -220,7 +306,9 @@ def run_node(node_factory, args=None):
         traceback.print_exc()
         code = 1
     finally:
-        if node is not None:
+        if executor is not None:
+            executor.shutdown()
+        for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown()
     return code

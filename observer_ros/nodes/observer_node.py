@@ -44,6 +44,10 @@ class ObserverNode(VehicleNode):
         self._pending_stamp = None
         self._last_stamp = {}               # sensor name -> last stamp (s)
         self._last_seen = {}                # sensor name -> wall time of last message
+        # stamps up to this time are not "far in the future" (the ROS clock is read once a
+        # second, or when a stamp passes it, rather than per message): see _check_time
+        self._future_bound = None
+        self._future_bound_until = 0.0
         self._est_pub = self.create_publisher(JointState, TOPICS['estimate'], STATE_PUB_QOS)
         self._res_pub = self.create_publisher(JointState, TOPICS['residual'], STATE_PUB_QOS)
         self._subs = []
@@ -83,6 +87,8 @@ class ObserverNode(VehicleNode):
         self.vehicle = vehicle
         # each sensor's rows of C, looked up once rather than per message
         self._rows = {s.name: vehicle.plant.output_rows(s.outputs) for s in vehicle.sensors}
+        self._stamped = {s.name: hasattr(MESSAGE_CLASSES[s.msg_type], 'header')
+                         for s in vehicle.sensors}
 
     def _on_set_parameters(self, params):
         observer_params = [p for p in params if p.name.startswith('observer.')]
@@ -116,7 +122,7 @@ class ObserverNode(VehicleNode):
     def _process_measurement(self, sensor, msg):
         t = None
         try:
-            if hasattr(msg, 'header'):
+            if self._stamped[sensor.name]:
                 t = stamp_to_sec(msg.header.stamp)
                 if t == 0.0:
                     raise ObserverError(f'{sensor.topic}: zero stamp (unset header.stamp)')
@@ -136,7 +142,7 @@ class ObserverNode(VehicleNode):
             self._reject('rejected_updates', f'{sensor.topic}: {err}')
             self._answer_without_correction(sensor, t)
             return
-        if not np.all(np.isfinite(x_hat)):
+        if not np.isfinite(x_hat).all():
             # Never publish a NaN: restart from the initial estimate.
             self.estimator.reset(None, t)
             self._reject('numerical_resets', f'{sensor.topic}: estimate not finite; reset')
@@ -188,6 +194,7 @@ class ObserverNode(VehicleNode):
                 self.count('clock_jumps')
                 self.estimator.reset(None, None)
                 self._last_stamp.clear()
+                self._future_bound = None
                 return True
             self._reject('out_of_order', f'{sensor.topic}: stamp {t:.6f} older than '
                          f'the estimate ({last:.6f}); skipped')
@@ -200,11 +207,22 @@ class ObserverNode(VehicleNode):
             if last == t:
                 self._publish_estimate(t, sensor.frame_id)
             return False
+        if self._future_bound is not None and t <= self._future_bound and \
+                self._last_seen[sensor.name] < self._future_bound_until:
+            return True
         now = self.get_clock().now().nanoseconds * 1e-9
-        if now > 0.0 and t - now > self.param('future_tolerance'):
+        if now <= 0.0:          # no clock yet (simulated time before the first /clock)
+            self._future_bound = None
+            return True
+        tolerance = self.param('future_tolerance')
+        if t - now > tolerance:
             self._reject('future_stamps', f'{sensor.topic}: stamp {t:.3f} is '
                          f'{t - now:.1f} s ahead of the clock; skipped')
             return False
+        # the clock only moves forward between two reads a second apart (a jump back
+        # resets the estimator, which clears this bound)
+        self._future_bound = now + tolerance
+        self._future_bound_until = self._last_seen[sensor.name] + 1.0
         return True
 
     def _on_command(self, msg):
@@ -216,6 +234,7 @@ class ObserverNode(VehicleNode):
             if last is not None and t < last:
                 if last - t > self.param('clock_jump_tolerance'):
                     self.estimator.reset(None, None)
+                    self._future_bound = None
                     self.count('clock_jumps')
                     self.estimator.set_input(t, u)
                 else:   # a command for an older stamp: hold it from now on

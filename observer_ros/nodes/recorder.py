@@ -38,7 +38,7 @@ import warnings
 
 from diagnostic_msgs.msg import DiagnosticStatus
 import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
@@ -47,7 +47,8 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import get_typestore, Stores
 from std_msgs.msg import Bool
 
-from .common import LATCHED_QOS, SENSOR_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS, VehicleNode
+from .common import (LATCHED_QOS, make_executor, SENSOR_QOS, spin_until, STATE_PUB_QOS,
+                     STATE_QOS, TOPICS, VehicleNode)
 from ..bag.play import message_class
 from ..core.errors import ObserverError
 
@@ -344,14 +345,13 @@ def main(args=None):
     stop = []
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.append(True))
-    node = None
+    node = executor = None
     code = 0
     try:
         node = RecorderNode()
-        executor = SingleThreadedExecutor()
+        executor, _ = make_executor()
         executor.add_node(node)
-        while not stop and not node.failed:
-            executor.spin_once(timeout_sec=0.1)
+        spin_until(executor, lambda: stop or node.failed)
         _drain(executor, node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
@@ -369,6 +369,8 @@ def main(args=None):
         # a second signal while the bag is being closed must not cut the close short
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        if executor is not None:
+            executor.shutdown()
         if node is not None:
             node.close()
             if node.failed and code == 0:

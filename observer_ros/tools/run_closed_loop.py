@@ -31,19 +31,21 @@ from ..vehicle import (apply_overrides, load_parameters, load_vehicle, parameter
 __all__ = ['main', 'run_closed_loop', 'node_command', 'stop_process', 'summarize_bag',
            'comparison_variants', 'lessons']
 
-NODES = ('plant_simulator', 'observer_node', 'compensator', 'recorder')
+NODES = ('plant_simulator', 'observer_node', 'compensator', 'container', 'recorder')
 
 
-def node_command(node, params_file, *ros_args, namespace=None, remaps=()):
+def node_command(node, params_file, *ros_args, namespace=None, remaps=(), nodes=()):
     """
     Return the argv that runs one of the package's nodes with a vehicle file.
 
     The node runs as ``python -m observer_ros.nodes.<node>`` with this interpreter, which is
     what the installed console scripts run too (lib/observer_ros/<exe> on a colcon install).
+    For ``node='container'``, ``nodes`` names the nodes it runs.
 
     """
     cmd = [sys.executable, '-W', 'ignore::DeprecationWarning', '-m',
-           f'observer_ros.nodes.{node}', '--ros-args', '--params-file', str(params_file)]
+           f'observer_ros.nodes.{node}', *nodes, '--ros-args', '--params-file',
+           str(params_file)]
     if namespace:
         cmd += ['-r', f'__ns:={namespace}']
     for remap in remaps:
@@ -54,7 +56,7 @@ def node_command(node, params_file, *ros_args, namespace=None, remaps=()):
 
 
 def run_closed_loop(params_file, bag_path, storage='mcap', namespace=None, overrides=(),
-                    timeout=None, log_dir=None, quiet=False):
+                    timeout=None, log_dir=None, quiet=False, container=False):
     """
     Run the four processes until the simulator finishes; return the bag path.
 
@@ -76,6 +78,9 @@ def run_closed_loop(params_file, bag_path, storage='mcap', namespace=None, overr
         Where each process's output goes (default: next to the bag).
     quiet : bool
         Do not print the bag and log paths at the end.
+    container : bool
+        Run the observer and the compensator in one process (``container observer
+        compensator``) instead of one process each.
 
     Returns
     -------
@@ -95,16 +100,19 @@ def run_closed_loop(params_file, bag_path, storage='mcap', namespace=None, overr
     env = dict(os.environ)
     env.setdefault('PYTHONUNBUFFERED', '1')
 
-    def start(name, *args):
+    def start(name, *args, nodes=()):
         out = open(log_dir / f'{name}.log', 'w')
         procs[name] = (subprocess.Popen(node_command(name, params_file, *args,
-                                                     namespace=namespace),
+                                                     namespace=namespace, nodes=nodes),
                                         stdout=out, stderr=subprocess.STDOUT, env=env), out)
 
     try:
         start('recorder', *common, f'output:={bag_path}', f'storage:={storage}')
-        start('observer_node', *common)
-        start('compensator', *common)
+        if container:
+            start('container', *common, nodes=('observer', 'compensator'))
+        else:
+            start('observer_node', *common)
+            start('compensator', *common)
         # the simulator waits until the observer and the recorder subscribe to each sensor
         start('plant_simulator', *overrides, 'wait_for_subscribers:=2',
               'wait_for_recorder:=true')
@@ -235,6 +243,8 @@ def main(argv=None):
     parser.add_argument('-p', '--param', action='append', default=[], metavar='NAME:=VALUE',
                         help='parameter override for every node, e.g. '
                              '"observer.poles:=[-1.0,-1.1,-1.2]"')
+    parser.add_argument('--container', action='store_true',
+                        help='run the observer and the compensator in one process')
     parser.add_argument('--evaluate', action='store_true',
                         help='replay the bag through the design, slower and faster poles and '
                              'the open-loop observer; run the loop again with the slower '
@@ -249,7 +259,7 @@ def main(argv=None):
         bag.parent.mkdir(parents=True, exist_ok=True)
         t0 = time.monotonic()
         run_closed_loop(vehicle_path, bag, storage=args.storage, namespace=args.namespace,
-                        overrides=args.param)
+                        overrides=args.param, container=args.container)
         print(f'closed loop ran in {time.monotonic() - t0:.1f} s wall time')
         summary = summarize_bag(bag, vehicle, args.namespace)
         _print_summary(vehicle, summary)
@@ -279,7 +289,7 @@ def _evaluate(vehicle_path, vehicle, design, bag, summary, args):
     slow_file.write_text(parameters_to_yaml(flat))
     print(f'\nclosed loop again with the slow observer poles ({slow_file}) ...')
     run_closed_loop(slow_file, slow_bag, storage=args.storage, namespace=args.namespace,
-                    overrides=args.param, quiet=True)
+                    overrides=args.param, quiet=True, container=args.container)
     slow = summarize_bag(slow_bag, vehicle, args.namespace)
     print(lessons(vehicle, design, result, summary, slow))
 
