@@ -12,15 +12,18 @@ arrived (``late_commands``; steps before the first command ever arrives are
 round trip, and reports both on /diagnostics, which this driver reads (it subscribes to
 nothing else, so that it does not load the loop it measures).
 
-Layouts (``--layouts``, each run ``--runs`` times):
+Layouts, each run ``--runs`` times (``--configs``):
 
 - ``processes``: three processes, one per node (``ros2 run`` each);
 - ``container``: the observer and the compensator in one process (``ros2 run
   observer_ros container observer compensator``), the simulator in its own, as a
   vehicle's estimator and controller would run beside a separate driver;
-- ``one_process``: all three in one container.
+- ``one_process``: all three in one container;
+- ``LAYOUT@fifoN``: the same with every process at SCHED_FIFO priority N (``chrt``), as
+  the ROS 2 real-time guides set a control loop up; by default ``container@fifo50``,
+  skipped where this user may not.
 
-Figure per layout: on-time fraction ``1 - late / checked steps`` per run [>= 0.999].
+Figure per configuration: on-time fraction ``1 - late / checked steps`` per run [>= 0.999].
 Also reported: the loop round trip and the step rate achieved (rcl timers skip periods
 the process was too busy to serve, so a late step is not counted twice).
 
@@ -28,6 +31,8 @@ the process was too busy to serve, so a late step is not counted twice).
 
 import os
 from pathlib import Path
+import re
+import subprocess
 import sys
 import tempfile
 import threading
@@ -42,6 +47,11 @@ from _procs import node_command, start, stop_all  # noqa: E402
 NS = '/p2'
 
 
+# What runs by default: each layout, and the container as a real-time deployment would
+# run it (SCHED_FIFO 50, when this user may); the smoke run has no SCHED_FIFO run.
+CONFIGS = ('processes', 'container', 'one_process', 'container@fifo50')
+CONFIGS_SMOKE = ('processes', 'container', 'one_process')
+
 LAYOUTS = {
     'processes': (('observer_node',), ('compensator',), ('plant_simulator',)),
     'container': (('container', 'observer', 'compensator'), ('plant_simulator',)),
@@ -49,16 +59,20 @@ LAYOUTS = {
 }
 
 
-def _command(parts, params):
+def _command(parts, params, rt_priority=None):
     """Return the argv of one process of a layout: a node, or the container and its nodes."""
     cmd = node_command(parts[0], *params, namespace=NS)
     if len(parts) > 1:
         i = cmd.index('--ros-args')
         cmd[i:i] = list(parts[1:])
+    if rt_priority:
+        # SCHED_FIFO, as the ROS 2 real-time guides set up a control loop (needs the right)
+        cmd = ['chrt', '--fifo', str(int(rt_priority))] + cmd
     return cmd
 
 
-def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None):
+def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None,
+             rt_priority=None):
     """Start the layout's processes, the simulator last; wait for the simulator's end."""
     common = ['simulator.mode:=realtime', f'simulator.rate_hz:={float(rate)}']
     sim_params = [f'simulator.duration:={float(duration)}', 'diagnostics_period:=0.25']
@@ -67,8 +81,8 @@ def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None):
         for parts in LAYOUTS[layout]:
             if 'plant_simulator' in parts:
                 continue
-            procs.append(start(_command(parts, common), logdir / f'{parts[-1]}_{run}.log',
-                               pythonpath))
+            procs.append(start(_command(parts, common, rt_priority),
+                               logdir / f'{parts[-1]}_{run}.log', pythonpath))
         with state['lock']:
             state['diag'] = []
         deadline = time.monotonic() + 60.0
@@ -83,7 +97,7 @@ def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None):
             if procs:
                 raise RuntimeError('P2: observer and compensator did not come up')
         sim_parts = next(p for p in LAYOUTS[layout] if 'plant_simulator' in p)
-        sim = start(_command(sim_parts, common + sim_params),
+        sim = start(_command(sim_parts, common + sim_params, rt_priority),
                     logdir / f'{layout}_simulator_{run}.log', pythonpath)
         procs.append(sim)
         try:
@@ -101,6 +115,7 @@ def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None):
     v = last['values']
     steps = int(v.get('steps', 0))
     late = int(v.get('late_commands', 0))
+    late_short = int(v.get('late_commands_short_step', 0))
     open_loop = int(v.get('open_loop_steps', 0))
     checked = max(0, steps - 1 - open_loop)
     running = [d for d in diag if int(d['values'].get('steps', 0)) > open_loop + 1]
@@ -117,15 +132,40 @@ def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None):
             'loop_max_us': max((float(w['loop_us_max']) for w in windows),
                                default=float('nan')),
             'loop_samples': sum(int(w['loop_samples']) for w in windows),
-            'steps': steps, 'late_commands': late, 'open_loop_steps': open_loop,
+            'steps': steps, 'late_commands': late, 'late_after_short_step': late_short,
+            'open_loop_steps': open_loop,
             'checked': checked, 'on_time': 1.0 - late / checked if checked else float('nan'),
             'rate_achieved_hz': rate_achieved, 'exit_code': sim.returncode}
 
 
+def _fifo_allowed():
+    """Whether this process may start others with SCHED_FIFO (chrt)."""
+    try:
+        return subprocess.run(['chrt', '--fifo', '1', 'true'], capture_output=True,
+                              timeout=10).returncode == 0
+    except (OSError, subprocess.SubprocessError):
+        return False
+
+
+def _parse_config(text):
+    """``layout`` or ``layout@fifoN`` -> (layout, N or None)."""
+    layout, _, prio = text.partition('@')
+    if layout not in LAYOUTS or (prio and not re.fullmatch(r'fifo[1-9][0-9]?', prio)):
+        raise SystemExit(f'P2: unknown configuration {text!r}: LAYOUT or LAYOUT@fifoN, '
+                         f'LAYOUT one of {", ".join(LAYOUTS)}')
+    return layout, int(prio[4:]) if prio else None
+
+
 def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=None,
-        layouts=None, log=print):
+        configs=None, log=print):
     runs = runs or (1 if smoke else 3)
-    layouts = list(layouts or LAYOUTS)
+    configs = list(configs or (CONFIGS_SMOKE if smoke else CONFIGS))
+    parsed = {c: _parse_config(c) for c in configs}
+    if any(prio for _, prio in parsed.values()) and not _fifo_allowed():
+        log('  P2: no right to SCHED_FIFO here (chrt failed): '
+            f'{", ".join(c for c, (_, prio) in parsed.items() if prio)} skipped')
+        configs = [c for c in configs if not parsed[c][1]]
+    layouts = configs
     # the simulator steps from its start; DDS matching takes it 1-3 s here, and those
     # open-loop steps are not judged: the run is that much longer than what is measured
     duration = duration or (5.0 if smoke else 15.0)
@@ -161,12 +201,13 @@ def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=Non
         for r in range(runs):
             # alternate the order of the layouts from run to run
             for layout in (layouts if r % 2 == 0 else layouts[::-1]):
-                res = _one_run(node, state, layout, duration, rate, logdir, r,
-                               nodes_pythonpath)
+                res = _one_run(node, state, parsed[layout][0], duration, rate, logdir, r,
+                               nodes_pythonpath, parsed[layout][1])
                 results[layout].append(res)
-                log(f'  P2 {layout:>11} run {r + 1}/{runs}: {res["steps"]} steps at '
+                log(f'  P2 {layout:>16} run {r + 1}/{runs}: {res["steps"]} steps at '
                     f'{rate:g} Hz, {res["open_loop_steps"]} before the loop closed, '
-                    f'{res["late_commands"]} late of {res["checked"]} -> on time '
+                    f'{res["late_commands"]} late ({res["late_after_short_step"]} of them '
+                    f'after a short step) of {res["checked"]} -> on time '
                     f'{res["on_time"]:.5f}; achieved {res["rate_achieved_hz"]:.0f} Hz; '
                     f'loop measurement -> command: median {res["loop_median_us"]:.0f} us, '
                     f'p99 {res["loop_p99_us"]:.0f} us, max {res["loop_max_us"]:.0f} us')
@@ -201,8 +242,10 @@ def main(argv=None):
     parser.add_argument('--duration', type=float,
                         help='seconds per run, start-up included (default 15)')
     parser.add_argument('--rate', type=float, default=1000.0, help='step rate, Hz')
-    parser.add_argument('--layouts', default=','.join(LAYOUTS),
-                        help=f'comma-separated, of {", ".join(LAYOUTS)} (default: all)')
+    parser.add_argument('--configs', metavar='LIST',
+                        help='comma-separated LAYOUT or LAYOUT@fifoN (the nodes run with '
+                             f'SCHED_FIFO priority N; needs the right to), LAYOUT one of '
+                             f'{", ".join(LAYOUTS)}; default {",".join(CONFIGS)}')
     parser.add_argument('--nodes-pythonpath', metavar='DIR',
                         help='run the nodes with this copy of observer_ros first on '
                              'PYTHONPATH (to measure a previous version)')
@@ -210,7 +253,7 @@ def main(argv=None):
     print('P2: closed loop in free-running real time', flush=True)
     data = run(smoke=args.smoke, runs=args.runs, duration=args.duration, rate=args.rate,
                nodes_pythonpath=args.nodes_pythonpath,
-               layouts=[x for x in args.layouts.split(',') if x],
+               configs=[x for x in (args.configs or '').split(',') if x] or None,
                log=lambda s: print(s, flush=True))
     data['machine'] = machine_info()
     write_json(args.json, data)

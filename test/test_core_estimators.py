@@ -950,3 +950,27 @@ def test_quick_gain_matches_the_full_design():
     Ad, _ = zoh_matrices(plant.A, plant.B, 0.01)
     z = np.exp(np.array(CART_POLES) * 0.01)
     assert estimators._quick_gain(Ad, plant.C @ Ad, z, 'auto') is None
+
+
+@pytest.mark.parametrize('vehicle', ['submarine', 'cart_pendulum', 'aircraft_lateral',
+                                     'pitch_imu'])
+def test_jittered_steps_are_the_exact_zoh_of_the_step(vehicle):
+    """A new step is factored on a cached base step; it must equal scipy's expm of it."""
+    from pathlib import Path
+    from observer_ros.vehicle import load_vehicle
+    config = Path(__file__).resolve().parents[1] / 'config'
+    plant = load_vehicle(config / f'{vehicle}.yaml').plant
+    cache = StepCache(plant)
+    rng = np.random.default_rng(3)
+    jittered = 0.004 + rng.uniform(-4e-4, 4e-4, 300)
+    n = plant.n
+    for dt in np.concatenate([jittered, 10.0 ** rng.uniform(-6.0, 0.5, 300)]):
+        step = cache.step(float(dt))
+        Ad, Bd = zoh_matrices(plant.A, plant.B, step.h)
+        scale = max(1.0, np.abs(Ad).max(), np.abs(Bd).max())
+        assert np.abs(step.Ad - Ad).max() <= 1e-13 * scale, dt
+        assert np.abs(step.Bd - Bd).max() <= 1e-13 * scale, dt
+        assert step.Ad.shape == (n, n)
+        if dt == jittered[-1]:
+            # the 300 jittered steps were factored on at most 81 base steps (3 digits)
+            assert 0 < len(cache._base) <= 81

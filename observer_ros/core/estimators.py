@@ -80,6 +80,23 @@ CACHE_SIZE = 64
 #: must fit (about 90 per decade of step lengths), or gains would be designed again.
 GAIN_CACHE_SIZE = 1024
 
+#: Significant digits of the base steps a new continuous step is factored on:
+#: ``expm(M key) = expm(M base) expm(M (key - base))``, the first from a cache of base
+#: steps (0.00400, 0.00401, ... s: a jittering rate meets a few dozen), the second a
+#: short Taylor series. Both are the same matrix function of commuting arguments, so
+#: the product is the exponential of the step itself to round-off (tested against
+#: ``scipy.linalg.expm``). A few small matrix products instead of scipy's expm: the
+#: same time in a tight loop, but far less code to run cold between two messages of
+#: a node (benchmarks/README.md, P1).
+BASE_DIGITS = 3
+
+#: The factored exponential is used when ``|M (key - base)|_1`` is at most this (the
+#: Taylor series then needs at most 8 terms); otherwise ``scipy.linalg.expm``.
+FACTOR_NORM_MAX = 0.02
+
+#: Base steps kept (their exponentials); the cache is emptied when it is full.
+BASE_CACHE_SIZE = 4096
+
 #: A step of a discrete plant may differ from a whole number of sample times by
 #: this fraction of the sample time (time-stamp rounding).
 DISCRETE_STEP_TOL = 1e-6
@@ -403,6 +420,9 @@ class StepCache:
         self._aug = np.zeros((n + m, n + m))
         self._aug[:n, :n] = plant.A
         self._aug[:n, n:] = plant.B
+        self._aug_norm = float(np.abs(self._aug).sum(axis=0).max())     # 1-norm
+        self._base = {}                 # base step -> expm(aug * base)
+        self._eye = np.eye(n + m)
 
     def __len__(self):
         return len(self._steps)
@@ -456,7 +476,7 @@ class StepCache:
         plant = self._plant
         if self._Ts is None:
             n = plant.n
-            E = scipy.linalg.expm(self._aug * key)
+            E = self._exponential(key)
             step = _Step(key, key, None, E[:n, :n].copy(), E[:n, n:].copy())
         else:
             n = plant.n
@@ -469,6 +489,34 @@ class StepCache:
         if len(steps) > self._size:
             steps.popitem(last=False)
         return step
+
+    def _exponential(self, key):
+        """
+        Return ``expm(aug * key)``, factored on a cached base step when the rest is small.
+
+        ``expm(M base) @ expm(M d)`` with ``d = key - base``: the Taylor series of the
+        second factor is summed until a term is below 1e-17 (at most 8 terms, see
+        ``FACTOR_NORM_MAX``).
+
+        """
+        base = float(format(key, f'.{BASE_DIGITS - 1}e'))
+        d = key - base
+        if d == 0.0 or abs(d) * self._aug_norm > FACTOR_NORM_MAX:
+            return scipy.linalg.expm(self._aug * key)
+        E0 = self._base.get(base)
+        if E0 is None:
+            if len(self._base) >= BASE_CACHE_SIZE:
+                self._base.clear()
+            E0 = self._base[base] = scipy.linalg.expm(self._aug * base)
+        Md = self._aug * d
+        term = Md
+        T = self._eye + Md
+        for k in range(2, 12):
+            term = (term @ Md) * (1.0 / k)
+            T += term
+            if np.abs(term).max() <= 1e-17:
+                break
+        return E0 @ T
 
     def step(self, dt):
         """

@@ -262,6 +262,11 @@ class PlantSimulatorNode(VehicleNode):
                 self.count('open_loop_steps')
             elif abs(self._latest_cmd_stamp - self.t) > 0.25 * self.dt:
                 self.count('late_commands')
+                if self._step_wall is not None and time.monotonic() - self._step_wall < \
+                        0.75 * self.dt / self.vehicle.simulator.realtime_factor:
+                    # this step came less than 3/4 of a period after the last one (the
+                    # timer keeps its schedule after a late tick): its command had less time
+                    self.count('late_commands_short_step')
             self._advance()
         self._started = True
         # the measurements first: they start the loop (the clock and the true state are for
