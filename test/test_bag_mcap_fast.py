@@ -5,8 +5,9 @@ from pathlib import Path
 
 from bag_synth import blank, JOINT_STATE, STORE, vector_msg
 import numpy as np
-from observer_ros.bag.mcap_fast import fast_messages
-from observer_ros.bag.reader import BagReader
+from observer_ros.bag.mcap_fast import fast_chunks, fast_messages
+from observer_ros.bag.reader import BagReader, read_recording
+from observer_ros.vehicle import load_vehicle
 import pytest
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
@@ -37,14 +38,24 @@ def _write(path, entries, compress=False):
     return path
 
 
+def _flatten(chunks):
+    """Yield the (connection, log_ns, raw) stream of fast_chunks' arrays."""
+    for conns, logs, flat, starts, lengths in chunks:
+        assert flat.size >= int((starts + lengths).max()) + 512      # the padding
+        for c, t, b, n in zip(conns, logs.tolist(), starts.tolist(), lengths.tolist()):
+            yield c, t, flat[b:b + n].tobytes()
+
+
 def _compare(path, start=None, topics=None):
     with Reader(path) as reader:
         conns = [c for c in reader.connections if topics is None or c.topic in topics]
         fast = fast_messages(reader, conns, start)
         assert fast is not None
         got = _stream(fast)
+        chunked = _stream(_flatten(fast_chunks(reader, conns, start)))
         want = _stream(reader.messages(connections=conns, start=start))
     assert got == want
+    assert chunked == want
     return got
 
 
@@ -102,3 +113,33 @@ def test_blank_sensor_messages_round_trip(tmp_path):
             msg = blank('sensor_msgs/msg/Imu', 1_000_000_000 + k, 'imu')
             writer.write(conn, 1_000_000_000 + k, STORE.serialize_cdr(msg, 'sensor_msgs/msg/Imu'))
     assert len(_compare(path)) == 100
+
+
+@pytest.mark.parametrize('name', ['submarine', 'cart_pendulum', 'submarine_reduced'])
+def test_recording_read_by_chunks_equals_message_by_message(name, monkeypatch):
+    """read_recording decodes chunk buffers directly; the result must not change."""
+    path = SAMPLES / name
+    vehicle = load_vehicle(Path(__file__).resolve().parents[1] / 'config' / f'{name}.yaml')
+    calls = []
+    real = BagReader.message_chunks
+
+    def spy(self, topics=None):
+        chunks = real(self, topics)
+        calls.append(chunks is not None)
+        return chunks
+    monkeypatch.setattr(BagReader, 'message_chunks', spy)
+    by_chunks = read_recording(path, vehicle)
+    assert calls == [True]
+    monkeypatch.setattr(BagReader, 'message_chunks', lambda self, topics=None: None)
+    by_message = read_recording(path, vehicle)
+    pairs = [(by_chunks.sensors[k], by_message.sensors[k]) for k in by_chunks.sensors]
+    pairs += [(getattr(by_chunks, k), getattr(by_message, k))
+              for k in ('truth', 'estimate', 'command', 'residual')]
+    for a, b in pairs:
+        if a is None:
+            assert b is None
+            continue
+        assert len(a) > 100
+        for field in ('seq', 'log_ns', 'stamp_ns', 'valid'):
+            assert np.array_equal(getattr(a, field), getattr(b, field)), (a.topic, field)
+        assert np.array_equal(a.values, b.values, equal_nan=True), a.topic

@@ -18,7 +18,7 @@ import struct
 
 import numpy as np
 
-__all__ = ['fast_messages']
+__all__ = ['fast_messages', 'fast_chunks']
 
 _RECORD = struct.Struct('<BQ')          # opcode, length
 _MESSAGE = 0x05
@@ -53,6 +53,40 @@ def _connection_map(storage, connections):
     return out
 
 
+def fast_chunks(reader, connections, start=None, pad=512):
+    """
+    Return a generator of the raw messages chunk by chunk, as arrays, or None.
+
+    The same messages in the same order as :func:`fast_messages`, without a ``bytes``
+    object per message: each item is ``(conns, log_ns, flat, starts, lengths)`` for one
+    chunk, where message i is ``flat[starts[i]:starts[i] + lengths[i]]`` (``flat`` a
+    uint8 array of the decompressed chunk followed by ``pad`` zero bytes), received at
+    ``log_ns[i]`` on connection ``conns[i]``.
+
+    """
+    plan = _plan(reader, connections)
+    if plan is None or not plan[2]:
+        return plan if plan is None else iter(())
+    return _generate_arrays(*plan, start, pad)
+
+
+def _plan(reader, connections):
+    """(storage, chunks, channels, decompress) for reading chunk by chunk, or None."""
+    try:
+        from rosbags.rosbag2.storage_mcap import decompress
+    except ImportError:
+        return None
+    storage = _storage(reader)
+    if storage is None:
+        return None
+    chunks = list(storage.chunks)
+    for a, b in zip(chunks, chunks[1:]):
+        if b.message_start_time < a.message_end_time or \
+                b.chunk_start_offset < a.chunk_start_offset:
+            return None                 # overlapping chunks: rosbags merges them
+    return storage, chunks, _connection_map(storage, connections), decompress
+
+
 def fast_messages(reader, connections, start=None):
     """
     Return a generator of ``(connection, log_ns, raw)`` like rosbags, or None.
@@ -72,27 +106,15 @@ def fast_messages(reader, connections, start=None):
         None when the file cannot be read this way (the caller uses rosbags).
 
     """
-    try:
-        from rosbags.rosbag2.storage_mcap import decompress
-    except ImportError:
-        return None
-    storage = _storage(reader)
-    if storage is None:
-        return None
-    chunks = list(storage.chunks)
-    for a, b in zip(chunks, chunks[1:]):
-        if b.message_start_time < a.message_end_time or \
-                b.chunk_start_offset < a.chunk_start_offset:
-            return None                 # overlapping chunks: rosbags merges them
-    channels = _connection_map(storage, connections)
-    if not channels:
-        return iter(())
-    return _generate(storage, chunks, channels, start, decompress)
+    plan = _plan(reader, connections)
+    if plan is None or not plan[2]:
+        return plan if plan is None else iter(())
+    return _generate(*plan, start)
 
 
-def _generate(storage, chunks, channels, start, decompress):
+def _chunk_buffers(storage, chunks, channels, decompress, start):
+    """Yield (decompressed chunk, message offsets from its index or None) of the chunks."""
     bio = storage.bio
-    wanted = np.array(sorted(channels), dtype=np.int64)
     for chunk in chunks:
         if start is not None and chunk.message_end_time < start:
             continue
@@ -106,8 +128,26 @@ def _generate(storage, chunks, channels, start, decompress):
         if len(data) != chunk.compressed_size:
             raise ValueError(f'truncated chunk at offset {chunk.chunk_start_offset}')
         buf = decompress(data, chunk.compression, chunk.uncompressed_size, crc)
-        offsets = _indexed_offsets(bio, chunk, present)
+        yield buf, _indexed_offsets(bio, chunk, present)
+
+
+def _generate(storage, chunks, channels, decompress, start):
+    wanted = np.array(sorted(channels), dtype=np.int64)
+    for buf, offsets in _chunk_buffers(storage, chunks, channels, decompress, start):
         yield from _chunk_messages(buf, channels, wanted, start, offsets)
+
+
+def _generate_arrays(storage, chunks, channels, decompress, start, pad):
+    wanted = np.array(sorted(channels), dtype=np.int64)
+    for buf, offsets in _chunk_buffers(storage, chunks, channels, decompress, start):
+        flat = np.frombuffer(buf, dtype=np.uint8)
+        channel, log, begin, length = _chunk_arrays(flat, buf, wanted, start, offsets)
+        if not begin.size:
+            continue
+        padded = np.zeros(flat.size + pad, dtype=np.uint8)
+        padded[:flat.size] = flat
+        conns = [channels[c] for c in channel.tolist()]
+        yield conns, log, padded, begin, length
 
 
 def _indexed_offsets(bio, chunk, present):
@@ -148,9 +188,23 @@ def _scan(buf):
 def _chunk_messages(buf, channels, wanted, start, offsets=None):
     """Messages of one decompressed chunk, as a list of (connection, log_ns, raw)."""
     flat = np.frombuffer(buf, dtype=np.uint8)
+    channel, log, begin, length = _chunk_arrays(flat, buf, wanted, start, offsets)
+    stop = (begin + length).tolist()
+    conns = [channels[c] for c in channel.tolist()]
+    return list(zip(conns, log.tolist(), [buf[b:e] for b, e in zip(begin.tolist(), stop)]))
+
+
+def _chunk_arrays(flat, buf, wanted, start, offsets=None):
+    """
+    Return the wanted messages of a chunk in rosbags' order: channel, log, start, length.
+
+    rosbags sorts the messages of a chunk stably by log time.
+
+    """
     off = _scan(buf) if offsets is None else np.sort(offsets)
     if not off.size:
-        return []
+        empty = np.zeros(0, dtype=np.int64)
+        return empty, empty, empty, empty
     if offsets is not None and (off[-1] + _HEADER > flat.size or
                                 np.any(flat[off] != _MESSAGE)):
         off = _scan(buf)                # an index that does not match: walk the chunk
@@ -168,7 +222,5 @@ def _chunk_messages(buf, channels, wanted, start, offsets=None):
     sel = np.flatnonzero(keep)
     if sel.size > 1 and np.any(np.diff(log[sel]) < 0):
         sel = sel[np.argsort(log[sel], kind='stable')]      # rosbags sorts each chunk
-    begin = (off[sel] + _HEADER).tolist()
-    stop = (off[sel] + 9 + length[sel]).tolist()
-    conns = [channels[c] for c in channel[sel].tolist()]
-    return list(zip(conns, log[sel].tolist(), [buf[b:e] for b, e in zip(begin, stop)]))
+    begin = off[sel] + _HEADER
+    return channel[sel], log[sel], begin, off[sel] + 9 + length[sel] - begin

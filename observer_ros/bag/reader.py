@@ -34,7 +34,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
 
 from .errors import BagToolError
-from .mcap_fast import fast_messages
+from .mcap_fast import fast_chunks, fast_messages
 from ..timeutil import stamp_to_ns
 
 __all__ = ['IMU', 'JOINT_STATE', 'FLOAT64', 'CLOCK', 'VEHICLE_TOPICS', 'jazzy_typestore',
@@ -300,6 +300,32 @@ class BagReader:
                 yield from fast
                 return
             yield from source.messages(connections=conns, start=start)
+        except BagToolError:
+            raise
+        except Exception as err:   # noqa: BLE001 - rosbags raises many types
+            raise BagToolError(_reason(_storage_file(self.info.storage_path), err)) from None
+
+    def message_chunks(self, topics=None):
+        """
+        Return the messages of :meth:`messages` chunk by chunk as arrays, or None.
+
+        For one indexed MCAP file (see :func:`~observer_ros.bag.mcap_fast.fast_chunks`);
+        None when the bag must be read message by message.
+
+        """
+        conns = self.connections(topics)
+        readers = self.reader.readers
+        if len(readers) != 1 or (topics is not None and not conns):
+            return None
+        try:
+            chunks = fast_chunks(readers[0], conns, pad=_PAD)
+        except Exception:   # noqa: BLE001 - any doubt: the message-by-message path
+            return None
+        return None if chunks is None else self._guarded(chunks)
+
+    def _guarded(self, chunks):
+        try:
+            yield from chunks
         except BagToolError:
             raise
         except Exception as err:   # noqa: BLE001 - rosbags raises many types
@@ -637,19 +663,51 @@ def decode_messages(raws, msgtype, fields, mode='sensor', fallback=None, max_lay
     decoded : Decoded
 
     """
+    n = len(raws)
+    lengths = np.array(list(map(len, raws)), dtype=np.int64)
+    starts = np.zeros(n, dtype=np.int64)
+    if n:
+        np.cumsum(lengths[:-1], out=starts[1:])
+    # one copy of the batch (joining, then appending the padding, made two)
+    flat = np.frombuffer(b''.join(itertools.chain(raws, (bytes(_PAD),))), dtype=np.uint8)
+    return decode_packed(flat, starts, lengths, msgtype, fields, mode, fallback, max_layouts,
+                         raws=raws)
+
+
+class _PackedRaws:
+    """``raws[i]``: the bytes of message i of a packed batch (for the rare per-message path)."""
+
+    def __init__(self, flat, starts, lengths):
+        self.flat, self.starts, self.lengths = flat, starts, lengths
+
+    def __len__(self):
+        return len(self.starts)
+
+    def __getitem__(self, i):
+        b = int(self.starts[i])
+        return self.flat[b:b + int(self.lengths[i])].tobytes()
+
+
+def decode_packed(flat, starts, lengths, msgtype, fields, mode='sensor', fallback=None,
+                  max_layouts=64, raws=None):
+    """
+    :func:`decode_messages` for messages already in one buffer.
+
+    Message i is ``flat[starts[i]:starts[i] + lengths[i]]``; ``flat`` (uint8) must have
+    at least ``_PAD`` bytes after the last message. ``raws`` (a list of the same
+    messages) is optional: without it a message is sliced out of ``flat`` when the
+    per-message path needs it.
+
+    """
     fields = tuple(fields)
-    n, k = len(raws), len(fields)
+    n, k = len(starts), len(fields)
+    raws = _PackedRaws(flat, starts, lengths) if raws is None else raws
     values = np.full((n, k), np.nan)
     stamps = np.zeros(n, dtype=np.int64)
     has_header = msgtype != FLOAT64
     done = np.zeros(n, dtype=bool)
     errors = {}
     if n:
-        lengths = np.array(list(map(len, raws)), dtype=np.int64)
-        starts = np.zeros(n, dtype=np.int64)
-        np.cumsum(lengths[:-1], out=starts[1:])
-        # one copy of the batch (joining, then appending the padding, made two)
-        flat = np.frombuffer(b''.join(itertools.chain(raws, (bytes(_PAD),))), dtype=np.uint8)
         little = (lengths >= 4) & (flat[starts] == 0) & (flat[starts + 1] == 1)
         if msgtype == IMU and all(f in _IMU_OFFSETS or f in _IMU_EULER for f in fields):
             _decode_imu(flat, starts, lengths, little, fields, stamps, values, done)
@@ -855,6 +913,13 @@ class _Accumulator:
         if len(self.raws) >= _FLUSH:
             self.flush()
 
+    def add_packed(self, flat, starts, lengths, logs, seqs):
+        """Take a batch already in one buffer (see :func:`decode_packed`): decoded at once."""
+        self.flush()
+        dec = decode_packed(flat, starts, lengths, self.msgtype, self.fields, self.mode,
+                            self.fallback)
+        self.parts.append((seqs, logs, dec))
+
     def flush(self):
         if not self.raws:
             return
@@ -1008,6 +1073,10 @@ def read_recording(path, vehicle, namespace=None, progress=None, vectors=True):
 
 def _read_all(bag, topics, by_conn, progress, total):
     """Read the topics' messages once, in bag order, into their accumulators."""
+    chunks = bag.message_chunks(topics)
+    if chunks is not None:
+        _read_chunks(chunks, by_conn, progress, total)
+        return
     messages = bag.messages(topics)
     single = len({id(acc) for acc in by_conn.values()}) == 1
     # the batches hold many tuples: keep the cyclic garbage collector from scanning them
@@ -1019,6 +1088,27 @@ def _read_all(bag, topics, by_conn, progress, total):
     finally:
         if enabled:
             gc.enable()
+
+
+def _read_chunks(chunks, by_conn, progress, total):
+    """Read chunk by chunk, each chunk's messages decoded from its buffer (no bytes each)."""
+    done = reported = 0
+    for conns, logs, flat, starts, lengths in chunks:
+        n = len(conns)
+        ids = np.fromiter((c.id for c in conns), dtype=np.int64, count=n)
+        seqs = np.arange(done, done + n, dtype=np.int64)
+        for cid, acc in by_conn.items():
+            sel = np.flatnonzero(ids == cid)
+            if sel.size == n:
+                acc.add_packed(flat, starts, lengths, logs, seqs)
+            elif sel.size:
+                acc.add_packed(flat, starts[sel], lengths[sel], logs[sel], seqs[sel])
+        done += n
+        if progress is not None and done - reported >= _PROGRESS_EVERY:
+            progress(done, total)
+            reported = done
+    if progress is not None:
+        progress(done, total)
 
 
 def _read_batches(messages, by_conn, single, progress, total):

@@ -237,9 +237,10 @@ def spin_until(executor, stop=None, period=0.1):
     """
     Spin until the context shuts down (or ``stop()`` is true).
 
-    ``spin_once`` with a timeout rather than ``executor.spin()``: this EventsExecutor's
-    ``spin()`` never returns control to Python, so neither signal handlers nor a stop
-    flag would run.
+    ``spin_once`` with a timeout rather than ``executor.spin()`` (or ``rclpy.spin``):
+    with rclpy 7.1.6 from PyPI, the EventsExecutor's ``spin()`` ran at 100 % CPU without
+    running a single callback here; ``spin_once`` works, and returning to Python every
+    ``period`` seconds also lets signal handlers and a stop flag run.
 
     """
     context = executor.context
