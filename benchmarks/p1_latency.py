@@ -78,7 +78,7 @@ def run(smoke=False, rate=None, count=None, pairs=None, observer_pythonpath=None
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     spinner = threading.Thread(target=executor.spin, daemon=True)
-    state = {'block': None, 'lat': [], 'since': 0}
+    state = {'block': None, 'lat': [], 'sent': set()}
     lock = threading.Lock()
 
     def on_estimate(target):
@@ -87,8 +87,10 @@ def run(smoke=False, rate=None, count=None, pairs=None, observer_pythonpath=None
             s = msg.header.stamp
             stamp = s.sec * 1_000_000_000 + s.nanosec
             with lock:
-                # answers to this block only (not a late one from the warm-up)
-                if state['block'] == target and stamp >= state['since']:
+                # answers to this block's messages only: not a late one from the warm-up,
+                # nor a prediction the observer publishes on its own (sensor silent)
+                if state['block'] == target and stamp in state['sent']:
+                    state['sent'].discard(stamp)
                     state['lat'].append(now - stamp)
         return cb
 
@@ -118,13 +120,15 @@ def run(smoke=False, rate=None, count=None, pairs=None, observer_pythonpath=None
                 time.sleep(left if left > 0.002 else 0.0)
             now = time.time_ns()
             msg.header.stamp = Time(sec=now // 1_000_000_000, nanosec=now % 1_000_000_000)
+            with lock:
+                state['sent'].add(now)
             msg.angular_velocity.y = 0.001 * ((i % 200) - 100) / 100.0
             pub.publish(msg)
 
     def block(target, n):
         with lock:
             state['block'], state['lat'] = target, []
-            state['since'] = time.time_ns() - 1_000_000
+            state['sent'] = set()
         pid = pids.get(target)
         cpu0 = _cpu_seconds(pid) if pid else float('nan')
         send(target, n)

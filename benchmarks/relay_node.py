@@ -40,7 +40,8 @@ class Relay(Node):
     def _on_imu(self, msg):
         w = msg.angular_velocity
         self._pub.publish(joint_state(STATE_NAMES, (w.x, w.y, w.z),
-                                      stamp_to_sec(msg.header.stamp), msg.header.frame_id))
+                                      stamp_to_sec(msg.header.stamp), msg.header.frame_id,
+                                      msg.header.stamp))
 
 
 def main(args=None):

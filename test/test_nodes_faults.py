@@ -295,6 +295,21 @@ def test_undetectable_plant_is_refused_with_the_mode_named(tmp_path):
     assert 'x3' in out and '5' in out, out
 
 
+def test_estimate_carries_the_measurement_stamp_to_the_nanosecond(observer_setup):
+    """A wall-clock stamp does not survive float seconds; the estimate must carry it as is."""
+    proc, probe, listener, pub, cmd = observer_setup
+    msg = _imu(0.0, 0.01)
+    msg.header.stamp.sec = int(time.time())
+    msg.header.stamp.nanosec = 123_456_789
+    sec = msg.header.stamp.sec
+    assert round((sec + 0.123456789) * 1e9) % 1_000_000_000 != 123_456_789   # float loses it
+    pub.publish(msg)
+    probe.spin_until(lambda: any(m.header.stamp.sec == sec for m in listener.estimates),
+                     10.0, 'the estimate')
+    got = [m.header.stamp.nanosec for m in listener.estimates if m.header.stamp.sec == sec]
+    assert got[0] == 123_456_789
+
+
 def test_silent_sensor_means_predict_only(observer_setup):
     """Stamps on the node's clock; the sensor stops: predictions are published, with a WARN."""
     proc, probe, listener, pub, cmd = observer_setup

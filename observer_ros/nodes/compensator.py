@@ -101,7 +101,7 @@ class CompensatorNode(VehicleNode):
         u = control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
         self._last_estimate_time = self.wall_now()
         self._stale = False
-        self._publish(u, t)
+        self._publish(u, t, msg.header.stamp)       # the estimate's stamp, to the ns
         self.count('commands')
 
     def _stamp_of(self, msg):
@@ -110,9 +110,9 @@ class CompensatorNode(VehicleNode):
         except (AttributeError, TypeError):
             return self.get_clock().now().nanoseconds * 1e-9
 
-    def _publish(self, u, t):
+    def _publish(self, u, t, stamp=None):
         self._last_u = u
-        self._cmd_pub.publish(joint_state(self.vehicle.plant.input_names, u, t))
+        self._cmd_pub.publish(joint_state(self.vehicle.plant.input_names, u, t, stamp=stamp))
         if self._array_pub is not None:
             self._array_pub.publish(Float64MultiArray(data=[float(v) for v in u]))
 

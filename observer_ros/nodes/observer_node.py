@@ -150,14 +150,18 @@ class ObserverNode(VehicleNode):
             return
         self._last_stamp[sensor.name] = t
         self.count('measurements')
-        # the estimate first: it is what the compensator waits for (benchmarks P1)
-        self._publish_estimate(t, sensor.frame_id)
+        # the estimate first: it is what the compensator waits for (benchmarks P1); both
+        # carry the measurement's own stamp, to the nanosecond
+        stamp = msg.header.stamp if self._stamped[sensor.name] else None
+        self._publish_estimate(t, sensor.frame_id, stamp)
         residual = self.estimator.residual
         if residual is not None and self._res_pub.get_subscription_count():
-            self._res_pub.publish(joint_state(sensor.outputs, residual, t, sensor.frame_id))
+            self._res_pub.publish(joint_state(sensor.outputs, residual, t, sensor.frame_id,
+                                              stamp))
 
-    def _publish_estimate(self, t, frame_id):
-        msg = joint_state(self.vehicle.plant.state_names, self.estimator.x_hat, t, frame_id)
+    def _publish_estimate(self, t, frame_id, stamp=None):
+        msg = joint_state(self.vehicle.plant.state_names, self.estimator.x_hat, t, frame_id,
+                          stamp)
         self._est_pub.publish(msg)
         self._last_estimate = msg
         if self._lockstep:
