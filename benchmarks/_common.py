@@ -130,6 +130,18 @@ def write_json(path, data):
         Path(path).write_text(json.dumps(data, indent=2, default=float))
 
 
+def log(text):
+    """Print a benchmark's progress line at once (its output is read while it runs)."""
+    print(text, flush=True)
+
+
+def report(json_path, data):
+    """Add the machine to a benchmark's figures and write them (``--json``); return 0."""
+    data['machine'] = machine_info()
+    write_json(json_path, data)
+    return 0
+
+
 def ros_env(domain_id=None):
     """Environment for the ROS processes of a benchmark: its own ROS_DOMAIN_ID, no colour."""
     env = dict(os.environ)

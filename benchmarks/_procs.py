@@ -5,7 +5,6 @@ import os
 from pathlib import Path
 import signal
 import subprocess
-import sys
 import time
 
 from _common import REPO, ros_env
@@ -13,15 +12,16 @@ from _common import REPO, ros_env
 __all__ = ['node_command', 'start', 'stop_all']
 
 
-def node_command(node, *params, namespace=None, vehicle='config/submarine.yaml'):
-    """Return the argv of one of the package's nodes with the vehicle file and overrides."""
-    cmd = [sys.executable, '-W', 'ignore::DeprecationWarning', '-m',
-           f'observer_ros.nodes.{node}', '--ros-args', '--params-file', str(REPO / vehicle)]
-    if namespace:
-        cmd += ['-r', f'__ns:={namespace}']
-    for p in params:
-        cmd += ['-p', p]
-    return cmd
+def node_command(node, *params, namespace=None, vehicle='config/submarine.yaml', nodes=()):
+    """
+    Return the argv of one of the package's nodes with the vehicle file and overrides.
+
+    The package's own ``node_command`` (``observer-run`` starts its nodes with it); for
+    ``node='container'``, ``nodes`` names the nodes it runs.
+
+    """
+    from observer_ros.tools.run_closed_loop import node_command as package_command
+    return package_command(node, REPO / vehicle, *params, namespace=namespace, nodes=nodes)
 
 
 def start(cmd, log_path, pythonpath=None):

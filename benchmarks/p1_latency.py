@@ -30,8 +30,8 @@ import time
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import (common_parser, machine_info, percentile, ratio_line,  # noqa: E402
-                     REPO, ros_env, summary, write_json)
+from _common import (common_parser, log, percentile, ratio_line, REPO,  # noqa: E402
+                     report, ros_env, summary)
 from _procs import node_command, start, stop_all  # noqa: E402
 
 TARGETS = {'relay': '/p1_relay', 'observer': '/p1_obs'}
@@ -215,12 +215,9 @@ def main(argv=None):
                              'PYTHONPATH (to measure a previous version)')
     args = parser.parse_args(argv)
     print('P1: observer node latency against a bare relay', flush=True)
-    data = run(smoke=args.smoke, rate=args.rate, count=args.count, pairs=args.pairs,
-               observer_pythonpath=args.observer_pythonpath,
-               log=lambda s: print(s, flush=True))
-    data['machine'] = machine_info()
-    write_json(args.json, data)
-    return 0
+    return report(args.json, run(smoke=args.smoke, rate=args.rate, count=args.count,
+                                 pairs=args.pairs,
+                                 observer_pythonpath=args.observer_pythonpath, log=log))
 
 
 if __name__ == '__main__':

@@ -40,8 +40,8 @@ import time
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import (common_parser, machine_info, percentile, ratio_line,  # noqa: E402
-                     ros_env, summary, write_json)
+from _common import (common_parser, log, percentile, ratio_line, report,  # noqa: E402
+                     ros_env, summary)
 from _procs import node_command, start, stop_all  # noqa: E402
 
 NS = '/p2'
@@ -61,10 +61,7 @@ LAYOUTS = {
 
 def _command(parts, params, rt_priority=None):
     """Return the argv of one process of a layout: a node, or the container and its nodes."""
-    cmd = node_command(parts[0], *params, namespace=NS)
-    if len(parts) > 1:
-        i = cmd.index('--ros-args')
-        cmd[i:i] = list(parts[1:])
+    cmd = node_command(parts[0], *params, namespace=NS, nodes=parts[1:])
     if rt_priority:
         # SCHED_FIFO, as the ROS 2 real-time guides set up a control loop (needs the right)
         cmd = ['chrt', '--fifo', str(int(rt_priority))] + cmd
@@ -251,13 +248,10 @@ def main(argv=None):
                              'PYTHONPATH (to measure a previous version)')
     args = parser.parse_args(argv)
     print('P2: closed loop in free-running real time', flush=True)
-    data = run(smoke=args.smoke, runs=args.runs, duration=args.duration, rate=args.rate,
-               nodes_pythonpath=args.nodes_pythonpath,
-               configs=[x for x in (args.configs or '').split(',') if x] or None,
-               log=lambda s: print(s, flush=True))
-    data['machine'] = machine_info()
-    write_json(args.json, data)
-    return 0
+    return report(args.json, run(
+        smoke=args.smoke, runs=args.runs, duration=args.duration, rate=args.rate,
+        nodes_pythonpath=args.nodes_pythonpath,
+        configs=[x for x in (args.configs or '').split(',') if x] or None, log=log))
 
 
 if __name__ == '__main__':

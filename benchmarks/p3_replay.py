@@ -40,8 +40,7 @@ import time
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import (common_parser, machine_info, ratio_line, REPO, summary,  # noqa: E402
-                     write_json)
+from _common import common_parser, log, ratio_line, REPO, report, summary  # noqa: E402
 
 VEHICLE = REPO / 'config' / 'submarine.yaml'
 # generated data lives outside the repository (a 10^6-message bag is ~400 MB)
@@ -374,11 +373,8 @@ def main(argv=None):
                         help='also the 10^7-message bag: peak RSS within 1 GiB')
     args = parser.parse_args(argv)
     print('P3: observer-eval on a synthetic Imu bag', flush=True)
-    data = run(smoke=args.smoke, rounds=args.rounds, big=args.big, messages=args.messages,
-               log=lambda s: print(s, flush=True))
-    data['machine'] = machine_info()
-    write_json(args.json, data)
-    return 0
+    return report(args.json, run(smoke=args.smoke, rounds=args.rounds, big=args.big,
+                                 messages=args.messages, log=log))
 
 
 if __name__ == '__main__':

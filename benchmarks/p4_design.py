@@ -32,7 +32,7 @@ import warnings
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import common_parser, machine_info, ratio_line, summary, write_json  # noqa: E402
+from _common import common_parser, ratio_line, report, summary  # noqa: E402
 import numpy as np  # noqa: E402
 
 FLOOR = 1e-15      # errors below this are round-off: compared as equal
@@ -165,10 +165,7 @@ def main(argv=None):
     parser = common_parser(__doc__.splitlines()[1])
     args = parser.parse_args(argv)
     print('P4: gain design on seeded random observable systems', flush=True)
-    data = run(smoke=args.smoke)
-    data['machine'] = machine_info()
-    write_json(args.json, data)
-    return 0
+    return report(args.json, run(smoke=args.smoke))
 
 
 if __name__ == '__main__':
