@@ -26,8 +26,8 @@ from ..vehicle import vehicle_from_parameters
 
 __all__ = ['VEHICLE_SECTIONS', 'SENSOR_QOS', 'SENSOR_SUB_QOS', 'STATE_QOS', 'STATE_PUB_QOS',
            'LATCHED_QOS', 'MESSAGE_CLASSES', 'TOPICS', 'VehicleNode', 'joint_state',
-           'stamp_to_sec', 'to_stamp', 'make_executor', 'spin_until', 'run_node',
-           'run_nodes']
+           'stamp_to_sec', 'to_stamp', 'make_executor', 'spin_until', 'exit_status',
+           'run_node', 'run_nodes']
 
 # Which executor spins the nodes: OBSERVER_ROS_EXECUTOR=events (default) or single_threaded.
 EXECUTOR_ENV = 'OBSERVER_ROS_EXECUTOR'
@@ -255,6 +255,25 @@ def spin_until(executor, stop=None, period=0.1):
         executor.spin_once(timeout_sec=period)
 
 
+def exit_status(err, name):
+    """
+    Report the exception that ended a node process; return the process's exit status.
+
+    0 for a shutdown (Ctrl-C, the context shut down); 2 for a file or parameter the node
+    cannot use (one ``error:`` line, and a FATAL log line under ``name``); 1 for anything
+    else (with its traceback).
+
+    """
+    if isinstance(err, (KeyboardInterrupt, ExternalShutdownException)):
+        return 0
+    if isinstance(err, ObserverError):
+        rclpy.logging.get_logger(name).fatal(f'cannot start: {err}')
+        print(f'error: {err}', file=sys.stderr)
+        return 2
+    traceback.print_exception(err)
+    return 1
+
+
 def run_node(node_factory, args=None):
     """
     Run a node as ros2/demos do: init, spin, clean shutdown; exit 2 on an unusable file.
@@ -300,19 +319,12 @@ def run_nodes(node_factories, args=None, names=None):
         for node in nodes:
             executor.add_node(node)
         spin_until(executor)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
     except SystemExit as done:      # the simulator's exit_when_done
         code = done.code if isinstance(done.code, int) else 0
-    except ObserverError as err:
+    except (KeyboardInterrupt, Exception) as err:   # noqa: BLE001 - reported by exit_status
         failed = len(nodes) if len(nodes) < len(node_factories) else None
-        name = names[failed] if names and failed is not None else 'observer_ros'
-        rclpy.logging.get_logger(name).fatal(f'cannot start: {err}')
-        print(f'error: {err}', file=sys.stderr)
-        code = 2
-    except Exception:   # noqa: BLE001 - report, then exit non-zero
-        traceback.print_exc()
-        code = 1
+        code = exit_status(err, names[failed] if names and failed is not None else
+                           'observer_ros')
     finally:
         if executor is not None:
             executor.shutdown()

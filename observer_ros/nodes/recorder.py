@@ -33,12 +33,10 @@ import signal
 import sqlite3
 import sys
 import time
-import traceback
 import warnings
 
 from diagnostic_msgs.msg import DiagnosticStatus
 import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
@@ -47,8 +45,8 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import get_typestore, Stores
 from std_msgs.msg import Bool
 
-from .common import (LATCHED_QOS, make_executor, SENSOR_QOS, spin_until, STATE_PUB_QOS,
-                     STATE_QOS, TOPICS, VehicleNode)
+from .common import (exit_status, LATCHED_QOS, make_executor, SENSOR_QOS, spin_until,
+                     STATE_PUB_QOS, STATE_QOS, TOPICS, VehicleNode)
 from ..bag.play import message_class
 from ..core.errors import ObserverError
 
@@ -353,18 +351,11 @@ def main(args=None):
         executor.add_node(node)
         spin_until(executor, lambda: stop or node.failed)
         _drain(executor, node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
     except RecordingError as err:
         print(f'error: recorder: {err}', file=sys.stderr)
         code = 1
-    except ObserverError as err:
-        rclpy.logging.get_logger('recorder').fatal(f'cannot start: {err}')
-        print(f'error: {err}', file=sys.stderr)
-        code = 2
-    except Exception:   # noqa: BLE001 - report, then exit non-zero
-        traceback.print_exc()
-        code = 1
+    except (KeyboardInterrupt, Exception) as err:   # noqa: BLE001 - reported by exit_status
+        code = exit_status(err, 'recorder')
     finally:
         # a second signal while the bag is being closed must not cut the close short
         signal.signal(signal.SIGINT, signal.SIG_IGN)
