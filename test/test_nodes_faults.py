@@ -308,6 +308,13 @@ def test_estimate_carries_the_measurement_stamp_to_the_nanosecond(observer_setup
                      10.0, 'the estimate')
     got = [m.header.stamp.nanosec for m in listener.estimates if m.header.stamp.sec == sec]
     assert got[0] == 123_456_789
+    # the same message again: a duplicate, answered by re-publishing; the same exact stamp
+    pub.publish(msg)
+    listener.wait_counter('observer', 'duplicates', 1)
+    probe.spin_until(lambda: sum(m.header.stamp.sec == sec for m in listener.estimates) >= 2,
+                     10.0, 'the re-published estimate')
+    got = [m.header.stamp.nanosec for m in listener.estimates if m.header.stamp.sec == sec]
+    assert got == [123_456_789, 123_456_789]
 
 
 def test_silent_sensor_means_predict_only(observer_setup):

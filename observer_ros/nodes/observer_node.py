@@ -121,8 +121,11 @@ class ObserverNode(VehicleNode):
 
     def _process_measurement(self, sensor, msg):
         t = None
+        # every answer to this message carries its own stamp, to the nanosecond (float
+        # seconds keep only ~0.2 us of a wall-clock stamp)
+        stamp = msg.header.stamp if self._stamped[sensor.name] else None
         try:
-            if self._stamped[sensor.name]:
+            if stamp is not None:
                 t = stamp_to_sec(msg.header.stamp)
                 if t == 0.0:
                     raise ObserverError(f'{sensor.topic}: zero stamp (unset header.stamp)')
@@ -131,28 +134,26 @@ class ObserverNode(VehicleNode):
             y = extract_measurement(msg, sensor)
         except (ObserverError, ValueError) as err:
             self._reject('bad_messages', str(err))
-            self._answer_without_correction(sensor, t)
+            self._answer_without_correction(sensor, t, stamp)
             return
-        if not self._check_time(sensor, t):
+        if not self._check_time(sensor, t, stamp):
             return
         rows = self._rows[sensor.name]
         try:
             x_hat = self.estimator.correct(t, y, rows)
         except (ObserverError, ValueError) as err:
             self._reject('rejected_updates', f'{sensor.topic}: {err}')
-            self._answer_without_correction(sensor, t)
+            self._answer_without_correction(sensor, t, stamp)
             return
         if not np.isfinite(x_hat).all():
             # Never publish a NaN: restart from the initial estimate.
             self.estimator.reset(None, t)
             self._reject('numerical_resets', f'{sensor.topic}: estimate not finite; reset')
-            self._answer_without_correction(sensor, t)
+            self._answer_without_correction(sensor, t, stamp)
             return
         self._last_stamp[sensor.name] = t
         self.count('measurements')
-        # the estimate first: it is what the compensator waits for (benchmarks P1); both
-        # carry the measurement's own stamp, to the nanosecond
-        stamp = msg.header.stamp if self._stamped[sensor.name] else None
+        # the estimate first: it is what the compensator waits for (benchmarks P1)
         self._publish_estimate(t, sensor.frame_id, stamp)
         residual = self.estimator.residual
         if residual is not None and self._res_pub.get_subscription_count():
@@ -169,7 +170,7 @@ class ObserverNode(VehicleNode):
             self._pending_since = time.monotonic()
             self._pending_stamp = t
 
-    def _answer_without_correction(self, sensor, t):
+    def _answer_without_correction(self, sensor, t, stamp=None):
         """
         Lockstep: a measurement that was refused still gets an answer (the prediction).
 
@@ -184,11 +185,11 @@ class ObserverNode(VehicleNode):
                 self.estimator.predict(t)
             except (ObserverError, ValueError):
                 return
-        if np.all(np.isfinite(self.estimator.x_hat)):
-            self._publish_estimate(self.estimator.t if self.estimator.t is not None else t,
-                                   sensor.frame_id)
+        if np.isfinite(self.estimator.x_hat).all():
+            at = self.estimator.t if self.estimator.t is not None else t
+            self._publish_estimate(at, sensor.frame_id, stamp if at == t else None)
 
-    def _check_time(self, sensor, t):
+    def _check_time(self, sensor, t, stamp=None):
         """Handle stamps that go backwards, repeat, or lie far in the future."""
         last = self.estimator.t
         if last is not None and t < last:
@@ -209,7 +210,7 @@ class ObserverNode(VehicleNode):
             self._reject('duplicates', f'{sensor.topic}: duplicate stamp {t:.6f}; '
                          'estimate re-published')
             if last == t:
-                self._publish_estimate(t, sensor.frame_id)
+                self._publish_estimate(t, sensor.frame_id, stamp)
             return False
         if self._future_bound is not None and t <= self._future_bound and \
                 self._last_seen[sensor.name] < self._future_bound_until:
