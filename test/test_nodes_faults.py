@@ -1,6 +1,7 @@
 # The nodes against bad messages, bad files, stale estimates and run-time parameter changes.
 """Each node survives bad input, reports it, and keeps its design unless a change is sound."""
 
+import contextlib
 import math
 import time
 
@@ -85,24 +86,33 @@ def _imu(t, q):
     return msg
 
 
+@contextlib.contextmanager
+def _node_under_test(tmp_path, node):
+    """Run the node (submarine, realtime) with a probe listening; the node must exit 0."""
+    proc = Proc(node, CONFIG / 'submarine.yaml', REALTIME, 'diagnostics_period:=0.2',
+                log_dir=tmp_path)
+    probe = Probe()
+    try:
+        yield proc, probe, Listener(probe)
+    finally:
+        probe.close()
+    assert proc.stop() == 0, proc.output()
+
+
 @pytest.fixture
 def observer_setup(tmp_path):
-    proc = Proc('observer_node', CONFIG / 'submarine.yaml', REALTIME,
-                'diagnostics_period:=0.2', log_dir=tmp_path)
-    probe = Probe()
-    listener = Listener(probe)
-    pub = probe.node.create_publisher(Imu, 'imu/data', SENSOR_QOS)
-    cmd = probe.node.create_publisher(JointState, 'control/u', STATE_QOS)
-    probe.wait_subscribers('imu/data')
-    probe.wait_subscribers('control/u')
-    probe.wait_publishers('state/estimate')
-    probe.spin_until(lambda: pub.get_subscription_count() >= 1, 20.0, 'imu/data matched')
-    probe.spin_until(lambda: cmd.get_subscription_count() >= 1, 20.0, 'control/u matched')
-    listener.wait_matched('state/estimate', '/diagnostics')
-    listener.wait_alive('observer')
-    yield proc, probe, listener, pub, cmd
-    probe.close()
-    assert proc.stop() == 0, proc.output()
+    with _node_under_test(tmp_path, 'observer_node') as (proc, probe, listener):
+        pub = probe.node.create_publisher(Imu, 'imu/data', SENSOR_QOS)
+        cmd = probe.node.create_publisher(JointState, 'control/u', STATE_QOS)
+        probe.wait_subscribers('imu/data')
+        probe.wait_subscribers('control/u')
+        probe.wait_publishers('state/estimate')
+        probe.spin_until(lambda: pub.get_subscription_count() >= 1, 20.0, 'imu/data matched')
+        probe.spin_until(lambda: cmd.get_subscription_count() >= 1, 20.0,
+                         'control/u matched')
+        listener.wait_matched('state/estimate', '/diagnostics')
+        listener.wait_alive('observer')
+        yield proc, probe, listener, pub, cmd
 
 
 def test_observer_survives_every_bad_message(observer_setup):
@@ -200,17 +210,13 @@ def test_observer_pole_change_is_validated(observer_setup):
 
 @pytest.fixture
 def compensator_setup(tmp_path):
-    proc = Proc('compensator', CONFIG / 'submarine.yaml', REALTIME,
-                'diagnostics_period:=0.2', log_dir=tmp_path)
-    probe = Probe()
-    listener = Listener(probe)
-    est = probe.node.create_publisher(JointState, 'state/estimate', STATE_QOS)
-    probe.spin_until(lambda: est.get_subscription_count() >= 1, 20.0, 'state/estimate matched')
-    listener.wait_matched('control/u', '/diagnostics')
-    listener.wait_alive('compensator')
-    yield proc, probe, listener, est
-    probe.close()
-    assert proc.stop() == 0, proc.output()
+    with _node_under_test(tmp_path, 'compensator') as (proc, probe, listener):
+        est = probe.node.create_publisher(JointState, 'state/estimate', STATE_QOS)
+        probe.spin_until(lambda: est.get_subscription_count() >= 1, 20.0,
+                         'state/estimate matched')
+        listener.wait_matched('control/u', '/diagnostics')
+        listener.wait_alive('compensator')
+        yield proc, probe, listener, est
 
 
 def test_compensator_stale_and_bad_estimates_give_the_safe_command(compensator_setup):
