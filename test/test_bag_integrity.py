@@ -18,7 +18,7 @@ from bag_synth import bag_file, CONFIG, simulate, STORE, write_bag
 import numpy as np
 from observer_ros.bag.errors import BagToolError
 from observer_ros.bag.evaluate import evaluate_bag, main
-from observer_ros.bag.integrity import chunk_crcs, CrcWriter, CRC_OFFSET
+from observer_ros.bag.integrity import chunk_crcs, CRC_OFFSET, CrcWriter
 from observer_ros.bag.reader import BagReader
 from observer_ros.vehicle import load_vehicle
 import pytest
@@ -160,4 +160,3 @@ def test_results_bag_carries_crcs(tmp_path):
     crcs = chunk_crcs_of(out / 'results_bag')
     assert crcs and all(crcs)
     assert _messages(out / 'results_bag')
-
