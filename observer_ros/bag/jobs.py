@@ -148,7 +148,12 @@ def run_jobs(jobs, backend='dask', workers=None, scheduler=None, progress=None):
 
 
 def _run_dask(jobs, workers, scheduler, progress):
-    from distributed import as_completed, Client, LocalCluster
+    try:
+        from distributed import as_completed, Client, LocalCluster
+    except ImportError:
+        from .errors import BagToolError
+        raise BagToolError('Dask is not installed (`pip install dask distributed`); or run '
+                           'the jobs serially (--serial)') from None
     cluster = None
     if scheduler is None:
         n = workers or min(os.cpu_count() or 1, max(1, len(jobs)))
