@@ -554,11 +554,23 @@ def _find_runs(events, streams, cmd, est, jump, future_tolerance):
     return runs
 
 
-def _probe(est, t0, t1, rows):
-    """Measure the affine map of one step t0 -> t1 (correction with rows)."""
-    plant = est.plant
+def _twin(est):
+    """
+    Return a copy of an estimator with its own state and the same caches.
+
+    The step and gain caches hold values that depend on the step length only
+    (``StepCache``), so sharing them changes no result; it saves designing the gains of
+    every new step again in each copy (jittered stamps: a new step each message).
+
+    """
+    memo = {id(est.cache): est.cache, id(est.gain_cache): est.gain_cache}
+    return copy.deepcopy(est, memo)
+
+
+def _probe(probe, t0, t1, rows):
+    """Measure the affine map of one step t0 -> t1 (correction with rows) on a twin."""
+    plant = probe.plant
     n, m, q = plant.n, plant.m, len(rows)
-    probe = copy.deepcopy(est)
 
     def run(x0, u, y):
         probe.reset(x0, t0)
@@ -674,7 +686,7 @@ def _check_windows(est, run, streams, cmd, rows, X, U, scale):
     a, K = run['a'], X.shape[0]
     mev, tm = run['mev'], run['tm']
     for s0, s1 in _windows(run, K):
-        check = copy.deepcopy(est)
+        check = _twin(est)
         if s0:
             t0 = float(tm[a + s0])
             check.reset(X[s0 - 1], t0)
@@ -782,9 +794,10 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
     W = np.zeros((K, n))
     Y = [None] * len(streams)
     maps = []
+    probe = _twin(est)
     for c, f in enumerate(first):
         k = int(sens[f])
-        mp = _probe(est, float(tm[a + f]), float(tm[a + f + 1]), rows[k])
+        mp = _probe(probe, float(tm[a + f]), float(tm[a + f + 1]), rows[k])
         if mp is None:
             warnings.append('bulk replay disabled: an estimator step is not linear')
             return None
@@ -831,7 +844,7 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
     problem = _check_steps(run, cmd, maps, cls, sens, Y, X, x0, est.u, scale)
     if problem is None:
         problem = _check_windows(est, run, streams, cmd, rows, X, U, scale)
-    check = copy.deepcopy(est)
+    check = _twin(est)
     for f in first if problem is None else ():
         k = int(sens[f])
         check.reset(Xprev[f], float(tm[a + f]))
