@@ -1,0 +1,108 @@
+# observer_ros.bag.plots: PNG plots of an evaluation (matplotlib, Agg).
+"""Plots of an evaluation: states, error norm, residuals (one PNG each)."""
+
+import math
+
+import numpy as np
+
+__all__ = ['PLOT_MAX_POINTS', 'decimate', 'write_plots', 'plot_t0']
+
+PLOT_MAX_POINTS = 5_000         # per line in the plots (decimated beyond)
+
+
+def decimate(n, limit):
+    """Return a slice keeping at most about ``limit`` of ``n`` evenly spaced items."""
+    if n <= limit:
+        return slice(None)
+    return slice(None, None, int(math.ceil(n / limit)))
+
+
+def write_plots(result, out):
+    """Write states.png, error_norm.png (with ground truth), residuals.png; return the files."""
+    import matplotlib
+    matplotlib.use('Agg', force=True)
+    import matplotlib.pyplot as plt
+
+    files = []
+    names = result.state_names
+    t0 = plot_t0(result)
+    colors = plt.rcParams['axes.prop_cycle'].by_key().get('color', ['C0'])
+    fig, axes = plt.subplots(len(names), 1, sharex=True, squeeze=False,
+                             figsize=(10, 2.2 * len(names) + 1))
+    if result.truth is not None:
+        t_ns, values, _ = result.truth
+        d = decimate(t_ns.size, PLOT_MAX_POINTS)
+        for i, ax in enumerate(axes[:, 0]):
+            ax.plot((t_ns[d] - t0) * 1e-9, values[d, i], color='k', lw=2.0, label='true')
+    for c, (name, vr) in enumerate(result.variants.items()):
+        rep = vr.replay
+        d = decimate(len(rep), PLOT_MAX_POINTS)
+        style = {'ls': '--', 'lw': 1.2, 'color': '0.4'} if name == 'live' else \
+            {'lw': 1.0, 'color': colors[c % len(colors)]}
+        for i, ax in enumerate(axes[:, 0]):
+            ax.plot((rep.stamp_ns[d] - t0) * 1e-9, rep.x_hat[d, i], label=name, **style)
+    for i, ax in enumerate(axes[:, 0]):
+        ax.set_ylabel(names[i])
+        ax.grid(True, alpha=0.3)
+    axes[0, 0].legend(loc='best', fontsize='small')
+    axes[0, 0].set_title(f'{result.vehicle.name}: true and estimated states')
+    axes[-1, 0].set_xlabel('time since the start of the bag [s]')
+    fig.tight_layout()
+    fig.savefig(out / 'states.png', dpi=100)
+    plt.close(fig)
+    files.append(out / 'states.png')
+    if result.truth is not None:
+        fig, ax = plt.subplots(figsize=(10, 4))
+        for c, (name, vr) in enumerate(result.variants.items()):
+            if vr.error is None:
+                continue
+            ok = np.all(np.isfinite(vr.error), axis=1)
+            norm = np.linalg.norm(vr.error[ok], axis=1)
+            ts = (vr.replay.stamp_ns[ok] - t0) * 1e-9
+            d = decimate(norm.size, PLOT_MAX_POINTS)
+            style = {'ls': '--', 'color': '0.4'} if name == 'live' else \
+                {'color': colors[c % len(colors)]}
+            ax.semilogy(ts[d], np.maximum(norm[d], 1e-16), label=name, **style)
+        ax.set_xlabel('time since the start of the bag [s]')
+        ax.set_ylabel('|x_hat - x|')
+        ax.set_title('estimation error norm')
+        ax.grid(True, which='both', alpha=0.3)
+        ax.legend(loc='best', fontsize='small')
+        fig.tight_layout()
+        fig.savefig(out / 'error_norm.png', dpi=100)
+        plt.close(fig)
+        files.append(out / 'error_norm.png')
+    outputs = result.output_names
+    fig, axes = plt.subplots(len(outputs), 1, sharex=True, squeeze=False,
+                             figsize=(10, 2.2 * len(outputs) + 1))
+    for c, (name, vr) in enumerate(result.variants.items()):
+        rep = vr.replay
+        for j, ax in enumerate(axes[:, 0]):
+            ok = np.isfinite(rep.residual[:, j])
+            if not ok.any():
+                continue
+            d = decimate(int(ok.sum()), PLOT_MAX_POINTS)
+            style = {'ls': '--', 'color': '0.4'} if name == 'live' else \
+                {'color': colors[c % len(colors)]}
+            ax.plot((rep.stamp_ns[ok][d] - t0) * 1e-9, rep.residual[ok, j][d], lw=0.8,
+                    label=name, **style)
+    for j, ax in enumerate(axes[:, 0]):
+        ax.set_ylabel(f'residual {outputs[j]}')
+        ax.grid(True, alpha=0.3)
+    axes[0, 0].legend(loc='best', fontsize='small')
+    axes[0, 0].set_title('residuals y - (C x_prior + D u)')
+    axes[-1, 0].set_xlabel('time since the start of the bag [s]')
+    fig.tight_layout()
+    fig.savefig(out / 'residuals.png', dpi=100)
+    plt.close(fig)
+    files.append(out / 'residuals.png')
+    return files
+
+
+def plot_t0(result):
+    """Return the earliest stamp (ns) of the estimates and the truth: the plots' time zero."""
+    starts = [int(vr.replay.stamp_ns.min()) for vr in result.variants.values()
+              if len(vr.replay)]
+    if result.truth is not None and result.truth[0].size:
+        starts.append(int(result.truth[0].min()))
+    return min(starts) if starts else 0
