@@ -47,7 +47,8 @@ from .results import EvalResult, jsonable, VariantResult
 from ..core.errors import ObserverError
 
 __all__ = ['DEFAULT_TOLERANCE', 'STEADY_FRACTION', 'WHITENESS_LAGS', 'VariantResult',
-           'EvalResult', 'JobResult', 'parse_variant', 'parse_tolerance', 'evaluate_bag',
+           'EvalResult', 'JobResult', 'parse_variant', 'parse_compare', 'parse_tolerance',
+           'evaluate_bag',
            'evaluate_job', 'write_results', 'format_table', 'whiteness', 'main']
 
 RESERVED = ('design', 'live')
@@ -110,6 +111,30 @@ def parse_variant(text):
     return name, overrides
 
 
+def parse_compare(text):
+    """
+    Parse ``--compare [NAME=]FILE`` into ``(name, file)``.
+
+    Without NAME the file name's stem, other characters than letters, digits and _
+    replaced by _, is the name.
+
+    """
+    name, sep, path = str(text).partition('=')
+    if not sep:
+        path = name
+        name = re.sub(r'[^A-Za-z0-9_]', '_', Path(path).stem)
+        if not name[:1].isalpha():
+            name = 'v' + name
+    if not path:
+        raise BagToolError(f'--compare {text!r}: expected [NAME=]FILE')
+    if not _NAME.match(name) or name in RESERVED:
+        raise BagToolError(f'--compare {text!r}: the name {name!r} must be a letter '
+                           'followed by letters, digits or _, and not design or live')
+    if not Path(path).is_file():
+        raise BagToolError(f'--compare {text!r}: {path}: no such file')
+    return name, path
+
+
 def parse_tolerance(text):
     """
     Parse ``--tolerance``: ``5%`` (of each state's range) or an absolute number.
@@ -153,7 +178,7 @@ def _load_vehicle(vehicle, overrides=()):
 
 def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=None,
                  exact=False, progress=None, clock_jump_tolerance=CLOCK_JUMP_TOLERANCE,
-                 include_live=True, include_design=True):
+                 include_live=True, include_design=True, compare=None):
     """
     Replay a bag through the vehicle's design and variants, and score them.
 
@@ -182,6 +207,10 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
     include_design : bool
         Replay the vehicle file's own design as the variant ``design`` (when False, only
         ``variants`` are replayed; with no variants the design is replayed anyway).
+    compare : dict, optional
+        ``{name: vehicle file}``: other vehicle files replayed as variants (e.g. a
+        tuned file against the original); same states, inputs and sensors as
+        ``vehicle``.
 
     Returns
     -------
@@ -197,7 +226,22 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
     """
     start = time.perf_counter()
     base = _load_vehicle(vehicle)
-    configs = {'design': (base, ())} if include_design or not variants else {}
+    configs = {'design': (base, ())} if include_design or not (variants or compare) \
+        else {}
+    for name, path in (compare or {}).items():
+        if name in RESERVED or not _NAME.match(str(name)) or name in (variants or {}):
+            raise BagToolError(f'--compare {name}={path}: the name {name!r} is reserved, '
+                               'not a valid name or already a variant')
+        other = _load_vehicle(path)
+        same = [k for k in ('state_names', 'input_names', 'output_names')
+                if tuple(getattr(other.plant, k)) != tuple(getattr(base.plant, k))]
+        if not same and [(x.name, x.topic, tuple(x.outputs)) for x in other.sensors] != \
+                [(x.name, x.topic, tuple(x.outputs)) for x in base.sensors]:
+            same = ['sensors']
+        if same:
+            raise BagToolError(f'--compare {path}: its {same[0].replace("_", " ")} differ '
+                               f'from those of {base.name}')
+        configs[name] = (other, (f'file {path}',))
     for name, overrides in (variants or {}).items():
         if name in RESERVED or not _NAME.match(str(name)):
             raise BagToolError(f'variant name {name!r} is reserved or not a valid name')
@@ -395,6 +439,8 @@ variants:
     --variant 'openloop:observer.type:=open_loop'
   The vehicle file's own design is always the variant "design"; the estimate recorded on
   state/estimate is scored as "live".
+  --compare [NAME=]FILE  (repeatable) replays another vehicle file as a variant, e.g. the
+  one observer-tune wrote: observer-eval BAG --vehicle V.yaml --compare V_tuned.yaml
 
 output (folder --out; default <bag>_eval next to the bag directory, e.g. runs/sub1 ->
 runs/sub1_eval, wherever the command is run from; never overwritten without --force):
@@ -420,6 +466,9 @@ def _parser():
     parser.add_argument('--variant', action='append', default=[],
                         metavar='NAME:KEY:=VALUE[,...]',
                         help='an observer configuration to compare (see below)')
+    parser.add_argument('--compare', action='append', default=[], metavar='[NAME=]FILE',
+                        help='another vehicle file to replay as a variant (e.g. the file '
+                        'observer-tune wrote); NAME defaults to the file name')
     parser.add_argument('--out', help='output folder (default: <bag>_eval next to the bag '
                         'directory)')
     parser.add_argument('--namespace', help="the vehicle's namespace in the bag, e.g. /sub1 "
@@ -471,6 +520,7 @@ def main(argv=None):
         for text in args.variant:
             name, overrides = parse_variant(text)
             variants.setdefault(name, []).extend(overrides)
+        compare = dict(parse_compare(text) for text in args.compare)
         if args.tolerance is not None:
             parse_tolerance(args.tolerance)
         if not Path(args.bag).exists():
@@ -482,7 +532,8 @@ def main(argv=None):
         with warnings.catch_warnings():
             warnings.simplefilter('ignore')
             result = evaluate_bag(args.bag, args.vehicle, variants, args.namespace,
-                                  args.tolerance, exact=args.exact, progress=progress)
+                                  args.tolerance, exact=args.exact, progress=progress,
+                                  compare=compare)
             progress.finish()
             files = write_results(result, out, force=args.force, plots=not args.no_plots,
                                   results_bag=not args.no_bag, bag_max_messages=args.bag_max)

@@ -5,7 +5,8 @@ import math
 
 import numpy as np
 
-__all__ = ['PLOT_MAX_POINTS', 'decimate', 'write_plots', 'plot_t0']
+__all__ = ['PLOT_MAX_POINTS', 'decimate', 'write_plots', 'plot_t0', 'plot_autocovariances',
+           'plot_search']
 
 PLOT_MAX_POINTS = 5_000         # per line in the plots (decimated beyond)
 
@@ -106,3 +107,73 @@ def plot_t0(result):
     if result.truth is not None and result.truth[0].size:
         starts.append(int(result.truth[0].min()))
     return min(starts) if starts else 0
+
+
+def _pyplot():
+    import matplotlib
+    matplotlib.use('Agg', force=True)
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def plot_autocovariances(path, output_names, empirical, fitted, sigma, title):
+    """
+    Plot empirical against fitted innovation autocovariances, with +-2 sigma bands.
+
+    Parameters
+    ----------
+    path : Path
+        The PNG to write.
+    output_names : sequence of str
+        One panel per output (the diagonal autocovariances).
+    empirical, fitted : (lags, p, p) array_like
+        Autocovariances of the data and of the identified model.
+    sigma : (lags, p) array_like
+        Standard deviation of each empirical autocovariance.
+    title : str
+        Figure title.
+
+    """
+    plt = _pyplot()
+    empirical, fitted, sigma = (np.asarray(a, float) for a in (empirical, fitted, sigma))
+    lags = np.arange(empirical.shape[0])
+    fig, axes = plt.subplots(len(output_names), 1, squeeze=False,
+                             figsize=(8, 2.6 * len(output_names) + 0.8))
+    for i, ax in enumerate(axes[:, 0]):
+        f = fitted[:, i, i]
+        ax.fill_between(lags, f - 2 * sigma[:, i], f + 2 * sigma[:, i], color='C0',
+                        alpha=0.2, label='fitted +-2 sigma')
+        ax.plot(lags, f, 'C0-', label='fitted (identified Q, R)')
+        ax.plot(lags, empirical[:, i, i], 'ko', ms=3, label='empirical')
+        ax.axhline(0.0, color='0.5', lw=0.5)
+        ax.set_ylabel(f'C_j[{output_names[i]}]')
+        ax.grid(True, alpha=0.3)
+    axes[0, 0].set_title(title)
+    axes[0, 0].legend(loc='best', fontsize='small')
+    axes[-1, 0].set_xlabel('lag j [samples]')
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def plot_search(path, parameter, scales, metrics, metric_name, best=None):
+    """Plot a gain search's metric against the parameter (one line per bag, and the mean)."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(8, 4))
+    scales = np.asarray(scales, float)
+    for name, values in metrics.items():
+        style = {'color': 'k', 'lw': 2.0, 'marker': 'o'} if name == 'mean' else \
+            {'lw': 1.0, 'marker': '.', 'alpha': 0.7}
+        ax.plot(scales, values, label=name, **style)
+    if best is not None:
+        ax.axvline(best, color='C3', ls='--', lw=1.0, label=f'best {best:g}')
+    ax.set_xscale('log')
+    ax.set_xlabel(parameter)
+    ax.set_ylabel(metric_name)
+    ax.grid(True, which='both', alpha=0.3)
+    ax.legend(loc='best', fontsize='small')
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

@@ -138,8 +138,14 @@ def csv_cell(v):
     return str(v)
 
 
-def prepare_out(out, force):
-    """Create the output folder; with ``force`` replace an earlier output (results.json)."""
+def prepare_out(out, force, marker='results.json', tool='observer-eval'):
+    """
+    Create the output folder; with ``force`` replace an earlier output of ``tool``.
+
+    An existing non-empty folder is replaced only if it holds ``marker`` (the tool's
+    own output); otherwise it is refused even with ``force``.
+
+    """
     out = Path(out)
     if out.exists():
         if not force:
@@ -147,9 +153,9 @@ def prepare_out(out, force):
                                '--out DIR)')
         if not out.is_dir():
             raise BagToolError(f'{out} exists and is not a folder')
-        if any(out.iterdir()) and not (out / 'results.json').exists():
-            raise BagToolError(f'{out} exists and is not an observer-eval output folder '
-                               '(no results.json); not deleting it even with --force')
+        if any(out.iterdir()) and not (out / marker).exists():
+            raise BagToolError(f'{out} exists and is not an {tool} output folder '
+                               f'(no {marker}); not deleting it even with --force')
         shutil.rmtree(out)
     out.mkdir(parents=True)
     return out
