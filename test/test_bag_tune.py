@@ -20,9 +20,9 @@ from numpy.testing import assert_allclose
 from observer_ros.bag.errors import BagToolError
 from observer_ros.bag.evaluate import evaluate_bag, main as eval_main
 from observer_ros.bag.tune import identify, main, tune
-from observer_ros.core.als import (ALSError, identify_noise, kalman_predictor_gain,
-                                   model_autocovariances, predictor_innovations,
-                                   process_noise_map, sample_autocovariances)
+from observer_ros.core.als import (ALSError, identify_noise, model_autocovariances,
+                                   predictor_innovations, process_noise_map,
+                                   sample_autocovariances)
 from observer_ros.core.design import kalman_gain, observer_gain
 from observer_ros.core.estimators import process_noise_covariance
 from observer_ros.core.model import map_poles_to_discrete, zoh_matrices

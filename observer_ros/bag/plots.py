@@ -18,12 +18,16 @@ def decimate(n, limit):
     return slice(None, None, int(math.ceil(n / limit)))
 
 
-def write_plots(result, out):
-    """Write states.png, error_norm.png (with ground truth), residuals.png; return the files."""
+def _pyplot():
     import matplotlib
     matplotlib.use('Agg', force=True)
     import matplotlib.pyplot as plt
+    return plt
 
+
+def write_plots(result, out):
+    """Write states.png, error_norm.png (with ground truth), residuals.png; return the files."""
+    plt = _pyplot()
     files = []
     names = result.state_names
     t0 = plot_t0(result)
@@ -107,13 +111,6 @@ def plot_t0(result):
     if result.truth is not None and result.truth[0].size:
         starts.append(int(result.truth[0].min()))
     return min(starts) if starts else 0
-
-
-def _pyplot():
-    import matplotlib
-    matplotlib.use('Agg', force=True)
-    import matplotlib.pyplot as plt
-    return plt
 
 
 def plot_autocovariances(path, output_names, empirical, fitted, sigma, title):

@@ -83,7 +83,7 @@ def sampled_data(recording, vehicle):
                            f'{k + 1} against a median of {dt:.6g} s (more than '
                            f'{JITTER_MAX:.0%} off)')
     if vehicle.plant.is_discrete and abs(dt / vehicle.sample_time - 1.0) > JITTER_MAX:
-        raise BagToolError(f'measurement step {dt:.6g} s is not the discrete model\'s '
+        raise BagToolError(f"measurement step {dt:.6g} s is not the discrete model's "
                            f'model.sample_time {vehicle.sample_time:.6g} s')
     y = np.column_stack([cols[r] for r in range(plant.p)])
     N, m = stamps.size, plant.m
@@ -160,14 +160,14 @@ def reference_gain(vehicle, Ad, dt, G) -> Tuple[np.ndarray, str]:
     obs = vehicle.observer
     if obs.kind == 'full' and obs.poles is not None:
         z = obs.poles if plant.is_discrete else map_poles_to_discrete(obs.poles, dt)
-        return observer_gain(Ad, C, z, discrete=True), 'the vehicle\'s observer poles'
+        return observer_gain(Ad, C, z, discrete=True), "the vehicle's observer poles"
     F = process_noise_map(plant.A, G if obs.kind != 'kalman' or obs.Bd is None
                           else np.asarray(obs.Bd, float).reshape(plant.n, -1),
                           dt, plant.is_discrete)
     if obs.kind == 'kalman' and obs.Qd is not None and obs.Rd is not None:
         Lp = kalman_predictor_gain(Ad, C, F(np.asarray(obs.Qd, float)),
                                    np.asarray(obs.Rd, float))
-        return Lp, 'the vehicle\'s Kalman filter (its Qd, Rd)'
+        return Lp, "the vehicle's Kalman filter (its Qd, Rd)"
     Lp = kalman_predictor_gain(Ad, C, process_noise_map(plant.A, G, dt, plant.is_discrete)(
         np.eye(G.shape[1])), np.eye(plant.p))
     return Lp, 'a Kalman predictor of unit noise (the vehicle has no full or kalman observer)'

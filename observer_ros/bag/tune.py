@@ -202,7 +202,7 @@ def identify(bags, vehicle, namespace=None, lags=DEFAULT_LAGS, full=False, state
 
 
 def _tuned_observer(ident):
-    """The tuned observer's keys and the source of each."""
+    """Return the tuned observer's keys and the source of each."""
     r = ident.result
     n, k = ident.G.shape
     src = (f'observer-tune: autocovariance least squares on {", ".join(ident.bags)} '
@@ -215,7 +215,7 @@ def _tuned_observer(ident):
            'observer.Rd': list(np.ravel(r.R)), 'observer.Bd': list(np.ravel(ident.G))}
     sources = {
         'observer.type': 'observer-tune: Kalman filter from identified noise covariances',
-        'observer.Qd': f'{what} of the process noise on Bd\'s columns '
+        'observer.Qd': f"{what} of the process noise on Bd's columns "
                        f'({", ".join(ident.noise_names)}); {src}',
         'observer.Rd': f'measurement noise covariance of {outputs}; {src}',
         'observer.Bd': f'process noise input ({n}x{k}): '
@@ -476,7 +476,7 @@ def _parser():
     parser.add_argument('--states', help='process noise on these states, comma-separated '
                         '(default observer.Bd, else every state)')
     parser.add_argument('--input-noise', action='store_true',
-                        help='process noise on the inputs (Bd = the model\'s B: a force '
+                        help="process noise on the inputs (Bd = the model's B: a force "
                         'or torque disturbance)')
     parser.add_argument('--burn', type=int, help='samples dropped at the start of each bag '
                         "(default: the reference observer's transient)")

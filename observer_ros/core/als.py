@@ -231,7 +231,7 @@ def model_autocovariances(Ad, C, Lp, Qk, R, lags):
 
 def autocovariance_sigma(model, samples):
     """
-    Standard deviation of the diagonal sample autocovariances (Bartlett's formula).
+    Return the standard deviation of the diagonal sample autocovariances (Bartlett).
 
     ``var(c_j) ~ 1/N sum_m (c_m^2 + c_(m+j) c_(m-j))`` over |m| < lags, with the model's
     autocovariances ``c`` of each output (``c_(-m) = c_m``).
@@ -314,7 +314,7 @@ def _basis(k, full):
 
 def als_matrix(Ad, C, Lp, noise_map, k, lags, full=False):
     """
-    The ALS matrix: stacked model autocovariances per unknown.
+    Return the ALS matrix: the stacked model autocovariances of each unknown.
 
     Parameters
     ----------
@@ -411,8 +411,8 @@ def identify_noise(innovations, Ad, C, Lp, noise_map, k, lags=DEFAULT_LAGS, full
     M, q_labels, r_labels = als_matrix(Ad, C, Lp, noise_map, k, lags, full)
     scale = np.linalg.norm(M, axis=0)
     unknowns = M.shape[1]
-    qn, rn = names if names is not None else ([f'Q[{i}]' for i in range(k)],
-                                             [f'R[{i}]' for i in range(p)])
+    qn, rn = names if names is not None else \
+        ([f'Q[{i}]' for i in range(k)], [f'R[{i}]' for i in range(p)])
     zero = [qn[i] if c < len(q_labels) else rn[r_labels[c - len(q_labels)][0]]
             for c, (i, _) in enumerate(q_labels + r_labels) if scale[c] == 0.0]
     if zero:
@@ -461,4 +461,3 @@ def kalman_predictor_gain(Ad, C, Qk, R):
     Ad = np.asarray(Ad, dtype=float)
     L, _, _ = kalman_gain(Ad, C, Qk, R, discrete=True)
     return L
-
