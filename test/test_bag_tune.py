@@ -2,9 +2,11 @@
 """
 Noise identification and tuning from bags with known noise.
 
-The bags are closed-loop runs simulated here (test/bag_synth.py) with measurement noise
-of the vehicle's ``noise_std`` and white process noise on the input (G = B) of a known
-intensity, 10^4 samples each. The core ALS is checked against python-control's Kalman
+The bags are closed-loop runs simulated here with measurement noise of the vehicle's
+``noise_std`` and white process noise on the input (G = B) of a known intensity, 10^4
+samples each: the plant sampled exactly (ZOH plus the exact noise covariance of a step),
+the compensator's law on the true state, and only the topics the tuner reads
+(``state/true``, the sensor, ``control/u``) written with test/bag_synth.py's messages. The core ALS is checked against python-control's Kalman
 filter first (its innovations are white), then on arrays, then through the bags.
 
 """
@@ -14,7 +16,7 @@ from pathlib import Path
 import subprocess
 import sys
 
-from bag_synth import CONFIG, simulate, write_bag
+from bag_synth import CONFIG, control_law, JOINT_STATE, simulate, vector_msg, write_bag
 import numpy as np
 from numpy.testing import assert_allclose
 from observer_ros.bag.errors import BagToolError
@@ -47,6 +49,36 @@ def _floats(values):
     return '[' + ', '.join(repr(float(x)) for x in np.ravel(values)) + ']'
 
 
+def simulate_noisy(v, q, seed, steps=STEPS, t0=1.0):
+    """Return the messages of a closed loop with input noise of intensity q (see above)."""
+    from bag_synth import blank
+    from observer_ros.core.compensator import design_vehicle
+    from observer_ros.sensors import fill_measurement
+    plant, dt = v.plant, v.sample_time
+    Ad, Bd = zoh_matrices(plant.A, plant.B, dt)
+    w, V = np.linalg.eigh(process_noise_covariance(plant.A, [[q]], dt, plant.B))
+    S = V * np.sqrt(np.maximum(w, 0.0))
+    design = design_vehicle(v)
+    sensor = v.sensors[0]
+    rows = plant.output_rows(sensor.outputs)
+    std = np.asarray(sensor.noise_std, float)
+    rng = np.random.default_rng(seed)
+    x = np.array(v.simulator.initial_state, dtype=float)
+    u = np.zeros(plant.m)
+    messages = []
+    for k in range(steps + 1):
+        ns = int(round(t0 * 1e9)) + k * int(round(dt * 1e9))
+        messages.append(('state/true', JOINT_STATE, ns, vector_msg(plant.state_names, x, ns)))
+        y = plant.C[rows] @ x + plant.D[rows] @ u + std * rng.standard_normal(len(rows))
+        msg = blank(sensor.msg_type, ns, sensor.frame_id)
+        fill_measurement(msg, sensor, y)
+        messages.append((sensor.topic, sensor.msg_type, ns, msg))
+        u = control_law(design, v, x)
+        messages.append(('control/u', JOINT_STATE, ns, vector_msg(plant.input_names, u, ns)))
+        x = Ad @ x + Bd @ u + S @ rng.standard_normal(plant.n)
+    return messages
+
+
 @pytest.fixture(scope='module')
 def noisy_bags(tmp_path_factory):
     """Bags of 10^4 samples of the submarine and the cart with known noise."""
@@ -54,9 +86,7 @@ def noisy_bags(tmp_path_factory):
     out = {}
     for seed, name in enumerate(INPUT_NOISE):
         v, q, _ = _true(name)
-        run = simulate(v, steps=STEPS, noise=True, seed=10 + seed,
-                       process_noise=(v.plant.B, [[q]]))
-        out[name] = write_bag(root / name, run['messages'])
+        out[name] = write_bag(root / name, simulate_noisy(v, q, 10 + seed))
     return out
 
 
@@ -165,7 +195,7 @@ def test_tune_identifies_the_noise_and_the_kalman_filter_matches_the_true_one(
     ev = evaluate_bag(bag, CONFIG / f'{name}.yaml', {'truekf': [
         'observer.type:=kalman', f'observer.Qd:=[{q!r}]', f'observer.Rd:=[{r!r}]',
         f'observer.Bd:={_floats(v.plant.B)}']}, compare={'tuned': res.vehicle_file},
-        include_live=False)
+        include_live=False, include_design=False)
     tuned_rms = ev.variants['tuned'].summary['error_rms']
     true_rms = ev.variants['truekf'].summary['error_rms']
     assert abs(tuned_rms / true_rms - 1) < 0.05, (tuned_rms, true_rms)
