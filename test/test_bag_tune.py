@@ -6,8 +6,9 @@ The bags are closed-loop runs simulated here with measurement noise of the vehic
 ``noise_std`` and white process noise on the input (G = B) of a known intensity, 10^4
 samples each: the plant sampled exactly (ZOH plus the exact noise covariance of a step),
 the compensator's law on the true state, and only the topics the tuner reads
-(``state/true``, the sensor, ``control/u``) written with test/bag_synth.py's messages. The core ALS is checked against python-control's Kalman
-filter first (its innovations are white), then on arrays, then through the bags.
+(``state/true``, the sensor, ``control/u``) written with test/bag_synth.py's messages.
+The core ALS is checked against python-control's Kalman filter first (its innovations
+are white), then on arrays, then through the bags.
 
 """
 
