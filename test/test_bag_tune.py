@@ -170,6 +170,39 @@ def test_als_on_arrays_recovers_the_noise_and_refuses_what_it_cannot_identify():
         identify_noise(e, Ad, C, observer_gain(Ad, C, [1.05, 0.9, 0.8], discrete=True), F, 1)
 
 
+def test_als_discrete_vehicle_and_pooled_sequences():
+    # a discrete model: Q is the covariance per sample on G's columns (G Q G^T), the
+    # reference is the vehicle's z-plane poles; two halves pooled give the same Q, R
+    from observer_ros.bag.sampled import reference_gain
+    v = load_vehicle(CONFIG / 'submarine_discrete.yaml')
+    A, B, C = (np.asarray(m, float) for m in (v.plant.A, v.plant.B, v.plant.C))
+    q, r = 8e-3, 1e-6          # per sample: about the continuous tests' 0.02^2 / dt
+    F = process_noise_map(A, B, discrete=True)
+    assert_allclose(F(np.array([[q]])), q * B @ B.T)
+    rng = np.random.default_rng(4)
+    N = STEPS
+    x = np.zeros(3)
+    y = np.empty((N, 1))
+    for k in range(N):
+        y[k] = C @ x + math.sqrt(r) * rng.standard_normal()
+        x = A @ x + B[:, 0] * math.sqrt(q) * rng.standard_normal()
+    Lp, what = reference_gain(v, A, v.sample_time, B)
+    assert 'observer poles' in what
+    assert_allclose(np.sort(np.abs(np.linalg.eigvals(A - Lp @ C))),
+                    np.sort(np.abs(v.observer.poles)), rtol=1e-9)
+    e = predictor_innovations(A, B, C, None, Lp, y, np.zeros((N, 1)))[500:]
+    one = identify_noise(e, A, C, Lp, F, 1)
+    assert abs(one.Q[0, 0] / q - 1) < 0.25 and abs(one.R[0, 0] / r - 1) < 0.10
+    halves = [e[:e.shape[0] // 2], e[e.shape[0] // 2:]]
+    pooled = sample_autocovariances(halves, 4)
+    j = 3
+    products = sum(float(h[j:, 0] @ h[:-j, 0]) for h in halves)
+    assert pooled[j, 0, 0] == pytest.approx(products / (e.shape[0] - 2 * j), rel=1e-12)
+    two = identify_noise(halves, A, C, Lp, F, 1)
+    assert two.samples == e.shape[0]
+    assert_allclose([two.Q[0, 0], two.R[0, 0]], [one.Q[0, 0], one.R[0, 0]], rtol=0.02)
+
+
 # ------------------------------------------------------------------------------ bags
 
 @pytest.mark.parametrize('name', list(INPUT_NOISE))

@@ -113,7 +113,7 @@ def plot_t0(result):
     return min(starts) if starts else 0
 
 
-def plot_autocovariances(path, output_names, empirical, fitted, sigma, title):
+def plot_autocovariances(path, output_names, fits, title):
     """
     Plot empirical against fitted innovation autocovariances, with +-2 sigma bands.
 
@@ -122,32 +122,34 @@ def plot_autocovariances(path, output_names, empirical, fitted, sigma, title):
     path : Path
         The PNG to write.
     output_names : sequence of str
-        One panel per output (the diagonal autocovariances).
-    empirical, fitted : (lags, p, p) array_like
-        Autocovariances of the data and of the identified model.
-    sigma : (lags, p) array_like
-        Standard deviation of each empirical autocovariance.
+        One row of panels per output (the diagonal autocovariances).
+    fits : sequence of (label, empirical, fitted, sigma)
+        One column per fit (e.g. per reference filter): the autocovariances (lags, p, p)
+        of the data and of the identified model, and the standard deviation (lags, p) of
+        each empirical one.
     title : str
         Figure title.
 
     """
     plt = _pyplot()
-    empirical, fitted, sigma = (np.asarray(a, float) for a in (empirical, fitted, sigma))
-    lags = np.arange(empirical.shape[0])
-    fig, axes = plt.subplots(len(output_names), 1, squeeze=False,
-                             figsize=(8, 2.6 * len(output_names) + 0.8))
-    for i, ax in enumerate(axes[:, 0]):
-        f = fitted[:, i, i]
-        ax.fill_between(lags, f - 2 * sigma[:, i], f + 2 * sigma[:, i], color='C0',
-                        alpha=0.2, label='fitted +-2 sigma')
-        ax.plot(lags, f, 'C0-', label='fitted (identified Q, R)')
-        ax.plot(lags, empirical[:, i, i], 'ko', ms=3, label='empirical')
-        ax.axhline(0.0, color='0.5', lw=0.5)
-        ax.set_ylabel(f'C_j[{output_names[i]}]')
-        ax.grid(True, alpha=0.3)
-    axes[0, 0].set_title(title)
+    fig, axes = plt.subplots(len(output_names), len(fits), squeeze=False,
+                             figsize=(6 * len(fits), 2.6 * len(output_names) + 0.8))
+    for c, (label, empirical, fitted, sigma) in enumerate(fits):
+        empirical, fitted, sigma = (np.asarray(a, float) for a in (empirical, fitted, sigma))
+        lags = np.arange(empirical.shape[0])
+        for i, ax in enumerate(axes[:, c]):
+            f = fitted[:, i, i]
+            ax.fill_between(lags, f - 2 * sigma[:, i], f + 2 * sigma[:, i], color='C0',
+                            alpha=0.2, label='fitted +-2 sigma')
+            ax.plot(lags, f, 'C0-', label='fitted (identified Q, R)')
+            ax.plot(lags, empirical[:, i, i], 'ko', ms=3, label='empirical')
+            ax.axhline(0.0, color='0.5', lw=0.5)
+            ax.set_ylabel(f'C_j[{output_names[i]}]')
+            ax.grid(True, alpha=0.3)
+        axes[0, c].set_title(label, fontsize='medium')
+        axes[-1, c].set_xlabel('lag j [samples]')
     axes[0, 0].legend(loc='best', fontsize='small')
-    axes[-1, 0].set_xlabel('lag j [samples]')
+    fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

@@ -417,11 +417,12 @@ def _write_report(result, out, plots):
         files.append(out / 'search.csv')
     if plots and result.identification is not None:
         ident = result.identification
-        r = ident.result
+        fits = [(f'pass {i + 1}: ' + (ident.reference if i == 0 else
+                                      'Kalman filter of the previous pass'),
+                 p.empirical, p.fitted, p.sigma) for i, p in enumerate(ident.passes)]
         files.append(plot_autocovariances(
-            out / 'autocovariance.png', ident.vehicle.plant.output_names, r.empirical,
-            r.fitted, r.sigma, f'{ident.vehicle.name}: innovation autocovariances '
-            f'({len(ident.passes)}. pass reference)'))
+            out / 'autocovariance.png', ident.vehicle.plant.output_names, fits,
+            f'{ident.vehicle.name}: innovation autocovariances, empirical and fitted'))
     if plots and sr is not None:
         metrics = dict(sr.per_bag) if len(sr.per_bag) > 1 else {}
         metrics['mean'] = sr.mean
