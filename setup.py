@@ -36,6 +36,8 @@ setup(
             'observer-eval = observer_ros.bag.evaluate:main',
             'observer_eval_batch = observer_ros.bag.batch:main',
             'observer-eval-batch = observer_ros.bag.batch:main',
+            'observer_tune = observer_ros.bag.tune:main',
+            'observer-tune = observer_ros.bag.tune:main',
             'observer_play = observer_ros.bag.play:main',
             'observer-play = observer_ros.bag.play:main',
             'observer_run = observer_ros.tools.run_closed_loop:main',

@@ -48,13 +48,14 @@ def test_a_local_dask_cluster_of_two_workers_gives_the_serial_numbers_exactly():
     serial = run_jobs(jobs, 'serial', progress=lambda d, t: seen.append((d, t)))
     assert seen == [(i + 1, len(jobs)) for i in range(len(jobs))]
     assert all(r['error'] is None for r in serial), [r['error'] for r in serial]
-    assert all(math.isfinite(r['error_rms']) and r['estimates'] > 100 for r in serial)
+    assert all(math.isfinite(r['summary']['error_rms']) and r['estimates'] > 100
+               for r in serial)
     done = []
     on_dask = run_jobs(jobs, 'dask', workers=2, progress=lambda d, t: done.append(d))
     assert done == list(range(1, len(jobs) + 1))
     assert _numbers(on_dask) == _numbers(serial)
     # the design and the open loop differ (the rows are not all one number)
-    assert serial[0]['error_rms'] != serial[1]['error_rms']
+    assert serial[0]['summary']['error_rms'] != serial[1]['summary']['error_rms']
 
 
 def test_a_jobs_numbers_are_observer_evals():
@@ -63,10 +64,13 @@ def test_a_jobs_numbers_are_observer_evals():
     for name, overrides in (('design', ()), ('openloop', tuple(OPEN_LOOP))):
         row = run_job(Job(str(bag), str(vehicle), name, overrides))
         vr = result.variants[name]
-        assert row['error_rms'] == vr.summary['error_rms']
+        assert row['error'] is None
+        assert row['summary']['error_rms'] == vr.summary['error_rms']
         assert row['estimates'] == len(vr.replay)
-        assert row['rmse'] == {k: m['rmse'] for k, m in vr.states.items()}
-        assert row['residual_rms'] == {k: m['residual_rms'] for k, m in vr.outputs.items()}
+        assert {k: m['rmse'] for k, m in row['states'].items()} == \
+            {k: m['rmse'] for k, m in vr.states.items()}
+        assert {k: m['residual_rms'] for k, m in row['outputs'].items()} == \
+            {k: m['residual_rms'] for k, m in vr.outputs.items()}
 
 
 def test_the_worker_path_imports_no_ros():
@@ -89,7 +93,7 @@ def test_a_failing_job_gives_a_row_and_the_others_run(tmp_path):
     assert 'missing' in rows[1]['error'] and 'no such file' in rows[1]['error']
     summary = summarize(rows)
     assert summary[0]['bags'] == 1 and summary[0]['failed'] == 1
-    assert summary[0]['error_rms']['mean'] == rows[0]['error_rms']
+    assert summary[0]['error_rms']['mean'] == rows[0]['summary']['error_rms']
 
 
 def test_summary_across_bags():
@@ -97,7 +101,7 @@ def test_summary_across_bags():
                               {'openloop': OPEN_LOOP}), 'serial')
     summary = {s['variant']: s for s in summarize(rows)}
     assert list(summary) == ['design', 'openloop']
-    rms = [r['error_rms'] for r in rows if r['variant'] == 'openloop']
+    rms = [r['summary']['error_rms'] for r in rows if r['variant'] == 'openloop']
     assert summary['openloop']['bags'] == 2
     assert summary['openloop']['error_rms']['mean'] == pytest.approx(sum(rms) / 2)
     assert set(summary['design']['rmse']) == {'theta', 'w', 'q'}

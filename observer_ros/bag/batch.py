@@ -22,8 +22,10 @@ import time
 import warnings
 
 from .errors import BagToolError
-from .evaluate import _jsonable, _Progress, _table, parse_options
+from .evaluate import _Progress, parse_options
 from .jobs import job_dict, make_jobs, run_jobs, SCHEDULER_ENV, summarize
+from .report import text_table
+from .results import jsonable
 from ..core.errors import ObserverError
 
 __all__ = ['find_bags', 'write_batch', 'format_batch', 'main']
@@ -69,26 +71,36 @@ def _fmt(v):
     return f'{v:.4g}' if isinstance(v, float) else str(v)
 
 
+def _value(v):
+    """Return a metric as a float (None, from JSON-ready data, as NaN)."""
+    return math.nan if v is None else float(v)
+
+
+def _residual_rms(row):
+    return {k: _value(m.get('residual_rms')) for k, m in row['outputs'].items()}
+
+
 def _metric(row):
     """Return the figure of merit of a row: error RMS against the truth, else residual RMS."""
-    if math.isfinite(row['error_rms']):
-        return row['error_rms']
-    values = [v for v in row['residual_rms'].values() if math.isfinite(v)]
+    rms = _value(row['summary'].get('error_rms'))
+    if math.isfinite(rms):
+        return rms
+    values = [v for v in _residual_rms(row).values() if math.isfinite(v)]
     return max(values) if values else math.nan
 
 
 def format_batch(rows, summary):
     """Return the merged table and the summary as text."""
-    body = [[r['bag'], r['variant'], r['observer'] or '-', r['estimates'],
-             _fmt(r['error_rms']), _fmt(r['settling_time']),
-             ' '.join(f'{k}={_fmt(v)}' for k, v in r['residual_rms'].items()) or '-',
+    body = [[r['bag'], r['variant'], r['observer_type'] or '-', r['estimates'],
+             _fmt(r['summary'].get('error_rms')), _fmt(r['summary'].get('settling_time')),
+             ' '.join(f'{k}={_fmt(v)}' for k, v in _residual_rms(r).items()) or '-',
              r['error'] or ''] for r in rows]
-    lines = [_table(['bag', 'variant', 'observer', 'estimates', 'error_rms', 'settle[s]',
-                     'residual_rms', 'error'], body), '',
+    lines = [text_table(['bag', 'variant', 'observer', 'estimates', 'error_rms',
+                         'settle[s]', 'residual_rms', 'error'], body), '',
              'across bags (error_rms: mean / median / max)']
     body = [[s['variant'], s['bags'], s['failed'], _fmt(s['error_rms']['mean']),
              _fmt(s['error_rms']['median']), _fmt(s['error_rms']['max'])] for s in summary]
-    lines += ['', _table(['variant', 'bags', 'failed', 'mean', 'median', 'max'], body)]
+    lines += ['', text_table(['variant', 'bags', 'failed', 'mean', 'median', 'max'], body)]
     return '\n'.join(lines)
 
 
@@ -98,7 +110,7 @@ def _plot(rows, path):
     import matplotlib.pyplot as plt
     bags = list(dict.fromkeys(r['bag'] for r in rows))
     variants = list(dict.fromkeys(r['variant'] for r in rows))
-    truth = any(math.isfinite(r['error_rms']) for r in rows)
+    truth = any(math.isfinite(_value(r['summary'].get('error_rms'))) for r in rows)
     fig, ax = plt.subplots(figsize=(max(6.0, 1.2 * len(bags) + 3), 4.5))
     width = 0.8 / max(1, len(variants))
     for j, name in enumerate(variants):
@@ -116,24 +128,25 @@ def _plot(rows, path):
     return path
 
 
-_CSV = ['bag', 'variant', 'observer', 'estimates', 'matched', 'error_rms', 'settling_time',
-        'overrides', 'seconds', 'error']
+_CSV = ['bag', 'variant', 'observer_type', 'estimates', 'overrides', 'seconds', 'error']
+_SUMMARY = ['matched', 'error_rms', 'settling_time']
 
 
 def write_batch(out, jobs, rows, summary, plots=True):
     """Write the merged table, the summary, the JSON and the plot to a new folder."""
     out = Path(out)
     out.mkdir(parents=True)
-    states = list(dict.fromkeys(k for r in rows for k in r['rmse']))
-    outputs = list(dict.fromkeys(k for r in rows for k in r['residual_rms']))
+    states = list(dict.fromkeys(k for r in rows for k in r['states']))
+    outputs = list(dict.fromkeys(k for r in rows for k in r['outputs']))
     with open(out / 'results.csv', 'w', newline='') as f:
         w = csv.writer(f)
-        w.writerow(_CSV + [f'rmse.{s}' for s in states] +
+        w.writerow(_CSV + _SUMMARY + [f'rmse.{s}' for s in states] +
                    [f'residual_rms.{o}' for o in outputs])
         for r in rows:
             w.writerow([' '.join(r[k]) if k == 'overrides' else r[k] for k in _CSV] +
-                       [r['rmse'].get(s, '') for s in states] +
-                       [r['residual_rms'].get(o, '') for o in outputs])
+                       [r['summary'].get(k) for k in _SUMMARY] +
+                       [r['states'].get(s, {}).get('rmse') for s in states] +
+                       [r['outputs'].get(o, {}).get('residual_rms') for o in outputs])
     with open(out / 'summary.csv', 'w', newline='') as f:
         w = csv.writer(f)
         w.writerow(['variant', 'bags', 'failed', 'metric', 'mean', 'median', 'min', 'max'])
@@ -144,7 +157,7 @@ def write_batch(out, jobs, rows, summary, plots=True):
             for name, st in metrics:
                 w.writerow([s['variant'], s['bags'], s['failed'], name, st['mean'],
                             st['median'], st['min'], st['max']])
-    (out / 'results.json').write_text(json.dumps(_jsonable(
+    (out / 'results.json').write_text(json.dumps(jsonable(
         {'jobs': [job_dict(j) for j in jobs], 'rows': rows, 'summary': summary}), indent=1))
     (out / 'results.txt').write_text(format_batch(rows, summary) + '\n')
     files = ['results.csv', 'summary.csv', 'results.json', 'results.txt']

@@ -75,41 +75,32 @@ def run_job(job):
     """
     Evaluate one job; return its row (plain data).
 
-    The row has ``bag``, ``variant``, ``overrides``, ``observer`` (type), ``estimates``,
-    ``matched``, ``error_rms``, ``settling_time``, ``rmse`` and ``residual_rms`` (dicts
-    by state and output name), ``ljung_box_p`` (by output), ``warnings``, ``seconds``
-    and ``error`` (None, or why the job failed, in one line).
+    The row is :meth:`JobResult.to_dict() <observer_ros.bag.evaluate.JobResult>` of
+    :func:`~observer_ros.bag.evaluate.evaluate_job` (``bag``, ``variant``,
+    ``observer_type``, ``estimates``, ``summary`` with ``error_rms`` and
+    ``settling_time``, ``states`` and ``outputs`` with their metrics, ``warnings``,
+    ``seconds``; inf and NaN as None) with ``error``: None, or why the job failed, in
+    one line (then the metrics are empty).
 
     """
     import warnings
-    from .evaluate import _load_vehicle, evaluate_bag
+    from .evaluate import evaluate_job
     from ..core.errors import ObserverError
     start = time.perf_counter()
-    row = {'bag': job.bag, 'variant': job.variant, 'overrides': list(job.overrides),
-           'observer': None, 'estimates': 0, 'matched': 0, 'error_rms': math.nan,
-           'settling_time': math.nan, 'rmse': {}, 'residual_rms': {}, 'ljung_box_p': {},
-           'warnings': [], 'error': None}
     try:
         with warnings.catch_warnings():
             warnings.simplefilter('ignore')
-            vehicle = _load_vehicle(job.vehicle, job.overrides)
-            result = evaluate_bag(job.bag, vehicle, None, job.namespace, job.tolerance,
-                                  exact=job.exact, include_live=False)
+            result = evaluate_job(job.bag, job.vehicle, job.variant, job.overrides,
+                                  job.namespace, job.tolerance, job.exact)
     except (ObserverError, OSError) as err:
         text = str(err).splitlines()[0] if str(err) else type(err).__name__
-        row['error'] = f'variant {job.variant!r}: {text}' if job.overrides else text
-        row['seconds'] = time.perf_counter() - start
-        return row
-    vr = result.variants['design']
-    row.update(observer=vr.kind, estimates=len(vr.replay),
-               matched=int(vr.summary.get('matched', 0)),
-               error_rms=float(vr.summary.get('error_rms', math.nan)),
-               settling_time=float(vr.summary.get('settling_time', math.nan)),
-               rmse={k: float(m['rmse']) for k, m in vr.states.items()},
-               residual_rms={k: float(m['residual_rms']) for k, m in vr.outputs.items()},
-               ljung_box_p={k: float(m['ljung_box_p']) for k, m in vr.outputs.items()},
-               warnings=list(result.warnings))
-    row['seconds'] = time.perf_counter() - start
+        return {'bag': job.bag, 'vehicle': job.vehicle, 'variant': job.variant,
+                'observer_type': None, 'overrides': list(job.overrides), 'estimates': 0,
+                'counts': {}, 'summary': {}, 'states': {}, 'outputs': {},
+                'ground_truth': False, 'warnings': [],
+                'seconds': time.perf_counter() - start, 'error': text}
+    row = result.to_dict()
+    row['error'] = None
     return row
 
 
@@ -181,7 +172,7 @@ def _run_dask(jobs, workers, scheduler, progress):
 def _stats(values):
     v = np.array([x for x in values if x is not None and math.isfinite(x)], dtype=float)
     if not v.size:
-        return {'mean': math.nan, 'median': math.nan, 'min': math.nan, 'max': math.nan}
+        return {'mean': None, 'median': None, 'min': None, 'max': None}
     return {'mean': float(v.mean()), 'median': float(np.median(v)), 'min': float(v.min()),
             'max': float(v.max())}
 
@@ -191,8 +182,9 @@ def summarize(rows):
     Return the rows merged per variant across bags (in the variants' first order).
 
     Each summary has ``variant``, ``bags`` (evaluated), ``failed``, and the ``mean``,
-    ``median``, ``min`` and ``max`` across bags of ``error_rms``, ``settling_time`` and of
-    each state's ``rmse`` and each output's ``residual_rms``.
+    ``median``, ``min`` and ``max`` across bags (None without a finite value) of
+    ``error_rms``, ``settling_time``, each state's ``rmse`` and each output's
+    ``residual_rms``.
 
     """
     by_variant = {}
@@ -201,15 +193,13 @@ def summarize(rows):
     out = []
     for name, group in by_variant.items():
         ok = [r for r in group if r['error'] is None]
-        summary = {'variant': name, 'bags': len(ok), 'failed': len(group) - len(ok),
-                   'error_rms': _stats(r['error_rms'] for r in ok),
-                   'settling_time': _stats(r['settling_time'] for r in ok),
-                   'rmse': {}, 'residual_rms': {}}
-        for key in ('rmse', 'residual_rms'):
-            names = []
-            for r in ok:
-                names += [k for k in r[key] if k not in names]
-            summary[key] = {k: _stats(r[key].get(k) for r in ok) for k in names}
+        summary = {'variant': name, 'bags': len(ok), 'failed': len(group) - len(ok)}
+        for key in ('error_rms', 'settling_time'):
+            summary[key] = _stats(r['summary'].get(key) for r in ok)
+        for key, part in (('rmse', 'states'), ('residual_rms', 'outputs')):
+            names = list(dict.fromkeys(k for r in ok for k in r[part]))
+            summary[key] = {k: _stats(r[part].get(k, {}).get(key) for r in ok)
+                            for k in names}
         out.append(summary)
     return out
 
