@@ -1,6 +1,6 @@
 # test/test_bag_jitter.py: replay of a bag whose stamps jitter (a new step length each message).
 """
-Jittered stamps: the bulk replay gives the estimator's own answers.
+Jittered stamps and long stretches: the bulk replay gives the estimator's own answers.
 
 The replay's copies of the estimator share its step and gain caches, so the gains of a
 step are designed once, not once per copy.
@@ -59,3 +59,22 @@ def test_a_twin_has_its_own_state_and_the_same_caches():
     twin.reset(np.ones(vehicle.plant.n), 2.0)
     assert_allclose(est.x_hat, x)
     assert est.t == 1.0
+
+
+def test_long_stretches_are_replayed_in_pieces_with_the_same_estimates(tmp_path,
+                                                                       monkeypatch):
+    from observer_ros.bag import replay as replay_module
+    vehicle = load_vehicle(CONFIG / 'submarine.yaml')
+    run = simulate(vehicle, steps=600, noise=True)
+    bag = write_bag(tmp_path / 'long', run['messages'])
+    rec = read_recording(bag, vehicle)
+    whole = replay(rec, vehicle)
+    exact = replay(rec, vehicle, exact=True)
+    assert whole.bulk_steps > 500
+    monkeypatch.setattr(replay_module, 'MAX_RUN', 100)
+    pieces = replay(rec, vehicle)
+    assert pieces.bulk_steps == whole.bulk_steps and not pieces.warnings
+    assert pieces.counts == whole.counts
+    assert_allclose(pieces.x_hat, exact.x_hat, rtol=1e-9, atol=1e-10)
+    np.testing.assert_array_equal(pieces.stamp_ns, exact.stamp_ns)
+    np.testing.assert_array_equal(pieces.seq, exact.seq)

@@ -63,6 +63,7 @@ __all__ = ['Replay', 'replay', 'live_replay', 'epochs_of', 'affine_scan',
 CLOCK_JUMP_TOLERANCE = 0.5     # s, as the observer node's clock_jump_tolerance
 FUTURE_TOLERANCE = 10.0        # s, as the observer node's future_tolerance
 MIN_RUN = 64                   # steps: shorter stretches are replayed call by call
+MAX_RUN = 1 << 17              # steps: longer stretches are replayed in pieces this long
 CHECK_STEPS = 16               # steps of each checked window of a bulk stretch
 CHECK_WINDOWS = 8              # windows spread over a stretch (first and last included)
 CHECK_IRREGULAR = 16           # most windows at irregular places of a stretch
@@ -548,9 +549,16 @@ def _find_runs(events, streams, cmd, est, jump, future_tolerance):
             b -= 1                              # the next one fuses with b: b by call
         if b - a < MIN_RUN:
             continue
-        run = dict(shared)
-        run.update(a=a, b=b, commands=int(gap_cmds[a:b].sum()), last_event=int(mev[b]))
-        runs[int(mev[a])] = run
+        # pieces of at most MAX_RUN steps, replayed one after the other: the memory of
+        # a bulk stretch (a dozen arrays of its steps) stays bounded on a long bag
+        cuts = list(range(a, b, MAX_RUN)) + [b]
+        if len(cuts) > 2 and cuts[-1] - cuts[-2] < MIN_RUN:
+            del cuts[-2]                        # no short last piece
+        for p0, p1 in zip(cuts, cuts[1:]):
+            run = dict(shared)
+            run.update(a=p0, b=p1, commands=int(gap_cmds[p0:p1].sum()),
+                       last_event=int(mev[p1]))
+            runs[int(mev[p0])] = run
     return runs
 
 
