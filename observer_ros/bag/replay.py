@@ -276,6 +276,29 @@ class _Events:
         return int(self.kind.size)
 
 
+class _Rows:
+    """
+    Rows of integer columns as tuples of Python ints, converted a block at a time.
+
+    The main loop reads every event it does not skip in bulk; lists of the whole columns
+    would hold three Python ints per event of the bag at once (about 100 bytes each).
+
+    """
+
+    def __init__(self, *columns, block=1 << 16):
+        self.columns = columns
+        self.size = int(columns[0].size)
+        self.block = block
+        self.lo = self.hi = 0
+        self.rows = []
+
+    def __call__(self, i):
+        if not self.lo <= i < self.hi:
+            self.lo, self.hi = i, min(self.size, i + self.block)
+            self.rows = list(zip(*(c[self.lo:self.hi].tolist() for c in self.columns)))
+        return self.rows[i - self.lo]
+
+
 def _variant_sensors(vehicle, recording):
     sensors = []
     for s in vehicle.sensors:
@@ -372,15 +395,15 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
     epoch = 0
     m = 0
     bulk_steps = 0
-    kinds, idxs, seqs = events.kind.tolist(), events.idx.tolist(), events.seq.tolist()
-    total = len(kinds)
+    event = _Rows(events.kind, events.idx, events.seq)
+    total = len(events)
     next_report = _PROGRESS_EVERY
     i = 0
     while i < total:
         if progress is not None and i >= next_report:
             next_report = i + _PROGRESS_EVERY
             progress(i, total)
-        k, j = kinds[i], idxs[i]
+        k, j, sq = event(i)
         if k < 0:
             t = float(cmd_t[j])
             u = cmd_u[j]
@@ -440,7 +463,7 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
         if res is not None:
             out_r[m, rows_idx[k]] = res
         out_epoch[m] = epoch
-        out_seq[m] = seqs[i]
+        out_seq[m] = sq
         out_sensor[m] = k
         m += 1
         run = runs.get(i)
