@@ -103,7 +103,7 @@ def default_out(bag):
 def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS,
          full=False, states=None, burn=None, passes=2, als=True, search='auto',
          scales=DEFAULT_SCALES, use_search=False, force=False, plots=True, progress=None,
-         input_noise=False):
+         input_noise=False, refine=0):
     """
     Identify, search and write the tuned vehicle file and the report (see the module).
 
@@ -138,6 +138,8 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
         ``progress(label, done, total)``.
     input_noise : bool
         See :func:`identify`.
+    refine : int
+        Evaluations of scipy.optimize.minimize_scalar after the grid (0: none).
 
     Returns
     -------
@@ -177,7 +179,7 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
     sr = None
     if search != 'none':
         sr = gain_search(bags, tmp if search == 'kalman' else vehicle_path, search, scales,
-                         namespace, progress=progress)
+                         namespace, progress=progress, refine=refine)
     if ident is None:
         observer = {'observer.type': vehicle.observer.kind}
         header = [f'{vehicle.name} with observer poles chosen by observer-tune from '
@@ -340,6 +342,9 @@ def _parser():
                         'identification, poles without it)')
     parser.add_argument('--grid', help='search scales, comma-separated (default '
                         f'{",".join(f"{s:g}" for s in DEFAULT_SCALES)})')
+    parser.add_argument('--refine', type=int, default=0, metavar='N',
+                        help='then up to N evaluations of scipy.optimize.minimize_scalar '
+                        'around the best grid scale (default 0: the grid only)')
     parser.add_argument('--use-search', action='store_true',
                         help="write the search's best scale into the tuned file")
     parser.add_argument('--force', action='store_true',
@@ -353,6 +358,8 @@ def _parser():
 def _check_args(args):
     if args.lags < 1:
         raise BagToolError(f'--lags {args.lags}: must be at least 1')
+    if args.refine < 0:
+        raise BagToolError(f'--refine {args.refine}: must be >= 0')
     if args.passes < 1:
         raise BagToolError(f'--passes {args.passes}: must be at least 1')
     if args.burn is not None and args.burn < 0:
@@ -388,7 +395,7 @@ def main(argv=None):
                           args.lags, args.full, states, args.burn, args.passes,
                           not args.no_als, args.search, scales, args.use_search,
                           args.force, not args.no_plots, progress,
-                          args.input_noise)
+                          args.input_noise, args.refine)
         progress.finish()
     except (ObserverError, OSError) as err:
         progress.finish()
