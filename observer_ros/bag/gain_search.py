@@ -11,11 +11,11 @@ The family is one parameter, a scale ``s`` of the vehicle's observer:
 
 Each bag is read once and replayed through every scale of a grid (:func:`evaluate_bag`
 with one variant per scale); ``refine`` then narrows the best grid interval with
-``scipy.optimize.minimize_scalar``. The metric of a bag is the RMS of the estimation error norm against
-``state/true`` when every bag has it (``error_rms``); otherwise, per output, the residual
-RMS relative to that of the scale nearest 1, plus the fraction of autocorrelation lags
-outside +-1.96/sqrt(N) (0.05 for white residuals), averaged over the outputs. The search
-minimises the mean over the bags.
+``scipy.optimize.minimize_scalar``. The metric of a bag is the RMS of the estimation
+error norm against ``state/true`` when every bag has it (``error_rms``); otherwise, per
+output, the residual RMS relative to that of the scale nearest 1, plus the fraction of
+autocorrelation lags outside +-1.96/sqrt(N) (0.05 for white residuals), averaged over the
+outputs. The search minimises the mean over the bags.
 
 """
 
