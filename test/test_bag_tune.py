@@ -95,7 +95,11 @@ def noisy_bags(tmp_path_factory):
     out = {}
     for seed, name in enumerate(INPUT_NOISE):
         v, q, _ = _true(name)
-        out[name] = write_bag(root / name, simulate_noisy(v, q, 10 + seed))
+        messages = simulate_noisy(v, q, 10 + seed)
+        out[name] = write_bag(root / name, messages)
+        if name == 'submarine':
+            out['submarine_no_truth'] = write_bag(root / 'no_truth', messages[:3 * 2001],
+                                                  skip=('state/true',))
     return out
 
 
@@ -301,6 +305,17 @@ def test_observer_tune_pole_search_without_identification(noisy_bags, tmp_path, 
     assert_allclose(np.sort_complex(tuned.observer.poles),
                     np.sort_complex(best * v.observer.poles), rtol=1e-12)
     assert '# observer-tune gain search (poles scale' in (out / 'submarine_tuned.yaml').read_text()
+
+
+def test_gain_search_without_truth_scores_residuals(noisy_bags):
+    from observer_ros.bag.gain_search import gain_search
+    res = gain_search([noisy_bags['submarine_no_truth']], CONFIG / 'submarine.yaml', 'poles',
+                      [0.25, 1.0, 4.0])
+    assert res.metric.startswith('residual RMS')
+    # relative to the scale 1 itself: 1 + its fraction of lags outside the band
+    assert 1.0 <= res.mean[1] <= 2.0
+    assert all(math.isfinite(m) and m > 0 for m in res.mean)
+    assert res.best in res.scales
 
 
 def test_observer_tune_errors(noisy_bags, tmp_path, capsys):
