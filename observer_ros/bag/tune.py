@@ -44,7 +44,7 @@ from .metrics import WHITENESS_LAGS
 from .plots import plot_autocovariances, plot_search
 from .report import csv_cell, fmt, prepare_out, text_table
 from .results import jsonable
-from .tuned_vehicle import write_tuned_vehicle
+from .tuned_vehicle import OBSERVER_KEYS, write_tuned_vehicle
 from ..core.als import DEFAULT_LAGS
 from ..core.errors import ObserverError
 
@@ -152,6 +152,9 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
     out = Path(out)
     if search == 'auto':
         search = 'kalman' if als else 'poles'
+    if als and search == 'poles' and use_search:
+        raise BagToolError('--use-search --search poles: the tuned file is a Kalman filter; '
+                           'add --no-als to write the best poles')
     if not als and search in ('kalman', 'none'):
         raise BagToolError(f'--no-als --search {search}: nothing to tune (use --search poles)')
     output = Path(output) if output else out / f'{Path(vehicle_path).stem}_tuned.yaml'
@@ -180,15 +183,20 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
     if search != 'none':
         sr = gain_search(bags, tmp if search == 'kalman' else vehicle_path, search, scales,
                          namespace, progress=progress, refine=refine)
-    if ident is None:
-        observer = {'observer.type': vehicle.observer.kind}
+    replace = OBSERVER_KEYS
+    if ident is None:           # only the poles change: the rest of the design stays
+        replace = ('observer.poles', 'observer.poles_imag')
+        observer = {}
         header = [f'{vehicle.name} with observer poles chosen by observer-tune from '
                   f'{", ".join(bags)}', f'original: {vehicle_path}']
         sources = {}
+    if ident is None and not math.isfinite(sr.best):
+        raise BagToolError('the gain search found no finite metric: no poles to write')
     if sr is not None and (use_search or ident is None) and math.isfinite(sr.best):
         best = _load_vehicle(tmp if search == 'kalman' else vehicle_path,
                              sr.overrides[sr.best])
-        note = (f'observer-tune gain search ({search} scale {sr.best:g} of {sr.scales}, '
+        grid = ', '.join(f'{x:.4g}' for x in sr.scales)
+        note = (f'observer-tune gain search ({search} scale {sr.best:g} of [{grid}], '
                 f'metric {sr.metric}, on {", ".join(bags)})')
         if search == 'kalman':
             observer['observer.Qd'] = list(np.ravel(best.observer.Qd))
@@ -199,7 +207,8 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
             observer['observer.poles_imag'] = list(p.imag)
             sources['observer.poles'] = note
             sources['observer.poles_imag'] = note
-    vehicle_file = write_tuned_vehicle(vehicle_path, output, observer, sources, header)
+    vehicle_file = write_tuned_vehicle(vehicle_path, output, observer, sources, header,
+                                       replace)
     if tmp is not None:
         tmp.unlink()
     result = TuneResult(ident, sr, vehicle_file)
