@@ -330,6 +330,14 @@ def test_observer_tune_errors(noisy_bags, tmp_path, capsys):
          'not identifiable: the ALS matrix has rank 1 for 2 unknowns'),
         ([bag, '--vehicle', vehicle, '--no-als', '--search', 'kalman'], 'nothing to tune'),
     ]
+    # observer-eval --compare: a file of another vehicle, a missing file, a reserved name
+    for compare, match in ((str(CONFIG / 'cart_pendulum.yaml'), 'state names differ'),
+                           (str(tmp_path / 'no.yaml'), 'no such file'),
+                           (f'live={vehicle}', "'live' must be")):
+        assert eval_main([bag, '--vehicle', vehicle, '--compare', compare, '--out',
+                          str(tmp_path / 'ev')]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith('error: ') and match in err, err
     for i, (argv, match) in enumerate(cases):
         assert main(argv + ['--out', str(tmp_path / f'o{i}')]) == 2, match
         err = capsys.readouterr().err
