@@ -249,6 +249,16 @@ def test_tune_identifies_the_noise_and_the_kalman_filter_matches_the_true_one(
              input_noise=True, search='none', plots=False)
 
 
+def test_identify_pools_bags(noisy_bags):
+    bag = noisy_bags['submarine']
+    one = identify([bag], CONFIG / 'submarine.yaml', input_noise=True, passes=1)
+    two = identify([bag, bag], CONFIG / 'submarine.yaml', input_noise=True, passes=1)
+    assert two.samples == {str(bag): STEPS + 1} and two.result.samples == \
+        2 * one.result.samples
+    assert_allclose(two.result.empirical, one.result.empirical, rtol=1e-12)
+    assert_allclose([two.result.Q, two.result.R], [one.result.Q, one.result.R], rtol=1e-9)
+
+
 def test_observer_tune_command_search_report_and_compare(noisy_bags, tmp_path, capsys):
     bag = noisy_bags['cart_pendulum']
     out = tmp_path / 'cart_tune'
