@@ -15,7 +15,7 @@ in it. Every ``flush_period`` seconds (wall time) the writer flushes: mcap close
 pending chunk and flushes the file, sqlite3 commits; then the recorder reports on
 /diagnostics (``messages``: the total on disk, ``messages <topic>`` per topic). A SIGKILL
 therefore loses at most the messages since the last flush, and ``observer-bag-recover BAG``
-(observer_ros.bagrecover) makes such a bag readable again.
+(observer_ros.bag.recover) makes such a bag readable again.
 
 A write that fails (disk full, I/O error) stops the recorder with a logged error naming
 the bag and exit status 1; the bag is then recovered in place up to its last flush (or,
@@ -265,7 +265,7 @@ class RecorderNode(VehicleNode):
             writer.abort()
         except Exception:   # noqa: BLE001 - the file is closed either way
             pass
-        from ..bagrecover import BagRecoveryError, recover_bag
+        from ..bag.recover import BagRecoveryError, recover_bag
         try:
             report = recover_bag(self.path)
             log.error(f'bag {self.path} recovered up to its last flush: '

@@ -1,4 +1,4 @@
-# observer_ros.bagrecover: make a bag that was not closed (SIGKILL, disk full) readable again.
+# observer_ros.bag.recover: make a bag that was not closed (SIGKILL, disk full) readable again.
 """
 Recover a rosbag2 bag whose writer died before closing it: ``observer-bag-recover BAG``.
 
@@ -34,7 +34,7 @@ import sys
 
 import yaml
 
-from .core.errors import ObserverError
+from ..core.errors import ObserverError
 
 __all__ = ['BagRecoveryError', 'recover_bag', 'main']
 
