@@ -1,0 +1,110 @@
+# Issue #15, files: every tool deletes or rewrites only what it wrote, and refuses up front.
+"""Each row of "never destroy what it does not own", asserted on the file system afterwards."""
+
+import os
+from pathlib import Path
+
+from bag_synth import bag_file, simulate, write_bag
+from observer_ros.bag.evaluate import main as eval_main
+from observer_ros.bag.outputs import MARKER
+from observer_ros.vehicle import load_vehicle
+import pytest
+
+CONFIG = Path(__file__).resolve().parents[1] / 'config'
+
+
+def _tree(root):
+    """Return {relative path: bytes or '->target'} of everything under root."""
+    out = {}
+    for p in sorted(Path(root).rglob('*')):
+        rel = p.relative_to(root).as_posix()
+        if p.is_symlink():
+            out[rel] = '->' + os.readlink(p)
+        elif p.is_file():
+            out[rel] = p.read_bytes()
+        else:
+            out[rel] = 'dir'
+    return out
+
+
+@pytest.fixture(scope='module')
+def sub_bag(tmp_path_factory):
+    vehicle = load_vehicle(CONFIG / 'submarine.yaml')
+    run = simulate(vehicle, steps=60)
+    return write_bag(tmp_path_factory.mktemp('bags') / 'dive', run['messages'],
+                     namespace='/sub1')
+
+
+def _eval(bag, out, *extra):
+    return eval_main([str(bag), '--vehicle', str(CONFIG / 'submarine.yaml'),
+                      '--namespace', '/sub1', '--out', str(out), '--no-plots', *extra])
+
+
+def test_eval_force_never_deletes_a_folder_it_did_not_write(sub_bag, tmp_path, capsys):
+    """Row 1: a folder with a results.json (not written by observer-eval) is left whole."""
+    thesis = tmp_path / 'thesis'
+    (thesis / 'src').mkdir(parents=True)
+    (thesis / 'thesis.tex').write_text('\\chapter{Observers}')
+    (thesis / 'src' / 'main.py').write_text('print(1)')
+    (thesis / 'results.json').write_text('{}')
+    before = _tree(thesis)
+    assert _eval(sub_bag, thesis, '--force') == 2
+    err = capsys.readouterr().err
+    assert err.startswith('error: ') and 'not an observer-eval output folder' in err
+    assert err.count('\n') == 1
+    assert _tree(thesis) == before
+
+
+def test_eval_force_keeps_the_users_files_and_replaces_its_own(sub_bag, tmp_path, capsys):
+    """Row 1: on a real report folder --force replaces its files only."""
+    out = tmp_path / 'report'
+    assert _eval(sub_bag, out) == 0
+    assert (out / MARKER).is_file() and (out / 'results_bag').is_dir()
+    (out / 'notes.md').write_text('my notes')
+    (out / 'results_bag' / 'README').write_text('mine too')
+    old_json = (out / 'results.json').read_bytes()
+    assert _eval(sub_bag, out, '--force', '--no-bag') == 0
+    assert (out / 'notes.md').read_text() == 'my notes'
+    assert (out / 'results_bag' / 'README').read_text() == 'mine too'
+    # its own earlier files are gone (no bag this time), the new ones there
+    assert sorted(p.name for p in (out / 'results_bag').iterdir()) == ['README']
+    assert (out / 'results.json').read_bytes() == old_json
+    capsys.readouterr()
+
+
+def test_eval_force_refuses_a_changed_or_linked_file_and_touches_nothing(sub_bag, tmp_path,
+                                                                          capsys):
+    out = tmp_path / 'report'
+    assert _eval(sub_bag, out) == 0
+    (out / 'results.txt').write_text('edited by hand for the thesis')
+    before = _tree(out)
+    assert _eval(sub_bag, out, '--force') == 2
+    assert 'was changed after observer-eval wrote it' in capsys.readouterr().err
+    assert _tree(out) == before
+    # a link in place of one of its files: never followed, never deleted
+    outside = tmp_path / 'outside.csv'
+    outside.write_text('precious')
+    (out / 'results.txt').unlink()
+    (out / 'results.csv').unlink()
+    (out / 'results.csv').symlink_to(outside)
+    before = _tree(out)
+    assert _eval(sub_bag, out, '--force') == 2
+    assert 'is now a link' in capsys.readouterr().err
+    assert _tree(out) == before and outside.read_text() == 'precious'
+    # the output folder itself a link: refused, the target untouched
+    target = tmp_path / 'target'
+    target.mkdir()
+    (target / 'x').write_text('x')
+    link = tmp_path / 'link'
+    link.symlink_to(target)
+    assert _eval(sub_bag, link, '--force') == 2
+    assert 'is a link' in capsys.readouterr().err
+    assert _tree(target) == {'x': b'x'}
+
+
+def test_eval_refusal_is_before_the_evaluation(sub_bag, tmp_path, capsys):
+    """An unusable --out is refused before the bag is read: no folder, no trace."""
+    assert _eval(tmp_path / 'missing_bag', tmp_path / 'o') == 2
+    assert not (tmp_path / 'o').exists()
+    capsys.readouterr()
+    assert bag_file(sub_bag).exists()
