@@ -3,10 +3,13 @@
 
 import os
 from pathlib import Path
+import subprocess
+import sys
 
 from bag_synth import bag_file, simulate, write_bag
 from observer_ros.bag.evaluate import main as eval_main
 from observer_ros.bag.outputs import MARKER
+from observer_ros.bag.recover import BagRecoveryError, recover_bag
 from observer_ros.vehicle import load_vehicle
 import pytest
 
@@ -108,3 +111,46 @@ def test_eval_refusal_is_before_the_evaluation(sub_bag, tmp_path, capsys):
     assert not (tmp_path / 'o').exists()
     capsys.readouterr()
     assert bag_file(sub_bag).exists()
+
+
+def _recover_cli(*bags):
+    return subprocess.run([sys.executable, '-m', 'observer_ros.bag.recover',
+                           *map(str, bags)], capture_output=True, text=True, timeout=120)
+
+
+def test_recover_never_writes_through_a_linked_mcap(sub_bag, tmp_path):
+    """Row 2: a .mcap that is a link to a file outside the bag: refused, the file unchanged."""
+    outside = tmp_path / 'elsewhere' / 'big.mcap'
+    outside.parent.mkdir()
+    data = bag_file(sub_bag).read_bytes()
+    outside.write_bytes(data[:len(data) // 2] + os.urandom(400_000))   # an unclosed look
+    before = outside.read_bytes()
+    bag = tmp_path / 'bag'
+    bag.mkdir()
+    (bag / 'bag_0.mcap').symlink_to(outside)
+    (bag / '.disk_reserve').write_bytes(b'\0' * 16)
+    done = _recover_cli(bag)
+    assert done.returncode == 2
+    assert done.stderr.startswith('error: ') and 'is a link' in done.stderr
+    assert 'Traceback' not in done.stderr
+    assert outside.read_bytes() == before
+    # nothing in the bag touched either (the refusal comes before the first write)
+    assert sorted(p.name for p in bag.iterdir()) == ['.disk_reserve', 'bag_0.mcap']
+    with pytest.raises(BagRecoveryError, match='is a link'):
+        recover_bag(bag)
+
+
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+def test_recover_leaves_an_intact_bag_alone(tmp_path, storage):
+    """Row 2: an intact bag: neither its storage nor its metadata.yaml is rewritten."""
+    vehicle = load_vehicle(CONFIG / 'submarine.yaml')
+    bag = write_bag(tmp_path / 'bag', simulate(vehicle, steps=20)['messages'],
+                    namespace='/sub1', storage=storage)
+    stats = {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in bag.iterdir()}
+    done = _recover_cli(bag)
+    assert done.returncode == 0, done.stderr
+    assert 'nothing changed' in done.stdout
+    assert {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in bag.iterdir()} == stats
+    report = recover_bag(bag)
+    assert report['untouched'] and not report['repaired']
+    assert report['total'] == sum(report['messages'].values()) > 0
