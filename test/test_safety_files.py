@@ -12,6 +12,7 @@ from observer_ros.bag.outputs import MARKER
 from observer_ros.bag.recover import BagRecoveryError, recover_bag
 from observer_ros.vehicle import load_vehicle
 import pytest
+from ros_helpers import Proc
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config'
 
@@ -154,3 +155,28 @@ def test_recover_leaves_an_intact_bag_alone(tmp_path, storage):
     report = recover_bag(bag)
     assert report['untouched'] and not report['repaired']
     assert report['total'] == sum(report['messages'].values()) > 0
+
+
+@pytest.mark.parametrize('params, message', [
+    (['disk_reserve:=1000000000000000'], 'is not less than the free space'),
+    (['flush_period:=0.0'], 'flush_period must be > 0 s'),
+    (['flush_period:=-1.0'], 'flush_period must be > 0 s'),
+    (["extra_topics:=['/foo:nope_msgs/msg/Nope']"], 'unknown message type nope_msgs/msg/Nope'),
+    (["extra_topics:=['no_type_here']"], 'is not "name:pkg/msg/Type"'),
+    (['queue_depth:=0'], 'queue_depth must be >= 1'),
+])
+def test_recorder_refusals_leave_no_bag_folder(tmp_path, params, message):
+    """Row 3: the recorder refuses up front: status 2, one error line, no folder made."""
+    bag = tmp_path / 'runs' / 'bag'
+    proc = Proc('recorder', CONFIG / 'submarine.yaml', f'output:={bag}', 'use_sim_time:=false',
+                *params, log_dir=tmp_path)
+    try:
+        proc.popen.wait(timeout=120)
+    finally:
+        code = proc.stop()
+    out = proc.output()
+    assert code == 2, out
+    assert message in out and 'Traceback' not in out, out
+    errors = [line for line in out.splitlines() if line.startswith('error:')]
+    assert len(errors) == 1 and errors[0].startswith('error: recorder:'), out
+    assert not bag.exists() and not bag.parent.exists()
