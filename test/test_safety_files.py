@@ -10,6 +10,8 @@ from bag_synth import bag_file, simulate, write_bag
 from observer_ros.bag.evaluate import main as eval_main
 from observer_ros.bag.outputs import MARKER
 from observer_ros.bag.recover import BagRecoveryError, recover_bag
+from observer_ros.tools import run_closed_loop
+from observer_ros.tools.run_closed_loop import check_outputs, main as run_main, run_limit
 from observer_ros.vehicle import load_vehicle
 import pytest
 from ros_helpers import Proc
@@ -180,3 +182,44 @@ def test_recorder_refusals_leave_no_bag_folder(tmp_path, params, message):
     errors = [line for line in out.splitlines() if line.startswith('error:')]
     assert len(errors) == 1 and errors[0].startswith('error: recorder:'), out
     assert not bag.exists() and not bag.parent.exists()
+
+
+def test_observer_run_never_overwrites_logs_and_checks_every_output_first(tmp_path, capsys):
+    """Row 4: existing logs, <bag>_slow_poles.yaml, <bag>_eval: refused before any process."""
+    bag = tmp_path / 'runs' / 'dive'
+    logs = tmp_path / 'runs' / 'dive_logs'
+    logs.mkdir(parents=True)
+    (logs / 'observer_node.log').write_text('the log of an earlier run')
+    vehicle = str(CONFIG / 'submarine.yaml')
+    assert run_main([vehicle, '--out', str(bag)]) == 2
+    assert f'{logs / "observer_node.log"} exists' in capsys.readouterr().err
+    assert _tree(tmp_path / 'runs') == {'dive_logs': 'dir',
+                                        'dive_logs/observer_node.log':
+                                        b'the log of an earlier run'}
+    for name in ('dive_eval', 'dive_slow_poles.yaml'):
+        other = tmp_path / name / 'runs'
+        other.mkdir(parents=True)
+        (other / name).write_text('mine')
+        assert run_main([vehicle, '--out', str(other / 'dive'), '--evaluate']) == 2
+        err = capsys.readouterr().err
+        assert err.startswith('error: ') and f'{other / name} exists' in err
+        assert _tree(other) == {name: b'mine'}      # no bag, no logs: nothing started
+    # without --evaluate, an existing <bag>_eval does not matter to the check
+    check_outputs(run_closed_loop._planned_outputs(tmp_path / 'dive_eval' / 'runs' / 'dive',
+                                                   False))
+
+
+def test_observer_run_limit_and_check_include_the_overrides(tmp_path, capsys):
+    """Row 4: -p simulator.duration:=5000.0 gets the limit of a 5000 s run; bad -p up front."""
+    vehicle = load_vehicle(CONFIG / 'submarine.yaml')
+    steps = round(5000.0 / vehicle.sample_time)
+    assert run_limit(CONFIG / 'submarine.yaml', ['simulator.duration:=5000.0']) == \
+        pytest.approx(60.0 + 0.02 * steps)
+    assert run_limit(CONFIG / 'submarine.yaml') == pytest.approx(
+        60.0 + 0.02 * round(vehicle.simulator.duration / vehicle.sample_time))
+    bag = tmp_path / 'runs' / 'dive'
+    assert run_main([str(CONFIG / 'submarine.yaml'), '--out', str(bag),
+                     '-p', 'simulator.duration:=-5.0']) == 2
+    err = capsys.readouterr().err
+    assert err.startswith('error: ') and 'simulator.duration' in err
+    assert not (tmp_path / 'runs').exists()
