@@ -24,7 +24,7 @@ from .common import (checked_stamp, joint_state, LATCHED_QOS, run_node, STATE_PU
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 
-__all__ = ['CompensatorNode', 'control_law', 'main']
+__all__ = ['CompensatorNode', 'command_problem', 'control_law', 'main']
 
 
 def control_law(K, x_hat, x_d, Kd, u_min=None, u_max=None):
@@ -49,6 +49,30 @@ def control_law(K, x_hat, x_d, Kd, u_min=None, u_max=None):
     if u_min is not None or u_max is not None:
         u = np.clip(u, u_min, u_max)
     return u
+
+
+def command_problem(u, m, u_min=None, u_max=None):
+    """
+    Return why a command must not be sent, or None when it may.
+
+    A command is sent only when it has ``m`` values, all finite and inside
+    ``[u_min, u_max]`` (None: no limit on that side).
+
+    Returns
+    -------
+    str or None
+
+    """
+    u = np.asarray(u, dtype=float)
+    if u.shape != (m,):
+        return f'{u.size} values for {m} inputs'
+    if not np.isfinite(u).all():
+        return f'not finite: {u.tolist()}'
+    low = -np.inf if u_min is None else np.asarray(u_min, dtype=float)
+    high = np.inf if u_max is None else np.asarray(u_max, dtype=float)
+    if np.any(u < low) or np.any(u > high):
+        return f'{u.tolist()} outside the limits [{u_min}, {u_max}]'
+    return None
 
 
 class CompensatorNode(VehicleNode):
@@ -120,22 +144,9 @@ class CompensatorNode(VehicleNode):
     def _now(self):
         return self.get_clock().now().nanoseconds * 1e-9
 
-    def command_problem(self, u):
-        """Return why ``u`` must not be sent (not finite, outside the limits), or None."""
-        u = np.asarray(u, dtype=float)
-        if u.shape != (self.vehicle.plant.m,):
-            return f'{u.size} values for {self.vehicle.plant.m} inputs'
-        if not np.isfinite(u).all():
-            return f'not finite: {u.tolist()}'
-        low = -np.inf if self.u_min is None else np.asarray(self.u_min, dtype=float)
-        high = np.inf if self.u_max is None else np.asarray(self.u_max, dtype=float)
-        if np.any(u < low) or np.any(u > high):
-            return f'{u.tolist()} outside the limits [{self.u_min}, {self.u_max}]'
-        return None
-
     def _publish(self, u, t, stamp=None):
         """Send a command that passes the gate; else the safe command. Return True if sent."""
-        problem = self.command_problem(u)
+        problem = command_problem(u, self.vehicle.plant.m, self.u_min, self.u_max)
         if problem is not None:
             self.count('refused_commands')
             self._refused = f'command {problem}: safe command sent instead'

@@ -8,9 +8,9 @@ publishes ``state/estimate`` (JointState named by the states) and ``observer/res
 
 A malformed stamp (``nanosec`` >= 10^9, negative ``sec``, the first second) is refused and
 counted (``bad_stamps``) before it reaches the estimator; a command stamped far in the
-future is refused (``future_stamps``), one older than the estimate is held from the
-estimate's time (``late_commands`` past ``clock_jump_tolerance``): a command never resets
-the estimator. A reset is always logged and counted (``estimator_resets``). A second
+future of the clock, or more than ``clock_jump_tolerance`` ahead of the estimate, is
+refused (``future_stamps``), one older than the estimate is held from the estimate's time
+(``late_commands`` past ``clock_jump_tolerance``): a command never resets the estimator. A reset is always logged and counted (``estimator_resets``). A second
 publisher of ``state/estimate`` or ``control/u`` is reported as an ERROR naming the topic.
 
 """
@@ -257,13 +257,18 @@ class ObserverNode(VehicleNode):
             u = vector_from_joint_state(msg, self.vehicle.plant.input_names, topic)
             now = self.get_clock().now().nanoseconds * 1e-9
             last = self.estimator.t
+            jump = self.param('clock_jump_tolerance')
+            # a command is not a time source: it never moves the estimator's time far (set_input
+            # propagates x_hat to its stamp) nor resets it; only the sensors' stamps can
             if now > 0.0 and t - now > self.param('future_tolerance'):
                 self._reject('future_stamps', f'{topic}: stamp {t:.3f} is {t - now:.1f} s '
                              'ahead of the clock; skipped')
+            elif last is not None and t - last > jump:
+                self._reject('future_stamps', f'{topic}: stamp {t:.6f} is {t - last:.3f} s '
+                             'ahead of the estimate; skipped')
             elif last is not None and t < last:
-                # a command for an older stamp: held from the estimate's time on (a command
-                # is not a time source: only the sensors' stamps can reset the estimator)
-                if last - t > self.param('clock_jump_tolerance'):
+                # a command for an older stamp: held from the estimate's time on
+                if last - t > jump:
                     self._reject('late_commands', f'{topic}: stamp {t:.6f} is {last - t:.3f} '
                                  's older than the estimate; held from now on')
                 self.estimator.set_input(last, u)
