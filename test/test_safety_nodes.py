@@ -38,6 +38,35 @@ def _nodes(tmp_path, *nodes, params=()):
         assert code == 0, proc.output()
 
 
+def _matched(probe, pub, topic):
+    probe.spin_until(lambda: pub.get_subscription_count() >= 1, 30.0, f'{topic} matched')
+    return pub
+
+
+@contextlib.contextmanager
+def _observer(tmp_path):
+    """The observer with publishers of measurements and commands, everything matched."""
+    with _nodes(tmp_path, 'observer_node') as (procs, probe, listener):
+        node = probe.node
+        pub = _matched(probe, node.create_publisher(Imu, 'imu/data', SENSOR_QOS), 'imu/data')
+        cmd = _matched(probe, node.create_publisher(JointState, 'control/u', STATE_QOS),
+                       'control/u')
+        listener.wait_matched('state/estimate', '/diagnostics')
+        listener.wait_alive('observer')
+        yield procs, probe, listener, pub, cmd
+
+
+@contextlib.contextmanager
+def _compensator(tmp_path, params=()):
+    """The compensator with a publisher of estimates, everything matched."""
+    with _nodes(tmp_path, 'compensator', params=params) as (procs, probe, listener):
+        est = _matched(probe, probe.node.create_publisher(JointState, 'state/estimate',
+                                                          STATE_QOS), 'state/estimate')
+        listener.wait_matched('control/u', '/diagnostics')
+        listener.wait_alive('compensator')
+        yield procs, probe, listener, est
+
+
 def _rss_kib(proc):
     for line in Path(f'/proc/{proc.popen.pid}/status').read_text().splitlines():
         if line.startswith('VmRSS:'):
@@ -67,13 +96,7 @@ def _bad_stamp(sec, nanosec):
 
 def test_malformed_stamps_are_refused_counted_and_never_reset_the_estimate(tmp_path):
     """Row 6: nanosec >= 1e9, negative sec, 0 s + 1 ns; future, negative and late commands."""
-    with _nodes(tmp_path, 'observer_node') as (procs, probe, listener):
-        pub = probe.node.create_publisher(Imu, 'imu/data', SENSOR_QOS)
-        cmd = probe.node.create_publisher(JointState, 'control/u', STATE_QOS)
-        probe.spin_until(lambda: pub.get_subscription_count() >= 1, 30.0, 'imu/data matched')
-        probe.spin_until(lambda: cmd.get_subscription_count() >= 1, 30.0, 'control/u matched')
-        listener.wait_matched('state/estimate', '/diagnostics')
-        listener.wait_alive('observer')
+    with _observer(tmp_path) as (procs, probe, listener, pub, cmd):
         ref = _Reference()
         t = 100.0
 
@@ -118,13 +141,7 @@ def test_malformed_stamps_are_refused_counted_and_never_reset_the_estimate(tmp_p
 
 def test_a_huge_command_is_refused_by_its_size_first(tmp_path):
     """Row 7: 10^6 elements: refused from its size, short log lines, no reset, RSS bounded."""
-    with _nodes(tmp_path, 'observer_node') as (procs, probe, listener):
-        pub = probe.node.create_publisher(Imu, 'imu/data', SENSOR_QOS)
-        cmd = probe.node.create_publisher(JointState, 'control/u', STATE_QOS)
-        probe.spin_until(lambda: pub.get_subscription_count() >= 1, 30.0, 'imu/data matched')
-        probe.spin_until(lambda: cmd.get_subscription_count() >= 1, 30.0, 'control/u matched')
-        listener.wait_matched('state/estimate', '/diagnostics')
-        listener.wait_alive('observer')
+    with _observer(tmp_path) as (procs, probe, listener, pub, cmd):
         ref = _Reference()
         t = 100.0
         for k in range(3):
@@ -179,12 +196,7 @@ def test_command_gate():
 
 def test_the_compensator_sends_only_finite_commands_inside_the_limits(tmp_path):
     """Row 5: an estimate whose u overflows gives the safe command and an ERROR, never inf."""
-    with _nodes(tmp_path, 'compensator') as (procs, probe, listener):
-        est = probe.node.create_publisher(JointState, 'state/estimate', STATE_QOS)
-        probe.spin_until(lambda: est.get_subscription_count() >= 1, 30.0,
-                         'state/estimate matched')
-        listener.wait_matched('control/u', '/diagnostics')
-        listener.wait_alive('compensator')
+    with _compensator(tmp_path) as (procs, probe, listener, est):
         est.publish(joint_state(STATES, [0.01, 0.0, 0.0], 5.0))
         first = _command_at(listener, probe, 5.0).position[0]
         assert first != 0.0
@@ -209,12 +221,7 @@ def test_the_compensator_sends_only_finite_commands_inside_the_limits(tmp_path):
 def test_the_compensator_saturates_inside_the_limits(tmp_path):
     """Row 5: with controller.u_min/u_max every command sent lies inside them."""
     limits = ('controller.u_min:=[-0.3]', 'controller.u_max:=[0.3]')
-    with _nodes(tmp_path, 'compensator', params=limits) as (procs, probe, listener):
-        est = probe.node.create_publisher(JointState, 'state/estimate', STATE_QOS)
-        probe.spin_until(lambda: est.get_subscription_count() >= 1, 30.0,
-                         'state/estimate matched')
-        listener.wait_matched('control/u', '/diagnostics')
-        listener.wait_alive('compensator')
+    with _compensator(tmp_path, limits) as (procs, probe, listener, est):
         for k, x in enumerate(([0.01, 0.0, 0.0], [100.0, 0.0, 0.0], [1e308, 1e308, 1e308],
                                [-1e308, -1e308, -1e308])):
             est.publish(joint_state(STATES, x, 6.0 + k))
