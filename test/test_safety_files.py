@@ -78,8 +78,8 @@ def test_eval_force_keeps_the_users_files_and_replaces_its_own(sub_bag, tmp_path
     capsys.readouterr()
 
 
-def test_eval_force_refuses_a_changed_or_linked_file_and_touches_nothing(sub_bag, tmp_path,
-                                                                          capsys):
+def test_eval_force_refuses_a_changed_or_linked_file_and_touches_nothing(
+        sub_bag, tmp_path, capsys):
     out = tmp_path / 'report'
     assert _eval(sub_bag, out) == 0
     (out / 'results.txt').write_text('edited by hand for the thesis')

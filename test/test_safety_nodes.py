@@ -14,8 +14,7 @@ from observer_ros.sensors import extract_measurement
 from observer_ros.timeutil import stamp_to_sec
 from observer_ros.vehicle import load_vehicle
 from ros_helpers import CONFIG, Probe, Proc
-from sensor_msgs.msg import JointState
-from sensor_msgs.msg import Imu
+from sensor_msgs.msg import Imu, JointState
 from test_nodes_faults import _imu, Listener
 
 REALTIME = 'simulator.mode:=realtime'
@@ -45,7 +44,7 @@ def _matched(probe, pub, topic):
 
 @contextlib.contextmanager
 def _observer(tmp_path):
-    """The observer with publishers of measurements and commands, everything matched."""
+    """Run the observer with publishers of measurements and commands, all matched."""
     with _nodes(tmp_path, 'observer_node') as (procs, probe, listener):
         node = probe.node
         pub = _matched(probe, node.create_publisher(Imu, 'imu/data', SENSOR_QOS), 'imu/data')
@@ -58,7 +57,7 @@ def _observer(tmp_path):
 
 @contextlib.contextmanager
 def _compensator(tmp_path, params=()):
-    """The compensator with a publisher of estimates, everything matched."""
+    """Run the compensator with a publisher of estimates, all matched."""
     with _nodes(tmp_path, 'compensator', params=params) as (procs, probe, listener):
         est = _matched(probe, probe.node.create_publisher(JointState, 'state/estimate',
                                                           STATE_QOS), 'state/estimate')

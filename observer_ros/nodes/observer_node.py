@@ -10,8 +10,9 @@ A malformed stamp (``nanosec`` >= 10^9, negative ``sec``, the first second) is r
 counted (``bad_stamps``) before it reaches the estimator; a command stamped far in the
 future of the clock, or more than ``clock_jump_tolerance`` ahead of the estimate, is
 refused (``future_stamps``), one older than the estimate is held from the estimate's time
-(``late_commands`` past ``clock_jump_tolerance``): a command never resets the estimator. A reset is always logged and counted (``estimator_resets``). A second
-publisher of ``state/estimate`` or ``control/u`` is reported as an ERROR naming the topic.
+(``late_commands`` past ``clock_jump_tolerance``): a command never resets the estimator.
+A reset is always logged and counted (``estimator_resets``). A second publisher
+of ``state/estimate`` or ``control/u`` is reported as an ERROR naming the topic.
 
 """
 
