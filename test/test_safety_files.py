@@ -76,6 +76,26 @@ def test_eval_force_keeps_the_users_files_and_replaces_its_own(sub_bag, tmp_path
     assert sorted(p.name for p in (out / 'results_bag').iterdir()) == ['README']
     assert (out / 'results.json').read_bytes() == old_json
     capsys.readouterr()
+    # a user's file, or a link, under a name observer-eval writes (it did not write it this
+    # time: --no-bag): refused, nothing touched, the link's target unchanged
+    outside = tmp_path / 'outside'
+    outside.write_text('precious')
+    for name, make in (('results_bag', lambda p: p.mkdir()),
+                       ('states.png', lambda p: p.symlink_to(outside))):
+        (out / 'results_bag' / 'README').unlink(missing_ok=True)
+        for leftover in ('results_bag', 'states.png'):
+            path = out / leftover
+            if path.is_symlink() or path.is_file():
+                path.unlink()
+            elif path.is_dir():
+                path.rmdir()
+        assert _eval(sub_bag, out, '--force', '--no-bag') == 0
+        make(out / name)
+        before = _tree(out)
+        assert _eval(sub_bag, out, '--force') == 2
+        err = capsys.readouterr().err
+        assert 'is a link' in err or 'was not written by observer-eval' in err, err
+        assert _tree(out) == before and outside.read_text() == 'precious'
 
 
 def test_eval_force_refuses_a_changed_or_linked_file_and_touches_nothing(

@@ -11,7 +11,8 @@ after checking them all before anything is touched:
   refused;
 - a file the tool wrote that was since changed (size or time), or replaced by a link, is
   refused;
-- files the user added next to the tool's files are kept (never deleted);
+- files the user added next to the tool's files are kept (never deleted), unless one has
+  the name of a file the tool writes, or is a link: then the folder is refused;
 - the folder itself being a link is refused (a link is never followed out of the folder).
 
 """
@@ -22,9 +23,16 @@ from pathlib import Path
 
 from .errors import BagToolError
 
-__all__ = ['MARKER', 'check_output', 'prepare_output', 'seal_output']
+__all__ = ['MARKER', 'TOOL_FILES', 'check_output', 'prepare_output', 'seal_output']
 
 MARKER = '.observer_ros_output.json'
+
+# The names each tool may write in its folder: one of them there that the tool did not
+# write (a user's file, a link) would be overwritten or written through, so it is refused.
+TOOL_FILES = {
+    'observer-eval': ('results.txt', 'results.csv', 'results.json', 'states.png',
+                      'error_norm.png', 'residuals.png', 'results_bag'),
+}
 
 
 def _read_marker(out, tool):
@@ -67,6 +75,16 @@ def _owned_files(out, tool):
             raise BagToolError(f'{path} was changed after {tool} wrote it; not touching '
                                'the folder (move it away or choose --out)')
         owned.append(rel)
+    ours = {Path(rel).parts[0] for rel in owned}
+    for entry in sorted(out.iterdir()):
+        if entry.name in ours or entry.name in (MARKER, MARKER + '.tmp'):
+            continue
+        if entry.is_symlink():
+            raise BagToolError(f'{entry} is a link {tool} did not make; refusing to write '
+                               'next to it (move it away or choose --out)')
+        if entry.name in TOOL_FILES.get(tool, ()):
+            raise BagToolError(f'{entry} was not written by {tool} and would be overwritten; '
+                               'not touching the folder (move it away or choose --out)')
     return owned
 
 
