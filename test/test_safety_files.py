@@ -235,8 +235,10 @@ def test_observer_run_limit_and_check_include_the_overrides(tmp_path, capsys):
     steps = round(5000.0 / vehicle.sample_time)
     assert run_limit(CONFIG / 'submarine.yaml', ['simulator.duration:=5000.0']) == \
         pytest.approx(60.0 + 0.02 * steps)
-    assert run_limit(CONFIG / 'submarine.yaml') == pytest.approx(
-        60.0 + 0.02 * round(vehicle.simulator.duration / vehicle.sample_time))
+    own = 60.0 + 0.02 * round(vehicle.simulator.duration / vehicle.sample_time)
+    assert run_limit(CONFIG / 'submarine.yaml') == pytest.approx(own)
+    assert run_limit(CONFIG / 'submarine.yaml', ['simulator.duration:=1.0']) == \
+        pytest.approx(own)      # never shorter than the file's own limit
     bag = tmp_path / 'runs' / 'dive'
     assert run_main([str(CONFIG / 'submarine.yaml'), '--out', str(bag),
                      '-p', 'simulator.duration:=-5.0']) == 2
