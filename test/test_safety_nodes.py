@@ -3,16 +3,20 @@
 
 import contextlib
 from pathlib import Path
+from types import SimpleNamespace
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus
 import numpy as np
+from observer_ros.core.errors import ObserverError
 from observer_ros.core.estimators import make_estimator
-from observer_ros.nodes.common import joint_state, SENSOR_QOS, STATE_QOS
+from observer_ros.nodes.common import (joint_state, SENSOR_QOS, STATE_QOS,
+                                       vector_from_joint_state)
 from observer_ros.nodes.compensator import command_problem
 from observer_ros.sensors import extract_measurement
 from observer_ros.timeutil import stamp_to_sec
 from observer_ros.vehicle import load_vehicle
+import pytest
 from ros_helpers import CONFIG, Probe, Proc
 from sensor_msgs.msg import Imu, JointState
 from test_nodes_faults import _imu, Listener
@@ -252,3 +256,22 @@ def test_a_second_publisher_of_the_estimate_is_an_error(tmp_path):
         probe.spin_until(lambda: (s := listener.latest_status('compensator')) is not None
                          and s.level != DiagnosticStatus.ERROR, 60.0,
                          'the compensator error cleared')
+
+
+def test_bad_input_messages_are_bounded_in_length():
+    """Row 7: a message about bad input names a few components, never all of them."""
+    names = [f'j{i}' for i in range(10**6)]
+    huge = SimpleNamespace(name=names, position=[0.0] * 10**6)
+    with pytest.raises(ObserverError, match='1000000 components, more than the 64') as err:
+        vector_from_joint_state(huge, ['delta'], 'control/u')
+    assert len(str(err.value)) < 200
+    few = SimpleNamespace(name=names[:60], position=[0.0] * 60)
+    with pytest.raises(ObserverError, match='missing component') as err:
+        vector_from_joint_state(few, ['delta'], 'control/u')
+    assert len(str(err.value)) < 200
+    encoder = load_vehicle(CONFIG / 'cart_pendulum.yaml')
+    sensor = next(s for s in encoder.sensors if s.msg_type == 'sensor_msgs/msg/JointState')
+    js = JointState(name=names[:10**5], position=[0.0] * 10**5)
+    with pytest.raises(ObserverError, match='is not in JointState.name') as err:
+        extract_measurement(js, sensor)
+    assert len(str(err.value)) < 300 and '100000 names' in str(err.value)
