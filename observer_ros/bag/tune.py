@@ -42,7 +42,8 @@ from .gain_search import DEFAULT_SCALES, gain_search, search_overrides
 from .identify import Identification, identify
 from .metrics import WHITENESS_LAGS
 from .plots import plot_autocovariances, plot_search
-from .report import csv_cell, fmt, prepare_out, text_table
+from .outputs import check_output, prepare_output, seal_output
+from .report import csv_cell, fmt, text_table
 from .results import jsonable
 from .tuned_vehicle import OBSERVER_KEYS, write_tuned_vehicle
 from ..core.als import DEFAULT_LAGS
@@ -158,6 +159,7 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
     if not als and search in ('kalman', 'none'):
         raise BagToolError(f'--no-als --search {search}: nothing to tune (use --search poles)')
     output = Path(output) if output else out / f'{Path(vehicle_path).stem}_tuned.yaml'
+    check_output(out, force, 'observer-tune')          # before the work, touching nothing
     if output.exists() or output.is_symlink():
         raise BagToolError(f'{output} exists; the tuned vehicle file is never overwritten '
                            '(give another --output)')
@@ -166,7 +168,7 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
     ident = identify(bags, vehicle, namespace, lags, full, states, burn, passes,
                      input_noise) \
         if als else None
-    out = prepare_out(out, force, marker='tune.json', tool='observer-tune')
+    out = prepare_output(out, force, 'observer-tune')
     files = []
     tmp = None
     if ident is not None:
@@ -213,6 +215,7 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
         tmp.unlink()
     result = TuneResult(ident, sr, vehicle_file)
     files += _write_report(result, out, plots)
+    seal_output(out, 'observer-tune', files)       # the tuned vehicle file is not ours
     result.files = files + [vehicle_file]
     result.seconds = time.perf_counter() - start
     return result
@@ -395,9 +398,7 @@ def main(argv=None):
     try:
         scales, states = _check_args(args)
         out = Path(args.out) if args.out else default_out(args.bags[0])
-        if out.exists() and not args.force:
-            raise BagToolError(f'{out} exists; refusing to overwrite it (use --force or '
-                               '--out DIR)')
+        check_output(out, args.force, 'observer-tune')
         with warnings.catch_warnings():
             warnings.simplefilter('ignore')
             result = tune(args.bags, args.vehicle, out, args.output, args.namespace,
