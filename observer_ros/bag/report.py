@@ -8,7 +8,6 @@ The plots themselves are in :mod:`observer_ros.bag.plots`.
 
 import json
 import math
-from pathlib import Path
 import re
 
 import numpy as np

@@ -41,8 +41,8 @@ from .evaluate import _load_vehicle, _Progress
 from .gain_search import DEFAULT_SCALES, gain_search, search_overrides
 from .identify import Identification, identify
 from .metrics import WHITENESS_LAGS
-from .plots import plot_autocovariances, plot_search
 from .outputs import check_output, prepare_output, seal_output
+from .plots import plot_autocovariances, plot_search
 from .report import csv_cell, fmt, text_table
 from .results import jsonable
 from .tuned_vehicle import OBSERVER_KEYS, write_tuned_vehicle
