@@ -42,7 +42,7 @@ setup(
             'observer-play = observer_ros.bag.play:main',
             'observer_run = observer_ros.tools.run_closed_loop:main',
             'observer-run = observer_ros.tools.run_closed_loop:main',
-            'observer-bag-recover = observer_ros.bagrecover:main',
+            'observer-bag-recover = observer_ros.bag.recover:main',
         ],
     },
 )

@@ -40,6 +40,7 @@ import numpy as np
 from .errors import BagToolError
 from .metrics import (DEFAULT_TOLERANCE, score_variant, STEADY_FRACTION, tolerances,
                       whiteness, WHITENESS_LAGS)
+from .outputs import check_output
 from .reader import read_recording
 from .replay import CLOCK_JUMP_TOLERANCE, epochs_of, live_replay, replay
 from .report import BAG_MAX_MESSAGES, format_table, write_results
@@ -538,9 +539,7 @@ def main(argv=None):
         if not Path(args.bag).exists():
             raise BagToolError(f'{args.bag}: no such file or directory')
         out = Path(args.out) if args.out else _default_out(args.bag)
-        if out.exists() and not args.force:
-            raise BagToolError(f'{out} exists; refusing to overwrite it (use --force or '
-                               '--out DIR)')
+        check_output(out, args.force, 'observer-eval')
         with warnings.catch_warnings():
             warnings.simplefilter('ignore')
             result = evaluate_bag(args.bag, args.vehicle, variants, args.namespace,

@@ -9,12 +9,13 @@ The family is one parameter, a scale ``s`` of the vehicle's observer:
 - ``kalman``: the Kalman process-noise covariance ``observer.Qd`` times s (only the
   ratio of Qd to Rd sets the gain): s > 1 trusts the measurements more.
 
-Each bag is read once and replayed through every scale (:func:`evaluate_bag` with one
-variant per scale). The metric of a bag is the RMS of the estimation error norm against
-``state/true`` when every bag has it (``error_rms``); otherwise, per output, the residual
-RMS relative to that of the scale nearest 1, plus the fraction of autocorrelation lags
-outside +-1.96/sqrt(N) (0.05 for white residuals), averaged over the outputs. The search
-minimises the mean over the bags.
+Each bag is read once and replayed through every scale of a grid (:func:`evaluate_bag`
+with one variant per scale); ``refine`` then narrows the best grid interval with
+``scipy.optimize.minimize_scalar``. The metric of a bag is the RMS of the estimation
+error norm against ``state/true`` when every bag has it (``error_rms``); otherwise, per
+output, the residual RMS relative to that of the scale nearest 1, plus the fraction of
+autocorrelation lags outside +-1.96/sqrt(N) (0.05 for white residuals), averaged over the
+outputs. The search minimises the mean over the bags.
 
 """
 
@@ -101,8 +102,30 @@ def _bag_metric(result, names, scales, truth):
     return out
 
 
+def _scores(bags, vehicle, base, kind, scales, namespace, exact, progress=None):
+    """Return ({bag: [metric per scale]}, truth) of one batch of scales."""
+    names = tuple(f'scale_{i}' for i in range(len(scales)))
+    variants = {n: search_overrides(base, kind, s) for n, s in zip(names, scales)}
+    results = []
+    for i, bag in enumerate(bags):
+        if progress:
+            progress('searching', i, len(bags))
+        results.append(evaluate_bag(bag, vehicle, variants, namespace, exact=exact,
+                                    include_live=False, include_design=False))
+    if progress:
+        progress('searching', len(bags), len(bags))
+    truth = all(r.truth is not None for r in results)
+    per_bag = {}
+    for bag, r in zip(bags, results):
+        key = str(bag)
+        while key in per_bag:
+            key += "'"
+        per_bag[key] = _bag_metric(r, names, scales, truth)
+    return per_bag, truth
+
+
 def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exact=False,
-                progress=None):
+                progress=None, refine=0):
     """
     Score a family of observers (see the module) on one or many bags.
 
@@ -122,6 +145,10 @@ def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exac
         No bulk replay.
     progress : callable, optional
         ``progress(label, done, total)`` per bag.
+    refine : int
+        Then at most this many more evaluations of scipy.optimize.minimize_scalar
+        (bounded, on log s) between the grid neighbours of the best grid scale (only
+        when it is inside the grid); they join the table.
 
     Returns
     -------
@@ -130,29 +157,36 @@ def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exac
     """
     from .evaluate import _load_vehicle
     base = _load_vehicle(vehicle)
-    scales = [float(s) for s in scales]
+    scales = sorted(float(s) for s in scales)
     if not scales or any(not (s > 0 and math.isfinite(s)) for s in scales):
         raise BagToolError(f'--grid: scales must be positive numbers; got {scales}')
-    names = tuple(f'scale_{i}' for i in range(len(scales)))
-    variants = {n: search_overrides(base, kind, s) for n, s in zip(names, scales)}
-    results = []
-    for i, bag in enumerate(bags):
-        if progress:
-            progress('searching', i, len(bags))
-        results.append(evaluate_bag(bag, vehicle, variants, namespace, exact=exact,
-                                    include_live=False, include_design=False))
-    if progress:
-        progress('searching', len(bags), len(bags))
-    truth = all(r.truth is not None for r in results)
-    per_bag = {}
-    for bag, r in zip(bags, results):
-        key = str(bag)
-        while key in per_bag:
-            key += "'"
-        per_bag[key] = _bag_metric(r, names, scales, truth)
+    per_bag, truth = _scores(bags, vehicle, base, kind, scales, namespace, exact, progress)
     mean = np.nanmean(np.array(list(per_bag.values())), axis=0)
+    i = int(np.nanargmin(mean)) if np.isfinite(mean).any() else -1
+    if refine and 0 < i < len(scales) - 1:
+        from scipy.optimize import minimize_scalar
+        # the residual metric is relative to the scale nearest 1: score it alongside
+        ref = min(scales, key=lambda s: abs(math.log(s)))
+        extra = {}
+
+        def cost(logs):
+            s = float(math.exp(logs))
+            got, _ = _scores(bags, vehicle, base, kind, [s, ref], namespace, exact)
+            extra[s] = {k: v[0] for k, v in got.items()}
+            return float(np.nanmean(list(extra[s].values())))
+        minimize_scalar(cost, bounds=(math.log(scales[i - 1]), math.log(scales[i + 1])),
+                        method='bounded', options={'maxiter': int(refine), 'xatol': 0.01})
+        for s, values in extra.items():
+            if s in scales:
+                continue
+            k = int(np.searchsorted(scales, s))
+            scales.insert(k, s)
+            for key in per_bag:
+                per_bag[key] = list(per_bag[key])
+                per_bag[key].insert(k, values[key])
+        mean = np.nanmean(np.array(list(per_bag.values())), axis=0)
     best = scales[int(np.nanargmin(mean))] if np.isfinite(mean).any() else math.nan
     metric = 'error_rms (|x_hat - x_true| RMS)' if truth else \
         'residual RMS / that at scale ~1 + fraction of ACF lags outside'
     return SearchResult(kind, metric, scales, per_bag, [float(v) for v in mean], best,
-                        {s: variants[n] for n, s in zip(names, scales)})
+                        {s: search_overrides(base, kind, s) for s in scales})

@@ -8,18 +8,16 @@ The plots themselves are in :mod:`observer_ros.bag.plots`.
 
 import json
 import math
-from pathlib import Path
 import re
-import shutil
 
 import numpy as np
 
-from .errors import BagToolError
 from .metrics import WHITENESS_LAGS
+from .outputs import prepare_output, seal_output
 from .plots import decimate, write_plots
 from .reader import jazzy_typestore
 
-__all__ = ['BAG_MAX_MESSAGES', 'fmt', 'text_table', 'format_table', 'prepare_out',
+__all__ = ['BAG_MAX_MESSAGES', 'fmt', 'text_table', 'format_table',
            'write_results', 'write_results_bag', 'csv_cell']
 
 BAG_MAX_MESSAGES = 100_000      # per topic in the results bag (decimated beyond)
@@ -138,29 +136,6 @@ def csv_cell(v):
     return str(v)
 
 
-def prepare_out(out, force, marker='results.json', tool='observer-eval'):
-    """
-    Create the output folder; with ``force`` replace an earlier output of ``tool``.
-
-    An existing non-empty folder is replaced only if it holds ``marker`` (the tool's
-    own output); otherwise it is refused even with ``force``.
-
-    """
-    out = Path(out)
-    if out.exists():
-        if not force:
-            raise BagToolError(f'{out} exists; refusing to overwrite it (use --force or '
-                               '--out DIR)')
-        if not out.is_dir():
-            raise BagToolError(f'{out} exists and is not a folder')
-        if any(out.iterdir()) and not (out / marker).exists():
-            raise BagToolError(f'{out} exists and is not an {tool} output folder '
-                               f'(no {marker}); not deleting it even with --force')
-        shutil.rmtree(out)
-    out.mkdir(parents=True)
-    return out
-
-
 def write_results(result, out, force=False, plots=True, results_bag=True,
                   bag_max_messages=BAG_MAX_MESSAGES):
     """
@@ -194,7 +169,7 @@ def write_results(result, out, force=False, plots=True, results_bag=True,
         The folder exists (without ``force``), or exists and is not an earlier output.
 
     """
-    out = prepare_out(out, force)
+    out = prepare_output(out, force, 'observer-eval')
     files = []
     table = format_table(result)
     (out / 'results.txt').write_text(table + '\n')
@@ -212,6 +187,7 @@ def write_results(result, out, force=False, plots=True, results_bag=True,
         files += write_plots(result, out)
     if results_bag:
         files.append(write_results_bag(result, out / 'results_bag', bag_max_messages))
+    seal_output(out, 'observer-eval', files)
     return files
 
 

@@ -2,11 +2,12 @@
 """
 Tune an observer from recorded data.
 
-1. Noise covariances by autocovariance least squares (:mod:`observer_ros.core.als`): the
-   bags' outputs and commands on their sample grid (:mod:`observer_ros.bag.sampled`), the
-   innovations of a stable reference predictor (the vehicle's own observer), the transient
-   dropped, autocovariances over ``--lags`` lags (pooled over the bags), Q on the noise
-   input's columns (``observer.Bd``, ``--states`` or every state) and R; diagonal and
+1. Noise covariances by autocovariance least squares (:mod:`observer_ros.bag.identify`,
+   :mod:`observer_ros.core.als`): the bags' outputs and commands on their sample grid
+   (:mod:`observer_ros.bag.sampled`), the innovations of a stable reference predictor
+   (the vehicle's own observer), the transient dropped, autocovariances over ``--lags``
+   lags (pooled over the bags), Q on the noise input's columns (``observer.Bd``,
+   ``--states``, ``--input-noise`` or every state) and R; diagonal and
    non-negative, or ``--full`` (symmetric, projected to be positive semidefinite). A
    second pass repeats it with the Kalman predictor of the first pass's covariances as
    the reference (``--passes``; Rajamani & Rawlings 2009 recommend a reference close to
@@ -30,7 +31,7 @@ import math
 from pathlib import Path
 import sys
 import time
-from typing import Dict, List
+from typing import List
 import warnings
 
 import numpy as np
@@ -38,167 +39,17 @@ import numpy as np
 from .errors import BagToolError
 from .evaluate import _load_vehicle, _Progress
 from .gain_search import DEFAULT_SCALES, gain_search, search_overrides
-from .metrics import whiteness, WHITENESS_LAGS
+from .identify import Identification, identify
+from .metrics import WHITENESS_LAGS
+from .outputs import check_output, prepare_output, seal_output
 from .plots import plot_autocovariances, plot_search
-from .reader import read_recording
-from .report import csv_cell, fmt, prepare_out, text_table
+from .report import csv_cell, fmt, text_table
 from .results import jsonable
-from .sampled import noise_input, reference_gain, sampled_data, sampled_model
-from .tuned_vehicle import write_tuned_vehicle
-from ..core.als import (ALSError, DEFAULT_LAGS, identify_noise, kalman_predictor_gain,
-                        predictor_innovations, process_noise_map)
+from .tuned_vehicle import OBSERVER_KEYS, write_tuned_vehicle
+from ..core.als import DEFAULT_LAGS
 from ..core.errors import ObserverError
 
-__all__ = ['Identification', 'identify', 'tune', 'main', 'TRANSIENT_DECAY']
-
-#: Samples dropped at the start of each bag: until the reference predictor's slowest mode
-#: has decayed to this fraction.
-TRANSIENT_DECAY = 1e-6
-
-
-@dataclass
-class Identification:
-    """What :func:`identify` found (see the module)."""
-
-    vehicle: object
-    bags: List[str]
-    dt: float
-    G: np.ndarray
-    noise_names: List[str]
-    reference: str
-    passes: list                  # ALSResult per pass; the last is the answer
-    samples: Dict[str, int]
-    burn: int
-    whiteness_before: Dict[str, dict]
-    whiteness_after: Dict[str, dict]
-    warnings: List[str] = field(default_factory=list)
-
-    @property
-    def result(self):
-        """Return the last pass's ALSResult."""
-        return self.passes[-1]
-
-    def to_dict(self):
-        """Return JSON-ready data."""
-        r = self.result
-        return jsonable({
-            'bags': self.bags, 'vehicle': self.vehicle.name, 'dt': self.dt,
-            'noise_input': self.G.tolist(), 'noise_names': self.noise_names,
-            'reference': self.reference, 'samples': self.samples, 'burn': self.burn,
-            'Qd': r.Q.tolist(), 'Rd': r.R.tolist(), 'condition': r.condition,
-            'passes': [p.to_dict() for p in self.passes],
-            'whiteness_reference': self.whiteness_before,
-            'whiteness_tuned_kalman': self.whiteness_after, 'warnings': self.warnings})
-
-
-def _mehra(e, names):
-    """Mehra's test per output: white when at most 5 % of the lags leave +-1.96/sqrt(N)."""
-    out = {}
-    for j, name in enumerate(names):
-        w = whiteness(e[:, j], WHITENESS_LAGS)
-        w['white'] = bool(w['acf_outside'] <= 0.05) if math.isfinite(w['acf_outside']) \
-            else None
-        w.pop('acf', None)
-        out[name] = w
-    return out
-
-
-def identify(bags, vehicle, namespace=None, lags=DEFAULT_LAGS, full=False, states=None,
-             burn=None, passes=2, input_noise=False):
-    """
-    Identify the process and measurement noise covariances from bags (ALS).
-
-    Parameters
-    ----------
-    bags : sequence of str or Path
-        Bags of the same vehicle at the same sample rate.
-    vehicle : str or Path or Vehicle
-        The vehicle (its model, sensors and observer, the reference).
-    namespace : str, optional
-        The vehicle's namespace in the bags (detected when None).
-    lags : int
-        Autocovariance lags.
-    full : bool
-        Full symmetric covariances (default diagonal).
-    states : sequence of str, optional
-        Process noise on these states (default ``observer.Bd``, else every state).
-    burn : int, optional
-        Samples dropped at the start of each bag (default: the reference's transient).
-    passes : int
-        ALS passes; each after the first uses the previous pass's Kalman predictor.
-    input_noise : bool
-        Process noise on the inputs (G = B) instead.
-
-    Returns
-    -------
-    result : Identification
-
-    Raises
-    ------
-    BagToolError
-        A bag cannot be used (see :func:`~observer_ros.bag.sampled.sampled_data`).
-    ALSError
-        The noise is not identifiable with this model and these data.
-
-    """
-    vehicle = _load_vehicle(vehicle)
-    plant = vehicle.plant
-    data, warn = [], []
-    for bag in bags:
-        rec = read_recording(bag, vehicle, namespace)
-        s = sampled_data(rec, vehicle)
-        warn += [f'{bag}: {w}' for w in rec.warnings + s.warnings]
-        data.append(s)
-    dt = data[0].dt
-    for bag, s in zip(bags, data):
-        if abs(s.dt / dt - 1.0) > 1e-3:
-            raise BagToolError(f'{bag}: sample step {s.dt:.6g} s differs from {dt:.6g} s of '
-                               f'{bags[0]}: identify bags of one rate together')
-    Ad, Bd = sampled_model(vehicle, dt)
-    C, D = np.asarray(plant.C, float), np.asarray(plant.D, float)
-    G, noise_names = noise_input(vehicle, states, input_noise)
-    F = process_noise_map(plant.A, G, dt, plant.is_discrete)
-    Lp, reference = reference_gain(vehicle, Ad, dt, G)
-    rho = float(np.max(np.abs(np.linalg.eigvals(Ad - Lp @ C))))
-    drop = max(10, int(math.ceil(math.log(TRANSIENT_DECAY) / math.log(rho)))) \
-        if 0.0 < rho < 1.0 else 10
-    if burn is not None:
-        drop = int(burn)
-    short = [str(b) for b, s in zip(bags, data) if s.y.shape[0] - drop < 10 * lags]
-    if short:
-        raise BagToolError(f'{short[0]}: fewer than {10 * lags} samples after dropping the '
-                           f'first {drop} (the transient); record longer or lower --burn')
-    names = (noise_names, list(plant.output_names))
-
-    ref = [predictor_innovations(Ad, Bd, C, D, Lp, s.y, s.u, s.u_meas, states=True)
-           for s in data]
-
-    def innovations(gain):
-        """Innovations after the reference's transient; ``gain`` starts from its state."""
-        if gain is Lp:
-            return [e[drop:] for e, _ in ref]
-        return [predictor_innovations(Ad, Bd, C, D, gain, s.y[drop:], s.u[drop:],
-                                      s.u_meas[drop:], x0=xs[drop])
-                for s, (_, xs) in zip(data, ref)]
-
-    results = []
-    e_ref = innovations(Lp)
-    gain = Lp
-    for i in range(max(1, int(passes))):
-        e = e_ref if i == 0 else innovations(gain)
-        res = identify_noise(e, Ad, C, gain, F, G.shape[1], lags, full, names)
-        results.append(res)
-        if np.min(np.linalg.eigvalsh(res.R)) <= 0.0:
-            raise ALSError('the identified measurement noise covariance R is not positive '
-                           f'definite (diag {np.diag(res.R).tolist()}): the data do not '
-                           'show measurement noise; a Kalman filter cannot be designed')
-        gain = kalman_predictor_gain(Ad, C, res.Qk, res.R)
-    outputs = list(plant.output_names)
-    before = _mehra(np.vstack(e_ref), outputs)
-    after = _mehra(np.vstack(innovations(gain)), outputs)
-    return Identification(vehicle, [str(b) for b in bags], dt, G, noise_names, reference,
-                          results, {str(b): int(s.y.shape[0]) for b, s in zip(bags, data)},
-                          drop, before, after, warn)
+__all__ = ['Identification', 'identify', 'TuneResult', 'tune', 'format_report', 'main']
 
 
 def _tuned_observer(ident):
@@ -253,7 +104,7 @@ def default_out(bag):
 def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS,
          full=False, states=None, burn=None, passes=2, als=True, search='auto',
          scales=DEFAULT_SCALES, use_search=False, force=False, plots=True, progress=None,
-         input_noise=False):
+         input_noise=False, refine=0):
     """
     Identify, search and write the tuned vehicle file and the report (see the module).
 
@@ -288,6 +139,8 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
         ``progress(label, done, total)``.
     input_noise : bool
         See :func:`identify`.
+    refine : int
+        Evaluations of scipy.optimize.minimize_scalar after the grid (0: none).
 
     Returns
     -------
@@ -300,9 +153,13 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
     out = Path(out)
     if search == 'auto':
         search = 'kalman' if als else 'poles'
+    if als and search == 'poles' and use_search:
+        raise BagToolError('--use-search --search poles: the tuned file is a Kalman filter; '
+                           'add --no-als to write the best poles')
     if not als and search in ('kalman', 'none'):
         raise BagToolError(f'--no-als --search {search}: nothing to tune (use --search poles)')
     output = Path(output) if output else out / f'{Path(vehicle_path).stem}_tuned.yaml'
+    check_output(out, force, 'observer-tune')          # before the work, touching nothing
     if output.exists() or output.is_symlink():
         raise BagToolError(f'{output} exists; the tuned vehicle file is never overwritten '
                            '(give another --output)')
@@ -311,7 +168,7 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
     ident = identify(bags, vehicle, namespace, lags, full, states, burn, passes,
                      input_noise) \
         if als else None
-    out = prepare_out(out, force, marker='tune.json', tool='observer-tune')
+    out = prepare_output(out, force, 'observer-tune')
     files = []
     tmp = None
     if ident is not None:
@@ -327,16 +184,21 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
     sr = None
     if search != 'none':
         sr = gain_search(bags, tmp if search == 'kalman' else vehicle_path, search, scales,
-                         namespace, progress=progress)
-    if ident is None:
-        observer = {'observer.type': vehicle.observer.kind}
+                         namespace, progress=progress, refine=refine)
+    replace = OBSERVER_KEYS
+    if ident is None:           # only the poles change: the rest of the design stays
+        replace = ('observer.poles', 'observer.poles_imag')
+        observer = {}
         header = [f'{vehicle.name} with observer poles chosen by observer-tune from '
                   f'{", ".join(bags)}', f'original: {vehicle_path}']
         sources = {}
+    if ident is None and not math.isfinite(sr.best):
+        raise BagToolError('the gain search found no finite metric: no poles to write')
     if sr is not None and (use_search or ident is None) and math.isfinite(sr.best):
         best = _load_vehicle(tmp if search == 'kalman' else vehicle_path,
                              sr.overrides[sr.best])
-        note = (f'observer-tune gain search ({search} scale {sr.best:g} of {sr.scales}, '
+        grid = ', '.join(f'{x:.4g}' for x in sr.scales)
+        note = (f'observer-tune gain search ({search} scale {sr.best:g} of [{grid}], '
                 f'metric {sr.metric}, on {", ".join(bags)})')
         if search == 'kalman':
             observer['observer.Qd'] = list(np.ravel(best.observer.Qd))
@@ -347,11 +209,13 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
             observer['observer.poles_imag'] = list(p.imag)
             sources['observer.poles'] = note
             sources['observer.poles_imag'] = note
-    vehicle_file = write_tuned_vehicle(vehicle_path, output, observer, sources, header)
+    vehicle_file = write_tuned_vehicle(vehicle_path, output, observer, sources, header,
+                                       replace)
     if tmp is not None:
         tmp.unlink()
     result = TuneResult(ident, sr, vehicle_file)
     files += _write_report(result, out, plots)
+    seal_output(out, 'observer-tune', files)       # the tuned vehicle file is not ours
     result.files = files + [vehicle_file]
     result.seconds = time.perf_counter() - start
     return result
@@ -490,6 +354,9 @@ def _parser():
                         'identification, poles without it)')
     parser.add_argument('--grid', help='search scales, comma-separated (default '
                         f'{",".join(f"{s:g}" for s in DEFAULT_SCALES)})')
+    parser.add_argument('--refine', type=int, default=0, metavar='N',
+                        help='then up to N evaluations of scipy.optimize.minimize_scalar '
+                        'around the best grid scale (default 0: the grid only)')
     parser.add_argument('--use-search', action='store_true',
                         help="write the search's best scale into the tuned file")
     parser.add_argument('--force', action='store_true',
@@ -503,6 +370,8 @@ def _parser():
 def _check_args(args):
     if args.lags < 1:
         raise BagToolError(f'--lags {args.lags}: must be at least 1')
+    if args.refine < 0:
+        raise BagToolError(f'--refine {args.refine}: must be >= 0')
     if args.passes < 1:
         raise BagToolError(f'--passes {args.passes}: must be at least 1')
     if args.burn is not None and args.burn < 0:
@@ -529,16 +398,14 @@ def main(argv=None):
     try:
         scales, states = _check_args(args)
         out = Path(args.out) if args.out else default_out(args.bags[0])
-        if out.exists() and not args.force:
-            raise BagToolError(f'{out} exists; refusing to overwrite it (use --force or '
-                               '--out DIR)')
+        check_output(out, args.force, 'observer-tune')
         with warnings.catch_warnings():
             warnings.simplefilter('ignore')
             result = tune(args.bags, args.vehicle, out, args.output, args.namespace,
                           args.lags, args.full, states, args.burn, args.passes,
                           not args.no_als, args.search, scales, args.use_search,
                           args.force, not args.no_plots, progress,
-                          args.input_noise)
+                          args.input_noise, args.refine)
         progress.finish()
     except (ObserverError, OSError) as err:
         progress.finish()

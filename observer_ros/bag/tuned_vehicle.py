@@ -28,7 +28,7 @@ def _floats(values):
     return [float(v) for v in values]
 
 
-def tuned_parameters(source, observer):
+def tuned_parameters(source, observer, replace=OBSERVER_KEYS):
     """
     Return the flat parameters of ``source`` (a vehicle file) with a new observer.
 
@@ -38,10 +38,12 @@ def tuned_parameters(source, observer):
         The original vehicle file.
     observer : dict
         New ``observer.*`` values (dotted keys); numbers in arrays become floats.
+    replace : sequence of str
+        The original's keys dropped first (default the whole observer design).
 
     """
     flat = load_parameters(source)
-    flat = {k: v for k, v in flat.items() if k not in OBSERVER_KEYS}
+    flat = {k: v for k, v in flat.items() if k not in replace}
     for key, value in observer.items():
         flat[key] = _floats(value) if isinstance(value, (list, tuple)) else value
     return flat
@@ -52,7 +54,7 @@ class _NoAliasDumper(yaml.SafeDumper):
         return True
 
 
-def write_tuned_vehicle(source, path, observer, sources, header=()):
+def write_tuned_vehicle(source, path, observer, sources, header=(), replace=OBSERVER_KEYS):
     """
     Write a new vehicle file with a tuned observer; return its path.
 
@@ -68,6 +70,8 @@ def write_tuned_vehicle(source, path, observer, sources, header=()):
         Key -> a comment saying where its numbers come from.
     header : sequence of str
         Comment lines at the top of the file.
+    replace : sequence of str
+        The original's keys dropped (see :func:`tuned_parameters`).
 
     Raises
     ------
@@ -79,7 +83,7 @@ def write_tuned_vehicle(source, path, observer, sources, header=()):
     if path.exists() or path.is_symlink():
         raise BagToolError(f'{path} exists; the tuned vehicle file is never overwritten '
                            '(give another --output)')
-    flat = tuned_parameters(source, observer)
+    flat = tuned_parameters(source, observer, replace)
     text = parameters_to_yaml(flat)
     # parameters_to_yaml uses safe_dump; make sure nothing became an alias
     if '&' in text or '*' in text.replace('"*', '').replace("'*", ''):
