@@ -141,3 +141,19 @@ def test_command_line_merged_table_summary_and_plot(tmp_path):
         assert main([str(SAMPLES / 'submarine'), '--vehicle', str(CONFIG / 'submarine.yaml'),
                      '--out', str(out), '--serial']) == 2
     assert e2.getvalue().startswith('error: ') and 'exists' in e2.getvalue()
+
+
+def test_jobs_run_on_an_existing_cluster_named_by_the_environment(monkeypatch):
+    from distributed import LocalCluster
+    from observer_ros.bag.jobs import SCHEDULER_ENV
+    jobs = make_jobs([SAMPLES / 'submarine'], CONFIG / 'submarine.yaml',
+                     {'openloop': OPEN_LOOP})
+    serial = run_jobs(jobs, 'serial')
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster:
+        monkeypatch.setenv(SCHEDULER_ENV, cluster.scheduler_address)
+        rows = run_jobs(jobs, 'dask')
+        # the cluster is still there: run_jobs closed only its client
+        assert cluster.scheduler_address
+        again = run_jobs(jobs, 'dask', scheduler=cluster.scheduler_address)
+    assert _numbers(rows) == _numbers(serial) == _numbers(again)
