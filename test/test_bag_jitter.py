@@ -78,3 +78,60 @@ def test_long_stretches_are_replayed_in_pieces_with_the_same_estimates(tmp_path,
     assert_allclose(pieces.x_hat, exact.x_hat, rtol=1e-9, atol=1e-10)
     np.testing.assert_array_equal(pieces.stamp_ns, exact.stamp_ns)
     np.testing.assert_array_equal(pieces.seq, exact.seq)
+
+
+def test_jittered_maps_are_built_in_bulk_with_few_probes(tmp_path, monkeypatch):
+    from observer_ros.bag import replay as replay_module
+    vehicle = load_vehicle(CONFIG / 'submarine.yaml')
+    run = simulate(vehicle, steps=400, noise=True)
+    rec = read_recording(write_bag(tmp_path / 'jit', _jittered(run['messages'])), vehicle)
+    calls = []
+    probe = replay_module._probe
+
+    def counted(*args):
+        calls.append(args[1])
+        return probe(*args)
+
+    monkeypatch.setattr(replay_module, '_probe', counted)
+    bulk = replay(rec, vehicle)
+    exact = replay(rec, vehicle, exact=True)
+    assert bulk.bulk_steps > 300 and not bulk.warnings
+    assert len(calls) <= replay_module.CHECK_CLASSES       # one probe per step before
+    assert_allclose(bulk.x_hat, exact.x_hat, rtol=1e-9, atol=1e-10)
+    assert_allclose(bulk.residual, exact.residual, rtol=1e-9, atol=1e-10)
+
+
+def test_zoh_stack_equals_scipy_expm():
+    import scipy.linalg
+    from observer_ros.bag.step_maps import zoh_stack
+    vehicle = load_vehicle(CONFIG / 'submarine.yaml')
+    A, B = vehicle.plant.A, vehicle.plant.B
+    n, m = B.shape
+    rng = np.random.default_rng(1)
+    keys = np.concatenate([0.05 + rng.uniform(-3e-4, 3e-4, 200), [0.05, 2.5, 1e-6]])
+    Ad, Bd = zoh_stack(A, B, keys)
+    aug = np.zeros((n + m, n + m))
+    aug[:n, :n], aug[:n, n:] = A, B
+    for h, Ad_h, Bd_h in zip(keys, Ad, Bd):
+        E = scipy.linalg.expm(aug * h)
+        assert_allclose(Ad_h, E[:n, :n], rtol=1e-13, atol=1e-15)
+        assert_allclose(Bd_h, E[:n, n:], rtol=1e-13, atol=1e-15)
+
+
+def test_bulk_maps_equal_the_probed_maps_of_every_step():
+    from observer_ros.bag.replay import _probe
+    from observer_ros.bag.step_maps import bulk_maps
+    vehicle = load_vehicle(CONFIG / 'submarine.yaml')
+    rows = [tuple(vehicle.plant.output_rows(vehicle.sensors[0].outputs))]
+    steps = 0.05 + np.random.default_rng(2).uniform(-3e-4, 3e-4, 50)
+    for kind in ('full', 'open_loop'):
+        obs = copy.deepcopy(vehicle.observer)
+        if kind == 'open_loop':
+            object.__setattr__(obs, 'kind', 'open_loop')
+        est = make_estimator(vehicle.plant, obs)
+        assert est.kind == kind
+        maps = bulk_maps(est, steps, np.zeros(steps.size, dtype=int), rows)
+        for h, mp in zip(steps, maps):
+            probed = _probe(_twin(est), 10.0, 10.0 + h, rows[0])
+            for bulk, measured in zip(mp, probed):
+                assert_allclose(bulk, measured, rtol=1e-10, atol=1e-12)

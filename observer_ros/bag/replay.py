@@ -54,6 +54,7 @@ from typing import Dict, Tuple
 import numpy as np
 
 from .errors import BagToolError
+from .step_maps import bulk_maps
 from ..core.errors import ObserverError
 from ..core.estimators import make_estimator
 
@@ -70,6 +71,7 @@ CHECK_IRREGULAR = 16           # most windows at irregular places of a stretch
 IRREGULAR_STEPS = 3            # steps of each of those
 MAX_GROWTH = 1e3               # unstable step maps: most growth to the end of the bag
 CHECK_RTOL = 1e-10             # bulk vs call, relative to the terms of the steps so far
+CHECK_CLASSES = 32             # step classes checked call by call (jittered: one per step)
 _PROGRESS_EVERY = 1 << 15
 
 
@@ -624,6 +626,51 @@ def _probe(probe, t0, t1, rows):
     return F, G, H, Rx, Ry, Ru
 
 
+def _spread(items, count):
+    """Return up to ``count`` of ``items`` spread evenly, the first and the last included."""
+    if len(items) <= count:
+        return list(items)
+    return [items[i] for i in np.linspace(0, len(items) - 1, count).round().astype(int)]
+
+
+def _step_maps(est, tm, a, first, sens, rows, warnings):
+    """
+    Return the affine map of each step class of a run (first step of class c: first[c]).
+
+    Built in bulk (:func:`~observer_ros.bag.step_maps.bulk_maps`) when there are more
+    than :data:`CHECK_CLASSES` classes (jittered stamps) and the estimator is one it
+    models, then checked against :func:`_probe` on :data:`CHECK_CLASSES` classes spread
+    over the run; else measured by :func:`_probe` class by class. None: not linear.
+
+    """
+    probe = _twin(est)
+    t0 = tm[a + np.asarray(first)]
+    t1 = tm[a + np.asarray(first) + 1]
+    ks = [int(sens[f]) for f in first]
+    maps = None
+    if len(first) > CHECK_CLASSES:
+        maps = bulk_maps(est, t1 - t0, ks, rows)
+    todo = range(len(first)) if maps is None else _spread(range(len(first)), CHECK_CLASSES)
+    probed = {}
+    for c in todo:
+        mp = _probe(probe, float(t0[c]), float(t1[c]), rows[ks[c]])
+        if mp is None:
+            warnings.append('bulk replay disabled: an estimator step is not linear')
+            return None
+        probed[c] = mp
+    if maps is None:
+        return [probed[c] for c in range(len(first))]
+    for c, mp in probed.items():
+        for bulk, measured in zip(maps[c], mp):
+            if np.max(np.abs(bulk - measured)) > CHECK_RTOL * (1.0 + np.max(np.abs(measured))):
+                warnings.append("bulk step maps differ from the estimator's at t = "
+                                f'{float(t1[c]):.9g} s; measuring every step')
+                maps = [_probe(probe, float(t0[i]), float(t1[i]), rows[ks[i]])
+                        for i in range(len(first))]
+                return None if any(mp is None for mp in maps) else maps
+    return maps
+
+
 def _held_inputs(run, cmd, u0, a, b):
     """
     Return the input held at each correction a+1..b: that of the last command before it.
@@ -824,15 +871,10 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
     Fs = np.empty((classes.size, n, n))
     W = np.zeros((K, n))
     Y = [None] * len(streams)
-    maps = []
-    probe = _twin(est)
-    for c, f in enumerate(first):
-        k = int(sens[f])
-        mp = _probe(probe, float(tm[a + f]), float(tm[a + f + 1]), rows[k])
-        if mp is None:
-            warnings.append('bulk replay disabled: an estimator step is not linear')
-            return None
-        maps.append(mp)
+    maps = _step_maps(est, tm, a, first, sens, rows, warnings)
+    if maps is None:
+        return None
+    for c, mp in enumerate(maps):
         Fs[c] = mp[0]
     # an unstable estimator (the open loop of an unstable plant) amplifies every
     # difference in round-off until the end of the bag: call by call, as the node
@@ -876,7 +918,7 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
     if problem is None:
         problem = _check_windows(est, run, streams, cmd, rows, X, U, scale)
     check = _twin(est)
-    for f in first if problem is None else ():
+    for f in _spread(first, CHECK_CLASSES) if problem is None else ():
         k = int(sens[f])
         check.reset(Xprev[f], float(tm[a + f]))
         check.set_input(float(tm[a + f]), U[f])
