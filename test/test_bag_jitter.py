@@ -131,7 +131,7 @@ def test_bulk_maps_equal_the_probed_maps_of_every_step():
         est = make_estimator(vehicle.plant, obs)
         assert est.kind == kind
         maps = bulk_maps(est, steps, np.zeros(steps.size, dtype=int), rows)
-        for h, mp in zip(steps, maps):
+        for c, h in enumerate(steps):
             probed = _probe(_twin(est), 10.0, 10.0 + h, rows[0])
-            for bulk, measured in zip(mp, probed):
+            for bulk, measured in zip((M[c] for M in maps), probed):
                 assert_allclose(bulk, measured, rtol=1e-10, atol=1e-12)

@@ -635,7 +635,9 @@ def _spread(items, count):
 
 def _step_maps(est, tm, a, first, sens, rows, warnings):
     """
-    Return the affine map of each step class of a run (first step of class c: first[c]).
+    Return the affine maps of the step classes of a run (first step of class c: first[c]).
+
+    As ``(F, G, H, Rx, Ry, Ru)``, each stacked over the classes (see :func:`_probe`).
 
     Built in bulk (:func:`~observer_ros.bag.step_maps.bulk_maps`) when there are more
     than :data:`CHECK_CLASSES` classes (jittered stamps) and the estimator is one it
@@ -659,16 +661,21 @@ def _step_maps(est, tm, a, first, sens, rows, warnings):
             return None
         probed[c] = mp
     if maps is None:
-        return [probed[c] for c in range(len(first))]
+        return _stacked([probed[c] for c in range(len(first))])
     for c, mp in probed.items():
-        for bulk, measured in zip(maps[c], mp):
+        for bulk, measured in zip((M[c] for M in maps), mp):
             if np.max(np.abs(bulk - measured)) > CHECK_RTOL * (1.0 + np.max(np.abs(measured))):
                 warnings.append("bulk step maps differ from the estimator's at t = "
                                 f'{float(t1[c]):.9g} s; measuring every step')
                 maps = [_probe(probe, float(t0[i]), float(t1[i]), rows[ks[i]])
                         for i in range(len(first))]
-                return None if any(mp is None for mp in maps) else maps
+                return None if any(mp is None for mp in maps) else _stacked(maps)
     return maps
+
+
+def _stacked(maps):
+    """Return the maps (F, G, H, Rx, Ry, Ru) of the classes as six stacked arrays."""
+    return tuple(np.stack(part) for part in zip(*maps))
 
 
 def _held_inputs(run, cmd, u0, a, b):
@@ -798,9 +805,7 @@ def _class_matvec(M, classes, V, chunk=1 << 16):
 
 def _term_scale(maps, cls, sens, Y, Xprev, X, U):
     """Return the running maximum over steps of ``max(|F| |x_prev| + |G| |y| + |H| |u|, |x|)``."""
-    absF = np.abs(np.stack([mp[0] for mp in maps]))
-    absH = np.abs(np.stack([mp[2] for mp in maps]))
-    absG = np.abs(np.stack([mp[1] for mp in maps]))
+    absF, absG, absH = (np.abs(M) for M in maps[:3])
     terms = _class_matvec(absF, cls, np.abs(Xprev)) + _class_matvec(absH, cls, np.abs(U))
     for k, y in enumerate(Y):
         if y is not None:
@@ -833,9 +838,7 @@ def _check_steps(run, cmd, maps, cls, sens, Y, X, x0, u0, scale):
     held = last >= 0
     if held.any():
         U[held] = cmd.values[idx[last[held]]]
-    F = np.stack([mp[0] for mp in maps])
-    H = np.stack([mp[2] for mp in maps])
-    G = np.stack([mp[1] for mp in maps])
+    F, G, H = maps[:3]
     Xprev = np.vstack([x0[None, :], X[:-1]])
     pred = _class_matvec(F, cls, Xprev) + _class_matvec(H, cls, U)
     for k, y in enumerate(Y):
@@ -868,17 +871,15 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
     cls_all = run['step_class'][a:b]
     classes, first, cls = np.unique(cls_all, return_index=True, return_inverse=True)
     cls = cls.reshape(-1)
-    Fs = np.empty((classes.size, n, n))
     W = np.zeros((K, n))
     Y = [None] * len(streams)
     maps = _step_maps(est, tm, a, first, sens, rows, warnings)
     if maps is None:
         return None
-    for c, mp in enumerate(maps):
-        Fs[c] = mp[0]
+    Fs = maps[0]
     # an unstable estimator (the open loop of an unstable plant) amplifies every
     # difference in round-off until the end of the bag: call by call, as the node
-    rho = max(float(np.max(np.abs(np.linalg.eigvals(F)))) for F in Fs)
+    rho = float(np.max(np.abs(np.linalg.eigvals(Fs))))
     if rho > 1.0 and (run['tm'].size - a) * np.log(rho) > np.log(MAX_GROWTH):
         return None
     for k in range(len(streams)):
@@ -886,8 +887,7 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
         if not sel.any():
             continue
         Y[k] = streams[k].values[idx[sel]]
-        Gk = np.stack([maps[c][1] for c in range(classes.size)])
-        Hk = np.stack([maps[c][2] for c in range(classes.size)])
+        Gk, Hk = maps[1], maps[2]
         ck = cls[sel]
         W[sel] = _class_matvec(Gk, ck, Y[k]) + _class_matvec(Hk, ck, U[sel])
     x0 = est.x_hat
@@ -901,9 +901,7 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
         if not sel.size:
             continue
         ck = cls[sel]
-        Rx = np.stack([mp[3] for mp in maps])
-        Ry = np.stack([mp[4] for mp in maps])
-        Ru = np.stack([mp[5] for mp in maps])
+        Rx, Ry, Ru = maps[3:]
         r = (_class_matvec(Rx, ck, Xprev[sel]) + _class_matvec(Ry, ck, Y[k])
              + _class_matvec(Ru, ck, U[sel]))
         R[np.ix_(sel, rows_idx[k])] = r

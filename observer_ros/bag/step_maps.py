@@ -91,23 +91,19 @@ def zoh_stack(A, B, keys):
 
 def _gains(est, keys, rows):
     """Return the correction gain M of every key for the rows, as the estimator has it."""
+    brackets = [est.gain_steps(key) for key in keys.tolist()]
     grid = {}
-
-    def grid_gain(g):
-        M = grid.get(g)
-        if M is None:
-            M = grid[g] = est.correction_gain(g, rows)
-        return M
-
-    out = None
-    for i, key in enumerate(keys.tolist()):
-        g0, g1, w = est.gain_steps(key)
-        M = grid_gain(g0)
-        if g1 is not None:
-            M = (1.0 - w) * M + w * grid_gain(g1)
-        if out is None:
-            out = np.empty((keys.size,) + M.shape)
-        out[i] = M
+    for g0, g1, _ in brackets:
+        for g in (g0, g1):
+            if g is not None and g not in grid:
+                grid[g] = est.correction_gain(g, rows)
+    g0 = [grid[b[0]] for b in brackets]
+    g1 = [grid[b[0] if b[1] is None else b[1]] for b in brackets]
+    w = np.array([b[2] for b in brackets])[:, None, None]
+    out = np.stack(g0)
+    inter = np.array([b[1] is not None for b in brackets])
+    # (1 - w) M(g0) + w M(g1), as the estimator interpolates; a grid step is M(g0)
+    out[inter] = (1.0 - w[inter]) * out[inter] + w[inter] * np.stack(g1)[inter]
     return out
 
 
@@ -128,10 +124,11 @@ def bulk_maps(est, steps, sensors, rows):
 
     Returns
     -------
-    maps : list of tuple or None
-        ``(F, G, H, Rx, Ry, Ru)`` per class, as ``replay._probe`` measures them; None
-        for an estimator this module does not model (reduced order, Kalman, a gain
-        given, a discrete plant): the caller measures its maps.
+    maps : tuple of ndarray or None
+        ``(F, G, H, Rx, Ry, Ru)``, each stacked over the classes, as ``replay._probe``
+        measures them one class at a time; None for an estimator this module does not
+        model (reduced order, Kalman, a gain given, a discrete plant) or sensors with
+        different numbers of rows: the caller measures its maps.
 
     """
     plant = est.plant
@@ -144,26 +141,28 @@ def bulk_maps(est, steps, sensors, rows):
     keys = np.array([est.cache.key(h) for h in steps.tolist()])
     Ad, Bd = zoh_stack(plant.A, plant.B, keys)
     n = plant.n
-    maps = [None] * steps.size
+    q = len(rows[0]) if rows else 0
+    if any(len(rk) != q or tuple(sorted(rk)) != tuple(rk) for rk in rows):
+        return None
+    C_all = plant.C
+    F, H = Ad.copy(), Bd.copy()
+    G = np.zeros((steps.size, n, q))
+    Rx = np.empty((steps.size, q, n))
+    Ru = np.empty((steps.size, q, plant.m))
     for k, rk in enumerate(rows):
         sel = np.flatnonzero(sensors == k)
         if not sel.size:
             continue
         idx = list(rk)
-        C, D = plant.C[idx], plant.D[idx]
-        q = len(idx)
+        C, D = C_all[idx], plant.D[idx]
         CA = np.matmul(C, Ad[sel])
-        CB = np.matmul(C, Bd[sel])
-        if kind == 'open_loop':
-            F, H = Ad[sel], Bd[sel]
-            G = np.zeros((sel.size, n, q))
-        elif tuple(sorted(rk)) != tuple(rk):
-            return None
-        else:
-            G = _gains(est, keys[sel], tuple(rk))
-            F = Ad[sel] - np.matmul(G, CA)
-            H = Bd[sel] - np.matmul(G, CB + D)
-        Ry = np.eye(q)
-        for c, F_c, G_c, H_c, CA_c, CB_c in zip(sel.tolist(), F, G, H, CA, CB):
-            maps[c] = (F_c, G_c, H_c, -CA_c, Ry, -(CB_c + D))
-    return maps
+        CB = np.matmul(C, Bd[sel]) + D
+        if kind == 'full':
+            M = _gains(est, keys[sel], tuple(rk))
+            G[sel] = M
+            F[sel] -= np.matmul(M, CA)
+            H[sel] -= np.matmul(M, CB)
+        Rx[sel] = -CA
+        Ru[sel] = -CB
+    Ry = np.broadcast_to(np.eye(q), (steps.size, q, q))
+    return F, G, H, Rx, Ry, Ru
