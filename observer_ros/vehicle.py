@@ -128,7 +128,8 @@ KNOWN_KEYS = _keys(
     KeySpec('simulator.rate_hz', DOUBLE, 'Hz, > 0; a discrete model runs at '
             '1/sample_time', default=100.0),
     KeySpec('simulator.initial_state', DOUBLE_ARRAY, 'x(0) (n); default zeros'),
-    KeySpec('simulator.duration', DOUBLE, 's, > 0', default=10.0),
+    KeySpec('simulator.duration', DOUBLE, 's, >= 0; 0: the simulator node runs until '
+            'stopped', default=10.0),
     KeySpec('simulator.seed', INTEGER, 'noise seed, >= 0', default=0),
     KeySpec('simulator.noise', BOOL, 'add the sensors noise_std', default=True),
     KeySpec('simulator.process_noise_std', DOUBLE_ARRAY, 'per state (n); default none'),
@@ -136,6 +137,8 @@ KNOWN_KEYS = _keys(
             choices=('lockstep', 'realtime')),
     KeySpec('simulator.realtime_factor', DOUBLE, '> 0', default=1.0),
     KeySpec('simulator.command_timeout', DOUBLE, 's, > 0', default=2.0),
+    KeySpec('simulator.publish_clock', BOOL, 'publish /clock (one vehicle per ROS graph)',
+            default=True),
 )
 
 # Per-sensor keys: sensors.<s>.<key> for each <s> in sensors.names.
@@ -923,8 +926,8 @@ def _read_simulator(check, plant, discrete):
     else:
         rate = check.double('simulator.rate_hz', positive=True)
     initial = check.vector('simulator.initial_state', n, 'states')
-    duration = check.double('simulator.duration', positive=True)
-    if duration * rate < 1.0:
+    duration = check.double('simulator.duration', minimum=0.0)
+    if 0.0 < duration * rate < 1.0:
         check.fail('simulator.duration', f'{duration} s is shorter than one step '
                    f'(1/{rate:g} Hz)')
     seed = check.integer('simulator.seed', minimum=0)
@@ -935,10 +938,11 @@ def _read_simulator(check, plant, discrete):
     mode = check.string('simulator.mode')
     factor = check.double('simulator.realtime_factor', positive=True)
     timeout = check.double('simulator.command_timeout', positive=True)
+    publish_clock = check.boolean('simulator.publish_clock')
     return SimulatorSpec(rate_hz=rate, initial_state=np.zeros(n) if initial is None else
                          initial, duration=duration, seed=seed, noise=noise,
                          process_noise_std=process, mode=mode, realtime_factor=factor,
-                         command_timeout=timeout)
+                         command_timeout=timeout, publish_clock=publish_clock)
 
 
 def _read_controller(check, plant, discrete):
@@ -1139,4 +1143,5 @@ def vehicle_to_parameters(vehicle):
     flat['simulator.mode'] = sim.mode
     flat['simulator.realtime_factor'] = float(sim.realtime_factor)
     flat['simulator.command_timeout'] = float(sim.command_timeout)
+    flat['simulator.publish_clock'] = bool(sim.publish_clock)
     return flat

@@ -150,6 +150,9 @@ class VehicleNode(Node):
             if not self.has_parameter(name):
                 self.declare_parameter(name, default)
         self.vehicle = self.load_vehicle()
+        # set to an exit status by a node whose work is done (the simulator at the end of
+        # its run): run_nodes stops spinning and the process exits with it
+        self.exit_code = None
         self._counters = {}
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         # Watchdogs and diagnostics run on the steady clock: with use_sim_time the ROS clock
@@ -294,8 +297,10 @@ def run_nodes(node_factories, args=None, names=None):
     Run nodes in one process and one executor: :func:`run_node` for several.
 
     The nodes are built in order; a file one of them cannot use stops the process (exit 2,
-    one ``error:`` line) before the executor spins. A node's ``SystemExit`` (the simulator
-    when its run is done) ends the process with its code.
+    one ``error:`` line) before the executor spins. A node that sets its ``exit_code``
+    (the simulator when its run is done) ends the process with that code, after its
+    callback has returned (an exception raised in a callback would be logged by rclpy as
+    FATAL with a traceback).
 
     Parameters
     ----------
@@ -318,9 +323,10 @@ def run_nodes(node_factories, args=None, names=None):
         executor, _ = make_executor()
         for node in nodes:
             executor.add_node(node)
-        spin_until(executor)
-    except SystemExit as done:      # the simulator's exit_when_done
-        code = done.code if isinstance(done.code, int) else 0
+        spin_until(executor, stop=lambda: any(
+            getattr(node, 'exit_code', None) is not None for node in nodes))
+        code = next((node.exit_code for node in nodes
+                     if getattr(node, 'exit_code', None) is not None), 0)
     except (KeyboardInterrupt, Exception) as err:   # noqa: BLE001 - reported by exit_status
         failed = len(nodes) if len(nodes) < len(node_factories) else None
         code = exit_status(err, names[failed] if names and failed is not None else

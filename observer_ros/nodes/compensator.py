@@ -158,9 +158,11 @@ class CompensatorNode(VehicleNode):
 
     def _on_diagnostics(self):
         if self._stale:
-            level, message = DiagnosticStatus.ERROR, 'estimate stale: safe command'
+            level, message = DiagnosticStatus.ERROR, \
+                f'estimate stale: safe command ({self.resolve_topic_name(TOPICS["estimate"])})'
         elif self._last_estimate_time is None:
-            level, message = DiagnosticStatus.WARN, 'waiting for state/estimate'
+            level, message = DiagnosticStatus.WARN, \
+                f'waiting for {self.resolve_topic_name(TOPICS["estimate"])}'
         else:
             level, message = DiagnosticStatus.OK, 'closing the loop'
         self.publish_diagnostics(level, message, {'u': np.array2string(self._last_u)})

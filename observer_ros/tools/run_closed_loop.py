@@ -88,6 +88,9 @@ def run_closed_loop(params_file, bag_path, storage='mcap', namespace=None, overr
 
     """
     vehicle = load_vehicle(params_file)
+    if vehicle.simulator.duration == 0.0:
+        raise ObserverError(f'{params_file}: simulator.duration: 0 (run until stopped) has no '
+                            'end for observer-run; give a duration in s')
     steps = int(round(vehicle.simulator.duration / vehicle.sample_time))
     timeout = timeout if timeout is not None else 60.0 + 0.02 * steps
     bag_path = Path(bag_path)
