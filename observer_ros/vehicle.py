@@ -63,6 +63,7 @@ class KeySpec:
     required: bool = False
     default: object = None
     choices: Tuple[str, ...] = ()
+    minimum: object = None      # scalars: the least value (a node declares it as a range)
 
 
 class ParameterInfo(NamedTuple):
@@ -86,7 +87,8 @@ KNOWN_KEYS = _keys(
             default=''),
     KeySpec('model.time_domain', STRING, 'continuous or discrete', default='continuous',
             choices=('continuous', 'discrete')),
-    KeySpec('model.sample_time', DOUBLE, 's; required (> 0) for a discrete model'),
+    KeySpec('model.sample_time', DOUBLE, 's; required (> 0) for a discrete model',
+            minimum=0.0),
     KeySpec('model.states', STRING_ARRAY, 'state names (n)', required=True),
     KeySpec('model.inputs', STRING_ARRAY, 'input names (m)', required=True),
     KeySpec('model.outputs', STRING_ARRAY, 'output names (p)', required=True),
@@ -112,7 +114,7 @@ KNOWN_KEYS = _keys(
             'default identity'),
     KeySpec('observer.initial_estimate', DOUBLE_ARRAY, 'x_hat(0) (n); default zeros'),
     KeySpec('observer.rate_hz', DOUBLE, 'Hz, prediction-only publish rate; default the '
-            'simulator rate'),
+            'simulator rate', minimum=0.0),
     KeySpec('controller.poles', DOUBLE_ARRAY, 'real parts of eig(A - B K) (n)'),
     KeySpec('controller.poles_imag', DOUBLE_ARRAY, 'imaginary parts; default all 0'),
     KeySpec('controller.K', DOUBLE_ARRAY, 'm x n, row-major'),
@@ -124,19 +126,19 @@ KNOWN_KEYS = _keys(
     KeySpec('controller.u_max', DOUBLE_ARRAY, 'input upper limits (m); default none'),
     KeySpec('controller.safe_command', STRING, 'zero or hold', default='zero',
             choices=('zero', 'hold')),
-    KeySpec('controller.stale_timeout', DOUBLE, 's, > 0', default=0.5),
+    KeySpec('controller.stale_timeout', DOUBLE, 's, > 0', default=0.5, minimum=0.0),
     KeySpec('simulator.rate_hz', DOUBLE, 'Hz, > 0; a discrete model runs at '
-            '1/sample_time', default=100.0),
+            '1/sample_time', default=100.0, minimum=0.0),
     KeySpec('simulator.initial_state', DOUBLE_ARRAY, 'x(0) (n); default zeros'),
     KeySpec('simulator.duration', DOUBLE, 's, >= 0; 0: the simulator node runs until '
-            'stopped', default=10.0),
-    KeySpec('simulator.seed', INTEGER, 'noise seed, >= 0', default=0),
+            'stopped', default=10.0, minimum=0.0),
+    KeySpec('simulator.seed', INTEGER, 'noise seed, >= 0', default=0, minimum=0),
     KeySpec('simulator.noise', BOOL, 'add the sensors noise_std', default=True),
     KeySpec('simulator.process_noise_std', DOUBLE_ARRAY, 'per state (n); default none'),
     KeySpec('simulator.mode', STRING, 'lockstep or realtime', default='lockstep',
             choices=('lockstep', 'realtime')),
-    KeySpec('simulator.realtime_factor', DOUBLE, '> 0', default=1.0),
-    KeySpec('simulator.command_timeout', DOUBLE, 's, > 0', default=2.0),
+    KeySpec('simulator.realtime_factor', DOUBLE, '> 0', default=1.0, minimum=0.0),
+    KeySpec('simulator.command_timeout', DOUBLE, 's, > 0', default=2.0, minimum=0.0),
     KeySpec('simulator.publish_clock', BOOL, 'publish /clock (one vehicle per ROS graph)',
             default=True),
 )
@@ -149,9 +151,9 @@ SENSOR_KEYS = _keys(
     KeySpec('outputs', STRING_ARRAY, 'the model outputs they are', required=True),
     KeySpec('noise_std', DOUBLE_ARRAY, 'noise standard deviation per field, >= 0',
             required=True),
-    KeySpec('timeout', DOUBLE, 's, > 0', default=0.5),
+    KeySpec('timeout', DOUBLE, 's, > 0', default=0.5, minimum=0.0),
     KeySpec('rate_divider', INTEGER, 'published every k-th simulator step, >= 1',
-            default=1),
+            default=1, minimum=1),
     KeySpec('frame_id', STRING, 'header.frame_id', default='base_link'),
 )
 
@@ -180,7 +182,7 @@ def known_keys(sensor_names=()):
         for sub, spec in SENSOR_KEYS.items():
             name = f'sensors.{sensor}.{sub}'
             keys[name] = KeySpec(name, spec.param_type, spec.description, spec.required,
-                                 spec.default, spec.choices)
+                                 spec.default, spec.choices, spec.minimum)
     return keys
 
 

@@ -12,6 +12,7 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
 import rclpy
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
@@ -20,6 +21,7 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data,
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64
 
+from .parameters import declare_parameters
 from ..core.errors import ObserverError
 from ..timeutil import sec_to_stamp_parts, stamp_to_sec
 from ..vehicle import vehicle_from_parameters
@@ -141,15 +143,15 @@ class VehicleNode(Node):
 
     def __init__(self, node_name, own_parameters=()):
         try:
-            super().__init__(node_name, automatically_declare_parameters_from_overrides=True)
+            super().__init__(node_name, automatically_declare_parameters_from_overrides=False)
         except ValueError as err:   # rclpy refuses some parameter values before we see them
             raise ObserverError(
                 f'parameters: {err} (an empty list [] has no type in ROS 2: remove the key '
                 'or give it values; double arrays need floats, 1.0 not 1)') from None
-        for name, default in own_parameters:
-            if not self.has_parameter(name):
-                self.declare_parameter(name, default)
+        # each with a ParameterDescriptor: description, read_only, range (nodes/parameters.py)
+        declare_parameters(self, [(entry + ('',))[:3] for entry in own_parameters])
         self.vehicle = self.load_vehicle()
+        self.add_on_set_parameters_callback(self._check_vehicle_change)
         # set to an exit status by a node whose work is done (the simulator at the end of
         # its run): run_nodes stops spinning and the process exits with it
         self.exit_code = None
@@ -186,6 +188,21 @@ class VehicleNode(Node):
         for text in vehicle.warnings:
             self.get_logger().warning(text)
         return vehicle
+
+    def _check_vehicle_change(self, params):
+        """Refuse a run-time change that makes the vehicle invalid, as a whole, with why."""
+        changed = {p.name: p.value for p in params
+                   if p.name.split('.', 1)[0] in VEHICLE_SECTIONS}
+        if not changed:
+            return SetParametersResult(successful=True)
+        flat = self.vehicle_parameters()
+        flat.update(changed)
+        try:
+            vehicle_from_parameters(flat, source=f'node {self.get_fully_qualified_name()}')
+        except (ObserverError, ValueError) as err:
+            self.count('parameter_changes_refused')
+            return SetParametersResult(successful=False, reason=str(err))
+        return SetParametersResult(successful=True)
 
     def param(self, name):
         """Return the value of one of the node's own parameters."""

@@ -52,8 +52,9 @@ class CompensatorNode(VehicleNode):
 
     def __init__(self):
         super().__init__('compensator', own_parameters=(
-            ('publish_array', False),      # also publish Float64MultiArray (ros2_control)
-            ('diagnostics_period', 1.0),
+            ('publish_array', False, 'also publish control/u_array, a Float64MultiArray '
+             '(ros2_control)'),
+            ('diagnostics_period', 1.0, 's (wall) between /diagnostics reports'),
         ))
         self._apply(self.vehicle, design_vehicle(self.vehicle))
         self._last_u = np.zeros(self.vehicle.plant.m)

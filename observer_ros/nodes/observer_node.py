@@ -30,9 +30,9 @@ class ObserverNode(VehicleNode):
 
     def __init__(self):
         super().__init__('observer', own_parameters=(
-            ('clock_jump_tolerance', 0.5),     # s: a stamp this far back is a clock jump
-            ('future_tolerance', 10.0),        # s: a stamp this far ahead of the clock is bad
-            ('diagnostics_period', 1.0),
+            ('clock_jump_tolerance', 0.5, 's: a stamp this far back is a clock jump'),
+            ('future_tolerance', 10.0, 's: a stamp this far ahead of the clock is refused'),
+            ('diagnostics_period', 1.0, 's (wall) between /diagnostics reports'),
         ))
         self._design_and_build(self.vehicle)
         v = self.vehicle

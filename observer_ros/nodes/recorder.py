@@ -152,12 +152,12 @@ class RecorderNode(VehicleNode):
 
     def __init__(self):
         super().__init__('recorder', own_parameters=(
-            ('output', ''),                 # bag directory to create (must not exist)
-            ('storage', 'mcap'),            # mcap | sqlite3
-            ('extra_topics', ['']),         # "name:pkg/msg/Type"
-            ('flush_period', 1.0),          # s (wall): flush to disk, report counts
-            ('disk_reserve', 1 << 20),      # bytes kept free for closing/recovering the bag
-            ('queue_depth', 1000),          # per-topic reader queue (rides out bursts)
+            ('output', '', 'bag directory to create (must not exist); required'),
+            ('storage', 'mcap', 'mcap or sqlite3'),
+            ('extra_topics', [''], 'more topics to record, each "name:pkg/msg/Type"'),
+            ('flush_period', 1.0, 's (wall): flush to disk, report counts'),
+            ('disk_reserve', 1 << 20, 'bytes kept free for closing/recovering the bag'),
+            ('queue_depth', 1000, 'per-topic reader queue (rides out bursts)'),
         ))
         output = self.param('output')
         if not output:
