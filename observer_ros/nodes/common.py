@@ -3,7 +3,9 @@
 
 import array
 import os
+import signal
 import sys
+import threading
 import time
 import traceback
 import warnings
@@ -349,9 +351,19 @@ def run_nodes(node_factories, args=None, names=None):
         code = exit_status(err, names[failed] if names and failed is not None else
                            'observer_ros')
     finally:
+        # Ctrl-C in a terminal signals the whole process group, and ros2 launch then sends
+        # SIGINT to each node again: a second SIGINT must not cut the clean-up short with a
+        # KeyboardInterrupt (a traceback and exit status -2 under ros2 launch)
+        _ignore_sigint()
         if executor is not None:
             executor.shutdown()
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown()
+        _ignore_sigint()    # rclpy's shutdown puts back the handler it replaced
     return code
+
+
+def _ignore_sigint():
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
