@@ -17,12 +17,14 @@ import rclpy
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data, QoSProfile,
                        ReliabilityPolicy)
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64
 
+from .command_line import check_command_line, program_name
 from .parameters import declare_parameters
 from ..core.errors import ObserverError
 from ..timeutil import sec_to_stamp_parts, stamp_to_sec
@@ -31,7 +33,9 @@ from ..vehicle import vehicle_from_parameters
 __all__ = ['VEHICLE_SECTIONS', 'SENSOR_QOS', 'SENSOR_SUB_QOS', 'STATE_QOS', 'STATE_PUB_QOS',
            'LATCHED_QOS', 'MESSAGE_CLASSES', 'TOPICS', 'VehicleNode', 'joint_state',
            'stamp_to_sec', 'to_stamp', 'make_executor', 'spin_until', 'exit_status',
-           'run_node', 'run_nodes']
+           'init_ros', 'run_node', 'run_nodes']
+
+RCLError = _rclpy.RCLError
 
 # Which executor spins the nodes: OBSERVER_ROS_EXECUTOR=events (default) or single_threaded.
 EXECUTOR_ENV = 'OBSERVER_ROS_EXECUTOR'
@@ -152,6 +156,9 @@ class VehicleNode(Node):
                 'or give it values; double arrays need floats, 1.0 not 1)') from None
         # each with a ParameterDescriptor: description, read_only, range (nodes/parameters.py)
         declare_parameters(self, [(entry + ('',))[:3] for entry in own_parameters])
+        if not any(name.split('.', 1)[0] in VEHICLE_SECTIONS for name in self._parameters):
+            raise ObserverError('no vehicle parameters: start the node with --ros-args '
+                                '--params-file config/<vehicle>.yaml (see --help)')
         self.vehicle = self.load_vehicle()
         self.add_on_set_parameters_callback(self._check_vehicle_change)
         # set to an exit status by a node whose work is done (the simulator at the end of
@@ -296,6 +303,39 @@ def exit_status(err, name):
     return 1
 
 
+def init_ros(node_class, args=None, **init_options):
+    """
+    Handle ``--help``, check the params files, then ``rclpy.init``; None when it went on.
+
+    Returns the exit status instead when the process should end now: 0 after ``--help``,
+    2 (one ``error:`` line) for a params file the package's loader or ROS's parser refuses.
+
+    Parameters
+    ----------
+    node_class : type
+        The node (its module's docstring is the help's description of its topics).
+    args : list of str, optional
+        The command line (``sys.argv`` by default), ROS arguments included.
+    **init_options
+        Passed to ``rclpy.init``.
+
+    """
+    argv = list(sys.argv if args is None else args)
+    module = node_class.__module__
+    if module == '__main__':    # python -m observer_ros.nodes.<node>
+        module = getattr(sys.modules['__main__'].__spec__, 'name', module)
+    code = check_command_line(argv[1:], program_name(module.rsplit('.', 1)[-1]), module,
+                              sys.modules[node_class.__module__].__doc__)
+    if code is not None:    # --help, or a params file the loader refuses
+        return code
+    try:
+        rclpy.init(args=args, **init_options)
+    except RCLError as err:     # e.g. a params file ROS's parser refuses: one line
+        print(f'error: {" ".join(str(err).split())}', file=sys.stderr)
+        return 2
+    return None
+
+
 def run_node(node_factory, args=None):
     """
     Run a node as ros2/demos do: init, spin, clean shutdown; exit 2 on an unusable file.
@@ -332,7 +372,9 @@ def run_nodes(node_factories, args=None, names=None):
 
     """
     warnings.filterwarnings('ignore', category=DeprecationWarning)
-    rclpy.init(args=args)
+    code = init_ros(node_factories[0], args)
+    if code is not None:
+        return code
     nodes = []
     executor = None
     code = 0

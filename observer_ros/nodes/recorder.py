@@ -45,7 +45,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import get_typestore, Stores
 from std_msgs.msg import Bool
 
-from .common import (exit_status, LATCHED_QOS, make_executor, SENSOR_QOS, spin_until,
+from .common import (exit_status, init_ros, LATCHED_QOS, make_executor, SENSOR_QOS, spin_until,
                      STATE_PUB_QOS, STATE_QOS, TOPICS, VehicleNode)
 from ..bag.play import message_class
 from ..core.errors import ObserverError
@@ -339,7 +339,9 @@ def main(args=None):
     warnings.filterwarnings('ignore', category=DeprecationWarning)
     # Our own SIGINT/SIGTERM handling: a signal stops the spinning, then the messages DDS
     # already delivered (a recorder lags a fast lock-step run) are drained into the bag.
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    code = init_ros(RecorderNode, args, signal_handler_options=SignalHandlerOptions.NO)
+    if code is not None:    # --help, or an unusable params file
+        return code
     stop = []
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.append(True))
