@@ -579,6 +579,31 @@ class _Checker:
             self.fail(key, text)
 
 
+def _warn_unloadable_strings(flat, warnings):
+    """
+    Warn about strings that `ros2 param load` of a dump would not give back.
+
+    rclpy's parameter-file reader (parameter_dict_from_yaml_file, Jazzy) reads each value
+    again as YAML: ``'a: b'`` becomes a mapping and the load ends in a TypeError, ``'1.0'``
+    a double.
+    """
+    for name, value in sorted(flat.items()):
+        for text in value if isinstance(value, (list, tuple)) else [value]:
+            if not isinstance(text, str):
+                continue
+            try:
+                same = yaml.safe_load(text) == text
+            except yaml.parser.ParserError:     # rclpy keeps the text as it is
+                same = True
+            except yaml.YAMLError:
+                same = False
+            if not same:
+                warnings.append(f'{name}: {_short(text)!r} would not survive `ros2 param '
+                                'dump` then `ros2 param load` (rclpy reads it again as YAML: '
+                                'avoid ": ", " #", and strings that look like numbers)')
+                break
+
+
 def _warn_unknown(flat, sensor_names, extra_keys, warnings):
     known = known_keys(sensor_names)
     candidates = list(known)
@@ -656,6 +681,7 @@ def vehicle_from_parameters(flat, source='', extra_keys=()):
             check.fail('sensors.names', f'sensor name {name!r} must be letters, digits and _, '
                        "and not 'names' (it is part of parameter names)")
     _warn_unknown(flat, sensor_names, set(extra_keys), warnings)
+    _warn_unloadable_strings(flat, warnings)
 
     # vehicle
     name = check.string('vehicle.name')
