@@ -8,8 +8,8 @@ ros2 launch observer_ros closed_loop.launch.py vehicle:=submarine namespace:=sub
 
 Arguments: vehicle (a name from the package's config/ or a file), mode (lockstep or
 realtime), namespace, record (true: the recorder writes a bag to `bag`), publish_clock (this
-vehicle's simulator publishes /clock; one per ROS graph), use_sim_time. Ctrl-C stops every
-node (each exits 0).
+vehicle's simulator publishes /clock; one per ROS graph), use_sim_time, duration (0: the
+simulator runs until stopped). Ctrl-C stops every node (each exits 0).
 """
 
 from datetime import datetime
@@ -31,6 +31,7 @@ ARGUMENTS = (
     ('publish_clock', 'true', 'the simulator publishes /clock: true for exactly one '
      'vehicle of a ROS graph'),
     ('use_sim_time', 'true', 'the observer, compensator and recorder follow /clock'),
+    ('duration', '', "s of simulated time (default: the vehicle file's); 0: until Ctrl-C"),
 )
 
 
@@ -49,6 +50,8 @@ def _nodes(context):
     peers = dict(common, use_sim_time=sim_time)
     simulator = dict(common, **{
         'simulator.publish_clock': as_bool(arg('publish_clock'), 'publish_clock')})
+    if arg('duration'):
+        simulator['simulator.duration'] = float(arg('duration'))
     nodes = [Node(package='observer_ros', executable='observer', namespace=namespace,
                   parameters=[path, peers], output='screen'),
              Node(package='observer_ros', executable='compensator', namespace=namespace,
