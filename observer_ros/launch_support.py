@@ -56,7 +56,7 @@ def vehicle_file(vehicle, share=None):
     path = config / f'{vehicle}.yaml'
     if not path.is_file():
         known = sorted(p.stem for p in config.glob('*.yaml'))
-        raise ObserverError(f'vehicle: {vehicle!r} is not one of the package\'s vehicles '
+        raise ObserverError(f"vehicle: {vehicle!r} is not one of the package's vehicles "
                             f'{known} nor a file')
     return str(path)
 

@@ -113,7 +113,7 @@ class _Loader(yaml.composer.Composer, _Parser, yaml.constructor.SafeConstructor,
         event = self.peek_event()
         if isinstance(event, yaml.AliasEvent) or getattr(event, 'anchor', None):
             raise yaml.composer.ComposerError(
-                None, None, 'anchors and aliases (&name, *name) are not allowed: ROS\'s '
+                None, None, "anchors and aliases (&name, *name) are not allowed: ROS's "
                 'parameter parser refuses them', event.start_mark)
         if isinstance(parent, yaml.SequenceNode) and index >= MAX_ARRAY_LENGTH:
             raise yaml.composer.ComposerError(

@@ -73,3 +73,19 @@ def test_params_file_ros_refuses_is_one_line_not_a_traceback(tmp_path):
     path.write_text('/**:\n  ros__parameters:\n    model:\n      A: [1.0, "x"]\n')
     line = _one_error(_run(NODES['compensator'], '--ros-args', '--params-file', str(path)))
     assert 'mixed.yaml' in line, line
+
+
+def test_observer_run_no_clock_turns_the_simulators_clock_off(monkeypatch, tmp_path, capsys):
+    from observer_ros.core.errors import ObserverError
+    from observer_ros.tools import run_closed_loop as tool
+    seen = {}
+
+    def fake_run(params_file, bag, **options):      # stands in for the four processes
+        seen.update(options)
+        raise ObserverError('stopped by the test')
+    monkeypatch.setattr(tool, 'run_closed_loop', fake_run)
+    code = tool.main([str(CONFIG / 'submarine.yaml'), '--namespace', 'sub2', '--no-clock',
+                      '--out', str(tmp_path / 'bag')])
+    assert code == 2 and 'stopped by the test' in capsys.readouterr().err
+    assert seen['namespace'] == 'sub2'
+    assert 'simulator.publish_clock:=false' in seen['overrides']

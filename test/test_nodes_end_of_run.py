@@ -2,8 +2,8 @@
 """The simulator ends a realtime run cleanly; peers then report stale data; one /clock."""
 
 from diagnostic_msgs.msg import DiagnosticStatus
-from rosgraph_msgs.msg import Clock
 from ros_helpers import CONFIG, Probe, Proc
+from rosgraph_msgs.msg import Clock
 from test_nodes_faults import Listener
 
 WAIT = 90.0     # s: discovery on a loaded 2-core machine can take long

@@ -13,8 +13,9 @@ import pytest
 
 from ros_helpers import Probe, REPO, ros_env
 
-EXECUTABLES = ('plant_simulator', 'observer', 'compensator', 'recorder', 'observer_design',
-               'observer_eval', 'observer_play', 'observer_run')
+EXECUTABLES = ('plant_simulator', 'observer', 'compensator', 'recorder', 'container',
+               'observer_design', 'observer_eval', 'observer_play', 'observer_run',
+               'observer_bag_recover')
 
 # import name -> the package.xml key that provides it
 DEPENDENCY_KEYS = {
@@ -66,6 +67,12 @@ def _installed_env(prefix):
 def test_colcon_installs_executables_where_ros2_run_looks(colcon_install):
     for exe in EXECUTABLES:
         assert (colcon_install / 'lib' / 'observer_ros' / exe).is_file(), exe
+    # each executable once (no dash aliases: those are the venv's only)
+    assert sorted(p.name for p in (colcon_install / 'lib' / 'observer_ros').iterdir()) == \
+        sorted(EXECUTABLES)
+    assert sorted(p.name for p in (colcon_install / 'share' / 'observer_ros' /
+                                   'launch').iterdir()) == \
+        ['closed_loop.launch.py', 'observer.launch.py']
     share = colcon_install / 'share' / 'observer_ros'
     assert (share / 'package.xml').is_file()
     assert sorted(p.name for p in (share / 'config').glob('*.yaml')) == \

@@ -154,7 +154,8 @@ def test_closed_loop_launch_params_and_one_clock(ros2env, tmp_path):
         assert echo.returncode == 0 and 'position:' in echo.stdout, first.output()[-3000:]
         # a second vehicle that does not own time: still one /clock publisher
         second = Launch(ros2env, SECOND, tmp_path / 'second.log')
-        echo = _ros2(ros2env, 'ros2 topic echo --once /sub2/state/estimate sensor_msgs/msg/JointState')
+        echo = _ros2(ros2env,
+                     'ros2 topic echo --once /sub2/state/estimate sensor_msgs/msg/JointState')
         assert echo.returncode == 0, second.output()[-3000:]
         _wait_nodes(ros2env, '/observer', '/compensator', '/plant_simulator',
                     '/sub2/observer', '/sub2/compensator', '/sub2/plant_simulator')

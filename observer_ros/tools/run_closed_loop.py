@@ -243,6 +243,9 @@ def main(argv=None):
                         '<time>)')
     parser.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
     parser.add_argument('--namespace', help='run the vehicle in this namespace')
+    parser.add_argument('--no-clock', action='store_true',
+                        help="another vehicle of this ROS graph owns /clock: this one's "
+                             'simulator does not publish it (simulator.publish_clock:=false)')
     parser.add_argument('-p', '--param', action='append', default=[], metavar='NAME:=VALUE',
                         help='parameter override for every node, e.g. '
                              '"observer.poles:=[-1.0,-1.1,-1.2]"')
@@ -253,6 +256,8 @@ def main(argv=None):
                              'the open-loop observer; run the loop again with the slower '
                              'poles; print the comparison')
     args = parser.parse_args(argv)
+    if args.no_clock:       # one /clock per ROS graph
+        args.param = args.param + ['simulator.publish_clock:=false']
     vehicle_path = Path(args.vehicle) if args.vehicle else _default_vehicle()
     try:
         vehicle = load_vehicle(vehicle_path)
