@@ -38,7 +38,7 @@ setup(
             'observer_eval = observer_ros.bag.evaluate:main',
             'observer_play = observer_ros.bag.play:main',
             'observer_run = observer_ros.tools.run_closed_loop:main',
-            'observer_bag_recover = observer_ros.bagrecover:main',
+            'observer_bag_recover = observer_ros.bag.recover:main',
         ],
     },
 )

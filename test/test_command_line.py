@@ -16,7 +16,7 @@ TOOLS = {'observer_design': 'observer_ros.tools.design_report',
          'observer_eval': 'observer_ros.bag.evaluate',
          'observer_play': 'observer_ros.bag.play',
          'observer_run': 'observer_ros.tools.run_closed_loop',
-         'observer_bag_recover': 'observer_ros.bagrecover'}
+         'observer_bag_recover': 'observer_ros.bag.recover'}
 
 
 def _run(module, *args):

@@ -29,7 +29,6 @@ import math
 import os
 from pathlib import Path
 import re
-import shutil
 import sys
 import time
 from typing import Dict, List, Optional, Tuple
@@ -38,6 +37,7 @@ import warnings
 import numpy as np
 
 from .errors import BagToolError
+from .outputs import check_output, prepare_output, seal_output
 from .reader import jazzy_typestore, read_recording
 from .replay import CLOCK_JUMP_TOLERANCE, epochs_of, live_replay, replay
 from ..core.errors import ObserverError
@@ -675,22 +675,6 @@ def _csv_cell(v):
     return str(v)
 
 
-def _prepare_out(out, force):
-    out = Path(out)
-    if out.exists():
-        if not force:
-            raise BagToolError(f'{out} exists; refusing to overwrite it (use --force or '
-                               '--out DIR)')
-        if not out.is_dir():
-            raise BagToolError(f'{out} exists and is not a folder')
-        if any(out.iterdir()) and not (out / 'results.json').exists():
-            raise BagToolError(f'{out} exists and is not an observer-eval output folder '
-                               '(no results.json); not deleting it even with --force')
-        shutil.rmtree(out)
-    out.mkdir(parents=True)
-    return out
-
-
 def write_results(result, out, force=False, plots=True, results_bag=True,
                   bag_max_messages=BAG_MAX_MESSAGES):
     """
@@ -724,7 +708,7 @@ def write_results(result, out, force=False, plots=True, results_bag=True,
         The folder exists (without ``force``), or exists and is not an earlier output.
 
     """
-    out = _prepare_out(out, force)
+    out = prepare_output(out, force, 'observer-eval')
     files = []
     table = format_table(result)
     (out / 'results.txt').write_text(table + '\n')
@@ -742,6 +726,7 @@ def write_results(result, out, force=False, plots=True, results_bag=True,
         files += _plots(result, out)
     if results_bag:
         files.append(_results_bag(result, out / 'results_bag', bag_max_messages))
+    seal_output(out, 'observer-eval', files)
     return files
 
 
@@ -1024,9 +1009,7 @@ def main(argv=None):
         if not Path(args.bag).exists():
             raise BagToolError(f'{args.bag}: no such file or directory')
         out = Path(args.out) if args.out else _default_out(args.bag)
-        if out.exists() and not args.force:
-            raise BagToolError(f'{out} exists; refusing to overwrite it (use --force or '
-                               '--out DIR)')
+        check_output(out, args.force, 'observer-eval')
         with warnings.catch_warnings():
             warnings.simplefilter('ignore')
             result = evaluate_bag(args.bag, args.vehicle, variants, args.namespace,
