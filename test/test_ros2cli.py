@@ -25,6 +25,8 @@ LAUNCH = ('ros2 launch observer_ros closed_loop.launch.py vehicle:=submarine mod
 SECOND = LAUNCH + ' namespace:=sub2 publish_clock:=false'
 ROBOT = ('ros2 launch observer_ros observer.launch.py vehicle:=submarine '
          'remaps:="imu/data:=/robot/imu control/u:=/robot/cmd"')
+RECORD = ('ros2 launch observer_ros closed_loop.launch.py vehicle:=pitch_imu mode:=lockstep '
+          'record:=true bag:=bags/runs/pitch_launch')
 WAIT = 180.0    # s: a loaded 2-core machine; every wait ends as soon as its condition holds
 
 
@@ -126,7 +128,7 @@ def _assert_stopped_cleanly(launch, nodes):
 def test_readme_commands_are_the_tested_ones():
     block = README[README.index('## On a real ROS 2 Jazzy install'):]
     block = block[:block.index('```', block.index('```') + 3)]
-    for command in (BUILD, 'ros2 pkg executables observer_ros', LAUNCH, SECOND, ROBOT,
+    for command in (BUILD, 'ros2 pkg executables observer_ros', LAUNCH, SECOND, ROBOT, RECORD,
                     'ros2 topic echo --once /state/estimate sensor_msgs/msg/JointState',
                     'ros2 param describe /observer model.A',
                     'ros2 param set /observer observer.poles "[-1.0, -1.1, -1.2]"',
@@ -214,3 +216,24 @@ def test_observer_launch_follows_the_remaps(ros2env, tmp_path):
             os.killpg(pub.pid, signal.SIGINT)
             pub.wait(timeout=60)
         _assert_stopped_cleanly(launch, 1)
+
+
+def test_recorded_lockstep_launch(ros2env, tmp_path):
+    """The lock-step loop with the recorder: the run ends by itself, Ctrl-C closes the bag."""
+    launch = Launch(ros2env, RECORD, tmp_path / 'record.log')
+    try:
+        deadline = time.monotonic() + WAIT
+        while 'run complete at t=' not in launch.output():
+            assert launch.proc.poll() is None and time.monotonic() < deadline, \
+                launch.output()[-3000:]
+            time.sleep(0.5)     # polling a log file, not timing anything
+    finally:
+        _assert_stopped_cleanly(launch, 4)
+    out = launch.output()
+    assert re.search(r'bag closed: bags/runs/pitch_launch \((\d+) messages\)', out), out
+    bag = Path(ros2env['OBSERVER_ROS_WS']) / 'bags' / 'runs' / 'pitch_launch'
+    meta = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    counts = {t['topic_metadata']['name']: t['message_count']
+              for t in meta['topics_with_message_count']}
+    # pitch_imu: 3 s at 500 Hz in lock-step, one true state per step (1501 with step 0)
+    assert counts['/state/true'] >= 1500, counts
