@@ -6,7 +6,8 @@
 PY := .venv/bin/python
 STAMP := .venv/.observer_ros-installed
 VEHICLE ?= config/submarine.yaml
-TOOLS := observer_design observer_eval observer_play observer_run observer_bag_recover
+TOOLS := observer_design observer_eval observer_tune observer_play observer_run \
+	observer_bag_recover
 ROS2CLI := ../shared/ros2cli
 
 .PHONY: setup demo test bench clean-venv

@@ -36,6 +36,7 @@ setup(
             'container = observer_ros.nodes.container:main',
             'observer_design = observer_ros.tools.design_report:main',
             'observer_eval = observer_ros.bag.evaluate:main',
+            'observer_tune = observer_ros.bag.tune:main',
             'observer_play = observer_ros.bag.play:main',
             'observer_run = observer_ros.tools.run_closed_loop:main',
             'observer_bag_recover = observer_ros.bag.recover:main',

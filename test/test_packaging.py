@@ -14,8 +14,8 @@ import pytest
 from ros_helpers import Probe, REPO, ros_env
 
 EXECUTABLES = ('plant_simulator', 'observer', 'compensator', 'recorder', 'container',
-               'observer_design', 'observer_eval', 'observer_play', 'observer_run',
-               'observer_bag_recover')
+               'observer_design', 'observer_eval', 'observer_tune', 'observer_play',
+               'observer_run', 'observer_bag_recover')
 
 # import name -> the package.xml key that provides it
 DEPENDENCY_KEYS = {

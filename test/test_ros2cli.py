@@ -18,7 +18,7 @@ import yaml
 README = (REPO / 'README.md').read_text()
 EXECUTABLES = ['compensator', 'container', 'observer', 'observer_bag_recover',
                'observer_design', 'observer_eval', 'observer_play', 'observer_run',
-               'plant_simulator', 'recorder']
+               'observer_tune', 'plant_simulator', 'recorder']
 BUILD = 'colcon build --packages-select observer_ros'
 LAUNCH = ('ros2 launch observer_ros closed_loop.launch.py vehicle:=submarine mode:=realtime '
           'duration:=0')

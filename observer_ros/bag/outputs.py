@@ -32,6 +32,8 @@ MARKER = '.observer_ros_output.json'
 TOOL_FILES = {
     'observer-eval': ('results.txt', 'results.csv', 'results.json', 'states.png',
                       'error_norm.png', 'residuals.png', 'results_bag'),
+    'observer-tune': ('tune.txt', 'tune.json', 'search.csv', 'autocovariance.png',
+                      'search.png', '.identified.yaml'),
 }
 
 
