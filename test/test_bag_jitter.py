@@ -130,8 +130,24 @@ def test_bulk_maps_equal_the_probed_maps_of_every_step():
             object.__setattr__(obs, 'kind', 'open_loop')
         est = make_estimator(vehicle.plant, obs)
         assert est.kind == kind
-        maps = bulk_maps(est, steps, np.zeros(steps.size, dtype=int), rows)
-        for c, h in enumerate(steps):
+        keys = np.array([est.cache.key(h) for h in steps])
+        maps = bulk_maps(est, keys, np.zeros(steps.size, dtype=int), rows)
+        for c, h in enumerate(keys):
             probed = _probe(_twin(est), 10.0, 10.0 + h, rows[0])
             for bulk, measured in zip((M[c] for M in maps), probed):
                 assert_allclose(bulk, measured, rtol=1e-10, atol=1e-12)
+
+
+def test_gain_brackets_equal_the_estimators_key_by_key():
+    from observer_ros.bag.step_maps import _brackets
+    vehicle = load_vehicle(CONFIG / 'submarine.yaml')
+    est = make_estimator(vehicle.plant, vehicle.observer)
+    rng = np.random.default_rng(4)
+    keys = [est.cache.key(h) for h in
+            np.concatenate([0.05 + rng.uniform(-3e-3, 3e-3, 300), [0.05, 0.049, 0.0999]])]
+    keys = np.array(keys + [0.05 * (1 + 5e-13), 0.051 * (1 - 5e-13)])
+    i0, i1, w, grid = _brackets(est, keys)
+    for key, a, b, wk in zip(keys.tolist(), i0, i1, w):
+        g0, g1, w_est = est.gain_steps(key)
+        assert grid[a] == g0 and w_est == wk
+        assert (g1 is None) == (b < 0) and (g1 is None or grid[b] == g1)

@@ -567,7 +567,8 @@ def _find_runs(events, streams, cmd, est, jump, future_tolerance):
     shared = {'midx': midx, 'mseq': mseq, 'msens': msens, 'tm': tm, 'mev': mev,
               'kind': events.kind, 'idx': events.idx, 'seq': events.seq,
               'last_cmd': last_cmd, 'gap_cmds': gap_cmds,
-              'step_class': step_class, 'n_classes': n_keys * len(streams)}
+              'step_class': step_class, 'n_classes': n_keys * len(streams),
+              'keys': np.array(list(key_index), dtype=float)}
     for s0, s1 in zip(edges[::2], edges[1::2]):
         a, b = int(s0), int(s1)                 # steps a..b-1: measurements a+1..b
         if b + 1 < M and tm[b + 1] == tm[b]:
@@ -633,7 +634,7 @@ def _spread(items, count):
     return [items[i] for i in np.linspace(0, len(items) - 1, count).round().astype(int)]
 
 
-def _step_maps(est, tm, a, first, sens, rows, warnings):
+def _step_maps(est, run, first, sens, rows, warnings):
     """
     Return the affine maps of the step classes of a run (first step of class c: first[c]).
 
@@ -646,12 +647,14 @@ def _step_maps(est, tm, a, first, sens, rows, warnings):
 
     """
     probe = _twin(est)
-    t0 = tm[a + np.asarray(first)]
-    t1 = tm[a + np.asarray(first) + 1]
-    ks = [int(sens[f]) for f in first]
+    a, tm = run['a'], run['tm']
+    first = np.asarray(first)
+    t0, t1 = tm[a + first], tm[a + first + 1]
+    ks = sens[first]
     maps = None
     if len(first) > CHECK_CLASSES:
-        maps = bulk_maps(est, t1 - t0, ks, rows)
+        keys = run['keys'][run['step_class'][a + first] // len(rows)]
+        maps = bulk_maps(est, keys, ks, rows)
     todo = range(len(first)) if maps is None else _spread(range(len(first)), CHECK_CLASSES)
     probed = {}
     for c in todo:
@@ -671,6 +674,22 @@ def _step_maps(est, tm, a, first, sens, rows, warnings):
                         for i in range(len(first))]
                 return None if any(mp is None for mp in maps) else _stacked(maps)
     return maps
+
+
+def _spectral_radius(F, h):
+    """
+    Return the largest spectral radius of the step maps F (step lengths h).
+
+    At most :data:`CHECK_CLASSES` * 8 maps are decomposed: spread over the classes, and
+    the shortest and longest steps (a map's poles move monotonically with its length,
+    ``exp(s h)``); jittered stamps give one class per step.
+
+    """
+    if F.shape[0] > 8 * CHECK_CLASSES:
+        pick = _spread(range(F.shape[0]), 8 * CHECK_CLASSES) + [int(np.argmin(h)),
+                                                               int(np.argmax(h))]
+        F = F[pick]
+    return float(np.max(np.abs(np.linalg.eigvals(F))))
 
 
 def _stacked(maps):
@@ -873,13 +892,13 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
     cls = cls.reshape(-1)
     W = np.zeros((K, n))
     Y = [None] * len(streams)
-    maps = _step_maps(est, tm, a, first, sens, rows, warnings)
+    maps = _step_maps(est, run, first, sens, rows, warnings)
     if maps is None:
         return None
     Fs = maps[0]
     # an unstable estimator (the open loop of an unstable plant) amplifies every
     # difference in round-off until the end of the bag: call by call, as the node
-    rho = float(np.max(np.abs(np.linalg.eigvals(Fs))))
+    rho = _spectral_radius(Fs, tm[a + first + 1] - tm[a + first])
     if rho > 1.0 and (run['tm'].size - a) * np.log(rho) > np.log(MAX_GROWTH):
         return None
     for k in range(len(streams)):

@@ -35,6 +35,7 @@ BASE_DIGITS = 3          # significant digits of the base step of the factored e
 FACTOR_NORM_MAX = 0.02   # |rest| * |aug|_1 up to which the Taylor factor is used
 TAYLOR_TERMS = 12        # most terms of the Taylor factor (its terms fall below 1e-17)
 CHUNK = 1 << 14          # keys whose matrices are built together
+MAX_GRID = 1 << 12       # most gain-grid steps walked over the keys of a run
 
 
 def zoh_stack(A, B, keys):
@@ -66,7 +67,8 @@ def zoh_stack(A, B, keys):
     norm = float(np.abs(aug).sum(axis=0).max())
     keys = np.asarray(keys, dtype=float).reshape(-1)
     E = np.empty((keys.size, n + m, n + m))
-    bases = np.array([float(format(k, f'.{BASE_DIGITS - 1}e')) for k in keys.tolist()])
+    scale = 10.0 ** (BASE_DIGITS - 1 - np.floor(np.log10(keys)))
+    bases = np.round(keys * scale) / scale          # about BASE_DIGITS significant digits
     rest = keys - bases
     small = np.abs(rest) * norm <= FACTOR_NORM_MAX
     for i in np.flatnonzero(~small):
@@ -89,25 +91,71 @@ def zoh_stack(A, B, keys):
     return E[:, :n, :n], E[:, :n, n:]
 
 
+def _grid(est, lo, hi):
+    """
+    Return the sorted gain-grid steps from the one at or below lo to the one above hi.
+
+    Walked with ``est.gain_steps`` (the step just above a grid step brackets it with the
+    next one); None when there are more than :data:`MAX_GRID` of them.
+
+    """
+    g0, g1, _ = est.gain_steps(lo)
+    grid = [g0]
+    while grid[-1] <= hi:
+        if len(grid) > MAX_GRID:
+            return None
+        g = grid[-1]
+        nxt = est.gain_steps(g * (1.0 + 1e-9))[1]
+        if nxt is None or not nxt > g:
+            return None
+        grid.append(nxt)
+    return np.array(grid)
+
+
+def _brackets(est, keys):
+    """
+    Return ``est.gain_steps`` of every key as arrays (i0, i1, w, grid); None if not found.
+
+    ``grid[i0] <= key < grid[i1]`` with ``w = (key - g0) / (g1 - g0)``, or i1 = -1 for a
+    key on the grid (within 1e-12 of itself), as ``gain_steps`` says; tested equal to
+    it key by key.
+
+    """
+    if est.gain_cache is est.cache or not keys.size:
+        return None
+    grid = _grid(est, float(keys.min()), float(keys.max()))
+    if grid is None:
+        return None
+    i = np.clip(np.searchsorted(grid, keys, side='right') - 1, 0, grid.size - 2)
+    lo, hi = grid[i], grid[i + 1]
+    tol = 1e-12 * keys
+    on_lo = np.abs(keys - lo) <= tol
+    on_hi = ~on_lo & (np.abs(hi - keys) <= tol)
+    i0 = np.where(on_hi, i + 1, i)
+    i1 = np.where(on_lo | on_hi, -1, i + 1)
+    w = np.where(i1 < 0, 0.0, (keys - lo) / (hi - lo))
+    return i0, i1, w, grid
+
+
 def _gains(est, keys, rows):
     """Return the correction gain M of every key for the rows, as the estimator has it."""
-    brackets = [est.gain_steps(key) for key in keys.tolist()]
-    grid = {}
-    for g0, g1, _ in brackets:
-        for g in (g0, g1):
-            if g is not None and g not in grid:
-                grid[g] = est.correction_gain(g, rows)
-    g0 = [grid[b[0]] for b in brackets]
-    g1 = [grid[b[0] if b[1] is None else b[1]] for b in brackets]
-    w = np.array([b[2] for b in brackets])[:, None, None]
-    out = np.stack(g0)
-    inter = np.array([b[1] is not None for b in brackets])
+    found = _brackets(est, keys)
+    if found is None:
+        return np.stack([est.correction_gain(k, rows) for k in keys.tolist()])
+    i0, i1, w, grid = found
+    used = np.unique(np.concatenate([i0, i1[i1 >= 0]]))
+    Mg = np.zeros((grid.size,) + est.correction_gain(float(grid[used[0]]), rows).shape)
+    for g in used.tolist():
+        Mg[g] = est.correction_gain(float(grid[g]), rows)
+    out = Mg[i0]
+    inter = np.flatnonzero(i1 >= 0)
+    wi = w[inter][:, None, None]
     # (1 - w) M(g0) + w M(g1), as the estimator interpolates; a grid step is M(g0)
-    out[inter] = (1.0 - w[inter]) * out[inter] + w[inter] * np.stack(g1)[inter]
+    out[inter] = (1.0 - wi) * out[inter] + wi * Mg[i1[inter]]
     return out
 
 
-def bulk_maps(est, steps, sensors, rows):
+def bulk_maps(est, keys, sensors, rows):
     """
     Return the affine map of each step class, or None when not built in bulk.
 
@@ -115,8 +163,8 @@ def bulk_maps(est, steps, sensors, rows):
     ----------
     est : Estimator
         The replay's estimator (read only: no call changes its state).
-    steps : (C,) array_like of float
-        The step length of each class, in seconds (a float difference of stamps).
+    keys : (C,) array_like of float
+        The step key of each class (``est.cache.key`` of its step length).
     sensors : (C,) array_like of int
         The sensor of each class (index into rows).
     rows : sequence of tuple of int
@@ -136,9 +184,8 @@ def bulk_maps(est, steps, sensors, rows):
     if plant.is_discrete or not (kind == 'open_loop' or (kind == 'full'
                                                          and est.poles is not None)):
         return None
-    steps = np.asarray(steps, dtype=float)
+    keys = np.asarray(keys, dtype=float)
     sensors = np.asarray(sensors, dtype=np.intp)
-    keys = np.array([est.cache.key(h) for h in steps.tolist()])
     Ad, Bd = zoh_stack(plant.A, plant.B, keys)
     n = plant.n
     q = len(rows[0]) if rows else 0
@@ -146,9 +193,9 @@ def bulk_maps(est, steps, sensors, rows):
         return None
     C_all = plant.C
     F, H = Ad.copy(), Bd.copy()
-    G = np.zeros((steps.size, n, q))
-    Rx = np.empty((steps.size, q, n))
-    Ru = np.empty((steps.size, q, plant.m))
+    G = np.zeros((keys.size, n, q))
+    Rx = np.empty((keys.size, q, n))
+    Ru = np.empty((keys.size, q, plant.m))
     for k, rk in enumerate(rows):
         sel = np.flatnonzero(sensors == k)
         if not sel.size:
@@ -164,5 +211,5 @@ def bulk_maps(est, steps, sensors, rows):
             H[sel] -= np.matmul(M, CB)
         Rx[sel] = -CA
         Ru[sel] = -CB
-    Ry = np.broadcast_to(np.eye(q), (steps.size, q, q))
+    Ry = np.broadcast_to(np.eye(q), (keys.size, q, q))
     return F, G, H, Rx, Ry, Ru
