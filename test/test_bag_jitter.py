@@ -151,3 +151,19 @@ def test_gain_brackets_equal_the_estimators_key_by_key():
         g0, g1, w_est = est.gain_steps(key)
         assert grid[a] == g0 and w_est == wk
         assert (g1 is None) == (b < 0) and (g1 is None or grid[b] == g1)
+
+
+def test_key_ids_number_the_keys_and_mark_steps_without_one():
+    from observer_ros.bag.replay import _key_ids
+    from observer_ros.core.errors import ObserverError
+
+    def key_of(h):
+        if h > 1.0:
+            raise ObserverError('not a whole number of samples')
+        return round(h, 1)
+
+    ids, keys = _key_ids(key_of, np.array([0.11, 0.12, 0.2, 1.5]))
+    assert ids[0] == ids[1] != ids[2] and ids[3] == -1
+    assert keys[ids[0]] == 0.1 and keys[ids[2]] == 0.2
+    ids, keys = _key_ids(key_of, np.array([0.11, 0.2, 0.12]))
+    assert ids[0] == ids[2] != ids[1] and keys.tolist() == [0.1, 0.2]

@@ -496,6 +496,32 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
 # Bulk replay of stretches of measurements at distinct, increasing stamps
 # ---------------------------------------------------------------------------------------
 
+def _key_ids(key_of, steps):
+    """
+    Return the key id of each step length (-1: no valid key) and the keys by id.
+
+    ``key_of`` is the estimator's ``cache.key``; ids number the distinct keys.
+
+    """
+    try:
+        keys = np.array([key_of(v) for v in steps.tolist()], dtype=float)
+    except (ObserverError, ValueError):
+        keys = None                              # some step has no key: one at a time
+    if keys is not None:
+        ukeys, ids = np.unique(keys, return_inverse=True)
+        return ids.reshape(-1).astype(np.int64), ukeys
+    key_index = {}
+    ids = np.empty(steps.size, dtype=np.int64)
+    for i, v in enumerate(steps.tolist()):
+        try:
+            key = key_of(v)
+        except (ObserverError, ValueError):
+            ids[i] = -1
+            continue
+        ids[i] = key_index.setdefault(key, len(key_index))
+    return ids, np.array(list(key_index), dtype=float)
+
+
 def _find_runs(events, streams, cmd, est, jump, future_tolerance):
     """
     Stretches of measurements each of whose steps is an affine map of the previous x.
@@ -531,15 +557,7 @@ def _find_runs(events, streams, cmd, est, jump, future_tolerance):
     key_id = np.full(M - 1, -1, dtype=np.int64)
     pos = h > 0
     uniq, inv = np.unique(h[pos], return_inverse=True)
-    key_index = {}
-    ids = np.empty(uniq.size, dtype=np.int64)
-    for i, v in enumerate(uniq):
-        try:
-            key = est.cache.key(float(v))
-        except (ObserverError, ValueError):
-            ids[i] = -1
-            continue
-        ids[i] = key_index.setdefault(key, len(key_index))
+    ids, keys = _key_ids(est.cache.key, uniq)
     if ids.size:
         key_id[pos] = ids[inv.reshape(-1)]
     step_ok = (key_id >= 0) & ok[1:]
@@ -559,7 +577,7 @@ def _find_runs(events, streams, cmd, est, jump, future_tolerance):
         bad_gap[gi[~good]] = True
         step_ok &= ~bad_gap[:-1]
         np.add.at(gap_cmds, gi, 1)
-    n_keys = max(1, len(key_index))
+    n_keys = max(1, keys.size)
     step_class = np.where(step_ok, key_id * len(streams) + msens[1:], -1)
     ok_i = step_ok.astype(np.int8)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], ok_i, [0]])))
@@ -568,7 +586,7 @@ def _find_runs(events, streams, cmd, est, jump, future_tolerance):
               'kind': events.kind, 'idx': events.idx, 'seq': events.seq,
               'last_cmd': last_cmd, 'gap_cmds': gap_cmds,
               'step_class': step_class, 'n_classes': n_keys * len(streams),
-              'keys': np.array(list(key_index), dtype=float)}
+              'keys': keys}
     for s0, s1 in zip(edges[::2], edges[1::2]):
         a, b = int(s0), int(s1)                 # steps a..b-1: measurements a+1..b
         if b + 1 < M and tm[b + 1] == tm[b]:
@@ -728,11 +746,12 @@ def _call_events(check, run, streams, cmd, rows, e0, e1):
     for e in range(e0, e1):
         k, j = int(kind[e]), int(idx[e])
         if k < 0:
-            t = float(cmd.t[j])
+            t = float(cmd.stamp_ns[j]) * 1e-9        # cmd.t[j], without the whole array
             last = check.t
             check.set_input(last if last is not None and t < last else t, cmd.values[j])
         else:
-            xs.append(check.correct(float(streams[k].t[j]), streams[k].values[j], rows[k]))
+            t = float(streams[k].stamp_ns[j]) * 1e-9  # streams[k].t[j]
+            xs.append(check.correct(t, streams[k].values[j], rows[k]))
     return np.array(xs).reshape(-1, check.n)
 
 
