@@ -704,8 +704,8 @@ def _spectral_radius(F, h):
 
     """
     if F.shape[0] > 8 * CHECK_CLASSES:
-        pick = _spread(range(F.shape[0]), 8 * CHECK_CLASSES) + [int(np.argmin(h)),
-                                                               int(np.argmax(h))]
+        pick = _spread(range(F.shape[0]), 8 * CHECK_CLASSES)
+        pick += [int(np.argmin(h)), int(np.argmax(h))]
         F = F[pick]
     return float(np.max(np.abs(np.linalg.eigvals(F))))
 
