@@ -43,6 +43,8 @@ Modules
     The correction shared by the full- and reduced-order observers.
 ``full_order``, ``reduced_order``, ``kalman``
     One observer each.
+``history``
+    :class:`History`: late and out-of-order messages, by rewinding.
 ``factory``
     :func:`make_estimator` from an ObserverSpec.
 
@@ -51,6 +53,7 @@ Modules
 from .base import Estimator, OpenLoopEstimator, TimeOrderError
 from .factory import make_estimator
 from .full_order import FullOrderEstimator
+from .history import History, HISTORY_LENGTH, HISTORY_MAX_MESSAGES
 from .kalman import KalmanEstimator
 from .reduced_order import ReducedOrderEstimator
 from .steps import CACHE_SIZE, DT_DIGITS, GAIN_CACHE_SIZE, GAIN_DIGITS, \
@@ -59,4 +62,5 @@ from .steps import CACHE_SIZE, DT_DIGITS, GAIN_CACHE_SIZE, GAIN_DIGITS, \
 __all__ = ['DT_DIGITS', 'GAIN_DIGITS', 'CACHE_SIZE', 'GAIN_CACHE_SIZE', 'TimeOrderError',
            'StepCache', 'Estimator', 'FullOrderEstimator',
            'ReducedOrderEstimator', 'OpenLoopEstimator', 'KalmanEstimator',
-           'make_estimator', 'process_noise_covariance']
+           'make_estimator', 'process_noise_covariance', 'History', 'HISTORY_LENGTH',
+           'HISTORY_MAX_MESSAGES']

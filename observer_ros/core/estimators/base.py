@@ -104,6 +104,10 @@ class Estimator:
 
     kind = 'base'
 
+    #: The attributes that make the state of an estimator (everything but its caches):
+    #: what :meth:`save_state` copies. Subclasses add theirs.
+    _STATE = ('_x', '_u', '_t', '_t_anchor', '_residual', '_residual_rows')
+
     def __init__(self, plant, x0=None, t0=None, measured_rows=None,
                  dt_digits=DT_DIGITS, cache_size=CACHE_SIZE, gain_digits=GAIN_DIGITS):
         self._plant = _check_plant(plant)
@@ -447,6 +451,33 @@ class Estimator:
         buf += step.Bd @ self._u
         self._x, self._buf = buf, self._x
 
+    # ------------------------------------------------------------ state
+
+    def save_state(self):
+        """
+        Return a copy of the estimator's state (estimate, input, time and internals).
+
+        Returns
+        -------
+        state : tuple
+            For :meth:`restore_state`; the caches (matrices, gains) are not part of it.
+
+        """
+        return tuple(_copy(getattr(self, name)) for name in self._STATE)
+
+    def restore_state(self, state):
+        """
+        Go back to a state returned by :meth:`save_state` of this estimator.
+
+        Parameters
+        ----------
+        state : tuple
+            From :meth:`save_state`; it is copied, so it can be restored again.
+
+        """
+        for name, value in zip(self._STATE, state):
+            setattr(self, name, _copy(value))
+
     # hooks ----------------------------------------------------------------
 
     def _reset_state(self):
@@ -460,6 +491,15 @@ class Estimator:
 
 
 # ---------------------------------------------------------------- open loop
+
+
+def _copy(value):
+    """Copy a mutable part of a state (arrays and sets); numbers and tuples as they are."""
+    if isinstance(value, np.ndarray):
+        return value.copy()
+    if isinstance(value, set):
+        return set(value)
+    return value
 
 
 class OpenLoopEstimator(Estimator):

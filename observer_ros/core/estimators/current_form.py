@@ -24,6 +24,8 @@ class _CurrentForm(Estimator):
 
     """
 
+    _STATE = Estimator._STATE + ('_x_prior', '_acc', '_acc_rows', '_acc_key', '_t_corr')
+
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         p = self._plant.p

@@ -91,6 +91,7 @@ class FullOrderEstimator(_CurrentForm):
     """
 
     kind = 'full'
+    _STATE = _CurrentForm._STATE + ('_held', '_held_rows')
 
     def __init__(self, plant, poles=None, gain=None, method='auto', x0=None, t0=None,
                  measured_rows=None, dt_digits=DT_DIGITS, cache_size=CACHE_SIZE,

@@ -62,6 +62,7 @@ class KalmanEstimator(Estimator):
     """
 
     kind = 'kalman'
+    _STATE = Estimator._STATE + ('_P',)
 
     def __init__(self, plant, Qd, Rd, Bd=None, P0=None, x0=None, t0=None,
                  measured_rows=None, dt_digits=DT_DIGITS, cache_size=CACHE_SIZE,

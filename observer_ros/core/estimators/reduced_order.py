@@ -81,6 +81,7 @@ class ReducedOrderEstimator(_CurrentForm):
     """
 
     kind = 'reduced'
+    _STATE = _CurrentForm._STATE + ('_ybar', '_z')
 
     def __init__(self, plant, poles=None, gain=None, method='auto', x0=None, t0=None,
                  measured_rows=None, dt_digits=DT_DIGITS, cache_size=CACHE_SIZE,
