@@ -110,7 +110,7 @@ class History:
 
     @property
     def estimator(self):
-        """Return the estimator (at the newest stamp of the history)."""
+        """Return the estimator this history drives (it is at the newest stamp)."""
         return self._est
 
     @property
