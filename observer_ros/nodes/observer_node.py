@@ -4,7 +4,11 @@ Observer node: sensor topics and the command u in, the state estimate x_hat out.
 
 Subscribes to every sensor of the vehicle file (sensor-data QoS) and to ``control/u``;
 publishes ``state/estimate`` (JointState named by the states) and ``observer/residual``
-(named by the outputs). Each measurement corrects with its own rows of C at its own stamp.
+(named by the outputs). Each measurement corrects with its own rows of C at its own stamp;
+a message stamped before the estimate but inside ``observer.history_length`` is used at
+its stamp (the core's :class:`~observer_ros.core.estimators.History` rewinds), so
+sensors with different latencies all count. With ``observer.publish_rate_hz`` (free
+running) the estimate predicted to now is also published at that rate.
 
 """
 
@@ -19,7 +23,7 @@ from .common import (joint_state, MESSAGE_CLASSES, run_node, SENSOR_SUB_QOS, sta
                      STATE_PUB_QOS, STATE_QOS, TOPICS, vector_from_joint_state, VehicleNode)
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
-from ..core.estimators import make_estimator
+from ..core.estimators import History, make_estimator
 from ..sensors import extract_measurement
 
 __all__ = ['ObserverNode', 'main']
@@ -68,6 +72,9 @@ class ObserverNode(VehicleNode):
             # prediction at observer.rate_hz (default: the simulator's rate)
             rate = v.observer.rate_hz or v.simulator.rate_hz
             self._predict_timer = self.wall_timer(1.0 / rate, self._on_predict)
+            if v.observer.publish_rate_hz:
+                self._publish_timer = self.wall_timer(1.0 / v.observer.publish_rate_hz,
+                                                      self._on_publish_rate)
 
     # -- design -------------------------------------------------------------------------
     def _design_and_build(self, vehicle):
@@ -84,6 +91,9 @@ class ObserverNode(VehicleNode):
             log.warning(text)
         self.design = design
         self.estimator = make_estimator(vehicle.plant, vehicle.observer)
+        # every message goes through the history (late ones at their stamps); the
+        # estimator is read (x_hat, t) but only the history changes it
+        self.history = History(self.estimator, vehicle.observer.history_length)
         self.vehicle = vehicle
         # each sensor's rows of C, looked up once rather than per message
         self._rows = {s.name: vehicle.plant.output_rows(s.outputs) for s in vehicle.sensors}
@@ -103,10 +113,11 @@ class ObserverNode(VehicleNode):
         except (ObserverError, ValueError) as err:
             self.count('parameter_changes_refused')
             return SetParametersResult(successful=False, reason=str(err))
-        # Keep the estimate: only the gain changes.
+        # Keep the estimate: only the gain changes (the history starts again).
         if self.estimator.t is not None:
             estimator.reset(self.estimator.x_hat, self.estimator.t)
         self.vehicle, self.design, self.estimator = vehicle, design, estimator
+        self.history = History(estimator, vehicle.observer.history_length)
         self.get_logger().info(f'observer redesigned: poles {_poles(design.observer_poles)}')
         self.count('parameter_changes_applied')
         return SetParametersResult(successful=True)
@@ -139,30 +150,37 @@ class ObserverNode(VehicleNode):
         if not self._check_time(sensor, t, stamp):
             return
         rows = self._rows[sensor.name]
+        history = self.history
+        late = history.t is not None and t < history.t
         try:
-            x_hat = self.estimator.correct(t, y, rows)
+            x_hat = history.correct(t, y, rows, tag=stamp)
         except (ObserverError, ValueError) as err:
             self._reject('rejected_updates', f'{sensor.topic}: {err}')
             self._answer_without_correction(sensor, t, stamp)
             return
         if not np.isfinite(x_hat).all():
             # Never publish a NaN: restart from the initial estimate.
-            self.estimator.reset(None, t)
+            history.reset(None, t)
             self._reject('numerical_resets', f'{sensor.topic}: estimate not finite; reset')
             self._answer_without_correction(sensor, t, stamp)
             return
-        self._last_stamp[sensor.name] = t
+        self._last_stamp[sensor.name] = max(t, self._last_stamp.get(sensor.name, t))
         self.count('measurements')
-        # the estimate first: it is what the compensator waits for (benchmarks P1)
-        self._publish_estimate(t, sensor.frame_id, stamp)
-        residual = self.estimator.residual
+        # the estimate first: it is what the compensator waits for (benchmarks P1). A late
+        # measurement is answered with the estimate at the newest stamp, now revised.
+        if late:
+            self.count('late_measurements')
+            self._publish_estimate(history.t, sensor.frame_id, history.head_tag)
+        else:
+            self._publish_estimate(t, sensor.frame_id, stamp)
+        residual = history.residual
         if residual is not None and self._res_pub.get_subscription_count():
             self._res_pub.publish(joint_state(sensor.outputs, residual, t, sensor.frame_id,
                                               stamp))
 
-    def _publish_estimate(self, t, frame_id, stamp=None):
-        msg = joint_state(self.vehicle.plant.state_names, self.estimator.x_hat, t, frame_id,
-                          stamp)
+    def _publish_estimate(self, t, frame_id, stamp=None, x_hat=None):
+        x_hat = self.estimator.x_hat if x_hat is None else x_hat
+        msg = joint_state(self.vehicle.plant.state_names, x_hat, t, frame_id, stamp)
         self._est_pub.publish(msg)
         self._last_estimate = msg
         if self._lockstep:
@@ -179,31 +197,34 @@ class ObserverNode(VehicleNode):
         """
         if not self._lockstep or t is None or t <= 0.0:
             return
-        last = self.estimator.t
+        last = self.history.t
+        x_hat, at = self.estimator.x_hat, last
         if last is None or t >= last:
             try:
-                self.estimator.predict(t)
+                x_hat, at = self.history.predict(t), t
             except (ObserverError, ValueError):
                 return
-        if np.isfinite(self.estimator.x_hat).all():
-            at = self.estimator.t if self.estimator.t is not None else t
-            self._publish_estimate(at, sensor.frame_id, stamp if at == t else None)
+        if np.isfinite(x_hat).all():
+            at = t if at is None else at
+            self._publish_estimate(at, sensor.frame_id, stamp if at == t else None, x_hat)
 
     def _check_time(self, sensor, t, stamp=None):
         """Handle stamps that go backwards, repeat, or lie far in the future."""
-        last = self.estimator.t
+        last = self.history.t
         if last is not None and t < last:
             if last - t > self.param('clock_jump_tolerance'):
                 self.get_logger().warning(
                     f'{sensor.topic}: clock jumped back {last - t:.3f} s; estimator reset')
                 self.count('clock_jumps')
-                self.estimator.reset(None, None)
+                self.history.reset(None, None)
                 self._last_stamp.clear()
                 self._future_bound = None
                 return True
-            self._reject('out_of_order', f'{sensor.topic}: stamp {t:.6f} older than '
-                         f'the estimate ({last:.6f}); skipped')
-            return False
+            if not self.history.accepts(t):
+                self._reject('out_of_order', f'{sensor.topic}: stamp {t:.6f} older than the '
+                             f'history ({self.history.length:g} s before the estimate, '
+                             f'{last:.6f}); skipped')
+                return False
         if self._last_stamp.get(sensor.name) == t:
             # a repeat (a simulator re-sending a message whose answer was lost): answer it
             # again with the current estimate, without correcting twice
@@ -235,17 +256,14 @@ class ObserverNode(VehicleNode):
         try:
             t = stamp_to_sec(msg.header.stamp)
             u = vector_from_joint_state(msg, self.vehicle.plant.input_names, TOPICS['command'])
-            last = self.estimator.t
-            if last is not None and t < last:
-                if last - t > self.param('clock_jump_tolerance'):
-                    self.estimator.reset(None, None)
-                    self._future_bound = None
-                    self.count('clock_jumps')
-                    self.estimator.set_input(t, u)
-                else:   # a command for an older stamp: hold it from now on
-                    self.estimator.set_input(last, u)
-            else:
-                self.estimator.set_input(t, u)
+            last = self.history.t
+            if last is not None and last - t > self.param('clock_jump_tolerance'):
+                self.history.reset(None, None)
+                self._future_bound = None
+                self.count('clock_jumps')
+            # inside the history: from its stamp on; older: held from the estimate's time
+            if self.history.set_input(t, u, tag=msg.header.stamp):
+                self.count('late_commands_held_from_now')
         except (ObserverError, ValueError) as err:
             self._reject('bad_commands', f'{TOPICS["command"]}: {err}')
         if self._lockstep and self._pending_commands > 0 and t == self._pending_stamp:
@@ -281,18 +299,26 @@ class ObserverNode(VehicleNode):
         if any(now_wall - self._last_seen.get(s.name, -np.inf) <= s.timeout
                for s in self.vehicle.sensors):
             return
-        last = self.estimator.t
+        self._publish_prediction('predictions')
+
+    def _on_publish_rate(self):
+        """Publish the estimate predicted to now (``observer.publish_rate_hz``)."""
+        self._publish_prediction('rate_publications')
+
+    def _publish_prediction(self, counter):
+        """Publish the estimate predicted to the clock's time (the history unchanged)."""
+        last = self.history.t
         now = self.get_clock().now().nanoseconds * 1e-9
         # only when the stamps are on this node's clock (not a replayed bag's old time)
         if last is None or not 0.0 < now - last < 100.0 * max(
                 s.timeout for s in self.vehicle.sensors):
             return
         try:
-            self.estimator.predict(now)
+            x_hat = self.history.predict(now)
         except (ObserverError, ValueError):
             return
-        self.count('predictions')
-        self._publish_estimate(now, self.vehicle.sensors[0].frame_id)
+        self.count(counter)
+        self._publish_estimate(now, self.vehicle.sensors[0].frame_id, None, x_hat)
 
     def _on_diagnostics(self):
         now = self.wall_now()

@@ -29,13 +29,9 @@ import bisect
 import numpy as np
 
 from .base import TimeOrderError
+from ..spec import HISTORY_LENGTH
 
 __all__ = ['History', 'HISTORY_LENGTH', 'HISTORY_MAX_MESSAGES']
-
-#: Default length of the history in seconds (vehicle key ``observer.history_length``):
-#: longer than the latency of the slow sensors of the vehicles here (40 ms), shorter
-#: than the node's clock-jump tolerance (0.5 s, a larger step back is a clock restart).
-HISTORY_LENGTH = 0.25
 
 #: At most this many messages are kept, whatever their stamps (a bound on the memory and
 #: on the cost of a rewind when stamps crowd: 2.5e4 is 0.25 s at 100 kHz). When it is
@@ -105,6 +101,7 @@ class History:
         self._base = self._est.save_state()      # the state before the first entry
         self._dropped_t = -np.inf                 # the newest stamp no longer kept
         self._residual = None
+        self._x_at = None
 
     # ------------------------------------------------------------ properties
 
@@ -132,6 +129,11 @@ class History:
     def residual(self):
         """Residual of the measurement of the last :meth:`correct` call, or None."""
         return self._residual
+
+    @property
+    def x_at_stamp(self):
+        """Return the estimate at the stamp of the last :meth:`correct` call, after it."""
+        return self._x_at
 
     @property
     def head_tag(self):
@@ -193,6 +195,7 @@ class History:
         rows = self._est.measured_rows if rows is None else tuple(rows)
         entry = self._insert(_MEASUREMENT, t, y, rows, tag)
         self._residual = entry.residual
+        self._x_at = entry.x
         return self._est.x_hat
 
     def set_input(self, t, u, tag=None):
@@ -242,6 +245,18 @@ class History:
             return est.predict(t)
         finally:
             est.restore_state(state)
+
+    def forget(self):
+        """
+        Start the history again from the estimator's present state.
+
+        For a caller that drove the estimator directly (the bag replay's bulk stretches):
+        no message stamped at or before the estimate's time is accepted after this.
+
+        """
+        self._clear()
+        if self._est.t is not None:
+            self._dropped_t = self._est.t
 
     def reset(self, x0=None, t0=None):
         """
