@@ -214,7 +214,7 @@ def test_revised_estimates_are_reported_with_their_tags():
     history.correct(1.02, [0.002], GYRO, tag='c')
     assert history.revised == []
     history.correct(1.005, [0.2], PITCH, tag='late')
-    assert [tag for tag, _, _ in history.revised] == ['b', 'c']
+    assert [tag for tag, _, _, _ in history.revised] == ['b', 'c']
     assert_array_equal(history.revised[-1][1], history.x_hat)
     assert history.head_tag == 'c'
 

@@ -39,8 +39,9 @@ import numpy as np
 
 from .errors import BagToolError
 from .reader import jazzy_typestore, read_recording
-from .replay import CLOCK_JUMP_TOLERANCE, epochs_of, live_replay, replay
+from .replay import CLOCK_JUMP_TOLERANCE, epochs_of, innovation_health, live_replay, replay
 from ..core.errors import ObserverError
+from ..core.innovation import WINDOW as INNOVATION_WINDOW
 
 __all__ = ['DEFAULT_TOLERANCE', 'STEADY_FRACTION', 'WHITENESS_LAGS', 'VariantResult',
            'EvalResult', 'parse_variant', 'parse_tolerance', 'evaluate_bag',
@@ -69,7 +70,9 @@ class VariantResult:
     and ``samples`` (matched with the truth); empty without ground truth. ``outputs`` maps
     an output name to ``samples``, ``residual_rms``, ``ljung_box_q``, ``ljung_box_p``,
     ``lags`` and ``acf_outside``. ``summary`` has ``error_rms`` (RMS of the error norm)
-    and ``settling_time`` (the largest over the states).
+    and ``settling_time`` (the largest over the states). ``sensors`` maps a sensor name to
+    its innovation health, judged by windows as the node does
+    (:func:`~observer_ros.bag.replay.innovation_health`).
 
     """
 
@@ -80,6 +83,7 @@ class VariantResult:
     states: Dict[str, dict] = field(default_factory=dict)
     outputs: Dict[str, dict] = field(default_factory=dict)
     summary: Dict[str, object] = field(default_factory=dict)
+    sensors: Dict[str, dict] = field(default_factory=dict)
     error: Optional[np.ndarray] = None       # (N, n) x_hat - x_true; NaN where unmatched
 
     @property
@@ -160,6 +164,7 @@ class EvalResult:
                 'summary': dict(v.summary),
                 'states': v.states,
                 'outputs': v.outputs,
+                'sensors': v.sensors,
             }
         return _jsonable(out)
 
@@ -436,6 +441,7 @@ def _score(result, vr):
         vr.summary['settling_time'] = float(max(settles)) if settles else math.nan
     for j, name in enumerate(plant.output_names):
         vr.outputs[name] = whiteness(rep.residual[:, j]) if len(rep) else whiteness([])
+    vr.sensors = innovation_health(rep)
 
 
 # ---------------------------------------------------------------------------------------
@@ -642,6 +648,14 @@ def format_table(result):
                       f'{WHITENESS_LAGS}; p small = not white; acf_out ~0.05 if white)',
                   '', _table(['variant', 'output', 'N', 'rms', 'LB_Q', 'LB_p', 'acf_out'],
                              rows)]
+    rows = [[name, sensor, h['samples'], _fmt(h['nis_mean']), f"{h['windows_inconsistent']}/"
+             f"{h['windows']}", _fmt(h['whiteness_p'], 3), 'ok' if h['consistent'] else 'WARN']
+            for name, vr in result.variants.items() for sensor, h in vr.sensors.items()]
+    if rows:
+        lines += ['', 'innovation health per sensor (NIS and whiteness over windows of '
+                      f'{INNOVATION_WINDOW}, as the node judges them)',
+                  '', _table(['variant', 'sensor', 'N', 'NIS', 'bad_windows', 'white_p',
+                              'health'], rows)]
     return '\n'.join(lines)
 
 

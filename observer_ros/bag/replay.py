@@ -56,15 +56,16 @@ bulk's different round-off as much. ``exact=True`` turns bulk replay off.
 
 import copy
 from dataclasses import dataclass, field
-from typing import Dict, Tuple
+from typing import Dict, Optional, Tuple
 
 import numpy as np
 
 from .errors import BagToolError
 from ..core.errors import ObserverError
 from ..core.estimators import History, make_estimator
+from ..core.innovation import sequence_health, whiten
 
-__all__ = ['Replay', 'replay', 'live_replay', 'epochs_of', 'affine_scan',
+__all__ = ['Replay', 'replay', 'live_replay', 'epochs_of', 'affine_scan', 'innovation_health',
            'CLOCK_JUMP_TOLERANCE', 'FUTURE_TOLERANCE']
 
 CLOCK_JUMP_TOLERANCE = 0.5     # s, as the observer node's clock_jump_tolerance
@@ -103,6 +104,10 @@ class Replay:
     overrides: Tuple[str, ...] = ()
     bulk_steps: int = 0
     warnings: list = field(default_factory=list)
+    # residuals whitened by their covariance (Kalman: C P C^T + R; else noise_std), as
+    # residual; None for the live estimate (core.innovation)
+    whitened: Optional[np.ndarray] = None
+    kalman: bool = False
 
     @property
     def t(self):
@@ -367,6 +372,8 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
     out_ns = np.zeros(n_meas, dtype=np.int64)
     out_x = np.zeros((n_meas, plant.n))
     out_r = np.full((n_meas, plant.p), np.nan)
+    kalman = est.kind == 'kalman'
+    out_e = np.full((n_meas, plant.p), np.nan) if kalman else None
     out_epoch = np.zeros(n_meas, dtype=np.int64)
     out_seq = np.zeros(n_meas, dtype=np.int64)
     out_sensor = np.zeros(n_meas, dtype=np.int64)
@@ -437,9 +444,11 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
             continue
         if last is not None and t < last:
             counts['late_measurements'] += 1
-            for r, x_r, res_r in history.revised:     # estimates the late one changed
+            for r, x_r, res_r, S_r in history.revised:     # estimates the late one changed
                 out_x[r] = x_r
                 out_r[r, rows_idx[out_sensor[r]]] = res_r
+                if kalman:
+                    _put_whitened(out_e, r, rows_idx[out_sensor[r]], res_r, S_r)
         last_stamp[k] = max(t, last_stamp.get(k, t))
         counts['measurements'] += 1
         out_ns[m] = stamps[k][j]
@@ -447,6 +456,8 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
         res = history.residual
         if res is not None:
             out_r[m, rows_idx[k]] = res
+            if kalman:
+                _put_whitened(out_e, m, rows_idx[k], res, history.innovation_covariance)
         out_epoch[m] = epoch
         out_seq[m] = seqs[i]
         out_sensor[m] = k
@@ -473,11 +484,52 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
     # late measurements were used at their stamps: the rows in stamp order (per epoch)
     order = np.lexsort((out_ns[:m], out_epoch[:m])) if counts['late_measurements'] else \
         slice(None)
+    if not kalman:      # whitened by the sensors' noise_std (NaN where it is 0)
+        std = np.full(plant.p, np.nan)
+        for s, r in zip(sensors, rows_idx):
+            std[r] = np.where(np.asarray(s.noise_std) > 0.0, s.noise_std, np.nan)
+        out_e = out_r / std
     return Replay(name=name, vehicle=vehicle, stamp_ns=out_ns[:m][order],
                   x_hat=out_x[:m][order], residual=out_r[:m][order],
                   epoch=out_epoch[:m][order], seq=out_seq[:m][order],
                   sensor=out_sensor[:m][order], counts=counts, overrides=tuple(overrides),
-                  bulk_steps=bulk_steps, warnings=warnings)
+                  bulk_steps=bulk_steps, warnings=warnings, whitened=out_e[:m][order],
+                  kalman=kalman)
+
+
+def _put_whitened(out_e, m, cols, residual, S):
+    if S is None:           # a Kalman filter before its first covariance: not counted
+        return
+    try:
+        out_e[m, cols] = whiten(residual, S)
+    except (ValueError, np.linalg.LinAlgError):
+        pass
+
+
+def innovation_health(rep):
+    """
+    Return the innovation health of each sensor of a replay, as the node judges it.
+
+    Parameters
+    ----------
+    rep : Replay
+        From :func:`replay` (None figures for the live estimate).
+
+    Returns
+    -------
+    health : dict
+        Sensor name -> :func:`observer_ros.core.innovation.sequence_health` figures.
+
+    """
+    if rep.whitened is None:
+        return {}
+    plant = rep.vehicle.plant
+    out = {}
+    for k, s in enumerate(rep.vehicle.sensors):
+        cols = list(plant.output_rows(s.outputs))
+        out[s.name] = sequence_health(s.name, rep.whitened[rep.sensor == k][:, cols],
+                                      rep.kalman)
+    return out
 
 
 def _has_late(events, streams, cmd, length):

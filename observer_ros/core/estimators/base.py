@@ -173,6 +173,11 @@ class Estimator:
         return None if self._residual is None else self._residual.copy()
 
     @property
+    def innovation_covariance(self):
+        """Covariance S of :attr:`residual` when the estimator has one (Kalman), or None."""
+        return None
+
+    @property
     def residual_rows(self):
         """Return the output rows of :attr:`residual` (tuple of int), or None."""
         return self._residual_rows

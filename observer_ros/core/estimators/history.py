@@ -44,7 +44,7 @@ _MEASUREMENT, _COMMAND = 0, 1
 class _Entry:
     """One message of the history, and the estimator's state after it."""
 
-    __slots__ = ('key', 'kind', 't', 'value', 'rows', 'tag', 'state', 'x', 'residual')
+    __slots__ = ('key', 'kind', 't', 'value', 'rows', 'tag', 'state', 'x', 'residual', 'S')
 
     def __init__(self, key, kind, t, value, rows, tag):
         self.key = key
@@ -56,6 +56,7 @@ class _Entry:
         self.state = None
         self.x = None
         self.residual = None
+        self.S = None
 
 
 class History:
@@ -75,7 +76,7 @@ class History:
     Notes
     -----
     :attr:`revised` lists, after each call, the measurements whose estimate changed
-    because a late message was inserted before them, as ``(tag, x_hat, residual)``:
+    because a late message was inserted before them, as ``(tag, x_hat, residual, S)``:
     the bag replay overwrites what it had recorded for them.
 
     """
@@ -101,6 +102,7 @@ class History:
         self._base = self._est.save_state()      # the state before the first entry
         self._dropped_t = -np.inf                 # the newest stamp no longer kept
         self._residual = None
+        self._S = None
         self._x_at = None
 
     # ------------------------------------------------------------ properties
@@ -129,6 +131,11 @@ class History:
     def residual(self):
         """Residual of the measurement of the last :meth:`correct` call, or None."""
         return self._residual
+
+    @property
+    def innovation_covariance(self):
+        """Covariance S of :attr:`residual` (Kalman), or None."""
+        return self._S
 
     @property
     def x_at_stamp(self):
@@ -195,6 +202,7 @@ class History:
         rows = self._est.measured_rows if rows is None else tuple(rows)
         entry = self._insert(_MEASUREMENT, t, y, rows, tag)
         self._residual = entry.residual
+        self._S = entry.S
         self._x_at = entry.x
         return self._est.x_hat
 
@@ -301,6 +309,7 @@ class History:
         if entry.kind == _MEASUREMENT:
             entry.x = est.correct(entry.t, entry.value, entry.rows)
             entry.residual = est.residual
+            entry.S = est.innovation_covariance
         else:
             est.set_input(entry.t, entry.value)
         entry.state = est.save_state()
@@ -320,7 +329,7 @@ class History:
         for e in later:
             self._apply(e)
             if e.kind == _MEASUREMENT:
-                self.revised.append((e.tag, e.x, e.residual))
+                self.revised.append((e.tag, e.x, e.residual, e.S))
         self.reapplied += len(later)
         entries.insert(pos, entry)
         self._keys.insert(pos, entry.key)

@@ -62,7 +62,7 @@ class KalmanEstimator(Estimator):
     """
 
     kind = 'kalman'
-    _STATE = Estimator._STATE + ('_P',)
+    _STATE = Estimator._STATE + ('_P', '_S')
 
     def __init__(self, plant, Qd, Rd, Bd=None, P0=None, x0=None, t0=None,
                  measured_rows=None, dt_digits=DT_DIGITS, cache_size=CACHE_SIZE,
@@ -83,6 +83,7 @@ class KalmanEstimator(Estimator):
         self._P = None
         self._I = np.eye(n)
         self._rows_R = {}
+        self._S = None
         self.reset(t0=self._t0)
 
     @property
@@ -90,8 +91,14 @@ class KalmanEstimator(Estimator):
         """Covariance of x_hat (copy), or None before it is known (see P0)."""
         return None if self._P is None else self._P.copy()
 
+    @property
+    def innovation_covariance(self):
+        """Return ``S = C P- C^T + R`` of the last correction's rows (a copy), or None."""
+        return None if self._S is None else self._S.copy()
+
     def _reset_state(self):
         self._P = None if self._P0 is None else self._P0.copy()
+        self._S = None
 
     def _noise(self, step):
         """Qk of a step (interpolated between grid steps, see :data:`GAIN_DIGITS`)."""
@@ -132,6 +139,7 @@ class KalmanEstimator(Estimator):
         innov = ybar - info.C @ self._x
         self._residual = innov
         R = self._R_rows(info)
+        self._S = None
         if self._P is None:
             h = self._t - self._t_anchor
             if h <= 0.0:
@@ -141,6 +149,7 @@ class KalmanEstimator(Estimator):
         C = info.C
         PCt = P @ C.T
         S = C @ PCt + R
+        self._S = S
         K = np.linalg.solve(S, PCt.T).T
         self._x = self._x + K @ innov
         IKC = self._I - K @ C
