@@ -1,7 +1,9 @@
 # test/late_sensors.py: the two-sensor submarine whose sensors have different latencies.
 """
-A submarine with a rate gyro (q, 100 Hz, 1 ms latency) and a pitch sensor (theta, 20 Hz,
-40 ms latency): the case of issue 13, for the node and bag replay tests.
+The submarine of issue 13: a gyro and a pitch sensor of different rates and latencies.
+
+A rate gyro (q, 100 Hz, 1 ms latency) and a pitch sensor (theta, 20 Hz, 40 ms latency),
+for the node, bag replay and innovation tests.
 
 :func:`messages` simulates it (exact ZOH, noisy sensors, a known input on ``control/u``
 stamped like the gyro and received 2 ms later) and returns the messages with their stamp
@@ -12,6 +14,7 @@ and arrival times; the tests publish them or write them to a bag in either order
 from pathlib import Path
 
 import numpy as np
+from observer_ros.core.estimators import process_noise_covariance
 from observer_ros.core.model import zoh_matrices
 from observer_ros.vehicle import load_vehicle
 
@@ -42,7 +45,7 @@ VEHICLE_YAML = """\
         type: sensor_msgs/msg/JointState
         fields: [position.theta]
         outputs: [theta]
-        noise_std: [0.01]
+        noise_std: [{pitch_noise}]
         rate_divider: 5
     observer:
       type: {observer_type}
@@ -56,30 +59,35 @@ VEHICLE_YAML = """\
       initial_state: [0.5, 0.1, 0.0]
 """
 
+#: Process noise intensity of the Kalman design (continuous, per state).
+QD = np.diag([1.0e-6, 1.0e-4, 1.0e-4])
+
 DESIGNS = {
     'full': 'poles: [-2.0, -2.1, -2.2]',
-    'kalman': 'Qd: [1.0e-6, 0.0, 0.0, 0.0, 1.0e-4, 0.0, 0.0, 0.0, 1.0e-4]',
+    'kalman': 'Qd: [' + ', '.join(f'{v:.1e}' for v in QD.reshape(-1)) + ']',
 }
 
 GYRO_LATENCY_NS = 1_000_000
+GYRO_NOISE, PITCH_NOISE = 1e-3, 1e-2
 PITCH_LATENCY_NS = 40_000_000
 COMMAND_LATENCY_NS = 2_000_000
 
 
-def write_vehicle(directory, observer_type='full'):
+def write_vehicle(directory, observer_type='full', pitch_noise=PITCH_NOISE):
     """Write the vehicle file into a directory; return its path."""
     path = Path(directory) / f'submarine_two_sensors_{observer_type}.yaml'
-    path.write_text(VEHICLE_YAML.format(observer_type=observer_type,
+    path.write_text(VEHICLE_YAML.format(observer_type=observer_type, pitch_noise=pitch_noise,
                                         observer_design=DESIGNS[observer_type]))
     return path
 
 
-def vehicle(directory, observer_type='full'):
-    """Return the loaded vehicle (the file is written into ``directory``)."""
-    return load_vehicle(write_vehicle(directory, observer_type))
+def vehicle(directory, observer_type='full', pitch_noise=PITCH_NOISE):
+    """Write the vehicle file into ``directory`` and load it."""
+    return load_vehicle(write_vehicle(directory, observer_type, pitch_noise))
 
 
-def messages(veh, steps=300, t0_ns=100_000_000_000, seed=0, commands=True):
+def messages(veh, steps=300, t0_ns=100_000_000_000, seed=0, commands=True,
+             process_noise=False, faults=None, qd=None):
     """
     Simulate the two-sensor submarine.
 
@@ -91,25 +99,42 @@ def messages(veh, steps=300, t0_ns=100_000_000_000, seed=0, commands=True):
     truth : list of tuple
         ``(stamp_ns, x)`` at every step.
 
+    With ``process_noise`` the plant is driven by the process noise the Kalman design
+    assumes (:data:`QD`, or ``qd``, exactly sampled). ``faults`` maps a sensor to
+    ``(sign, bias, onset)``: from step ``onset`` on its readings become
+    ``sign * reading + bias`` (a flipped axis, a bias).
+
     """
     rng = np.random.default_rng(seed)
     plant = veh.plant
     dt_ns = 10_000_000
     Ad, Bd = zoh_matrices(plant.A, plant.B, dt_ns * 1e-9)
+    Qk = process_noise_covariance(plant.A, QD if qd is None else qd, dt_ns * 1e-9)
+    W = np.linalg.cholesky(Qk + 1e-18 * np.eye(plant.n))
     x = np.array(veh.simulator.initial_state, dtype=float)
+    pitch_noise = float(veh.sensors[1].noise_std[0])
     msgs, truth = [], []
     for k in range(steps):
         ns = t0_ns + k * dt_ns
         t = ns * 1e-9
         u = 0.05 * np.sin(0.7 * t) if commands else 0.0
         truth.append((ns, x.copy()))
-        msgs.append(('gyro', ns, ns + GYRO_LATENCY_NS, x[2] + rng.normal(0.0, 1e-3)))
+        msgs.append(('gyro', ns, ns + GYRO_LATENCY_NS,
+                     _fault(faults, 'gyro', x[2] + rng.normal(0.0, GYRO_NOISE), k)))
         if k % 5 == 0:
-            msgs.append(('pitch', ns, ns + PITCH_LATENCY_NS, x[0] + rng.normal(0.0, 1e-2)))
+            msgs.append(('pitch', ns, ns + PITCH_LATENCY_NS,
+                         _fault(faults, 'pitch', x[0] + rng.normal(0.0, pitch_noise), k)))
         if commands:
             msgs.append(('u', ns, ns + COMMAND_LATENCY_NS, u))
         x = Ad @ x + Bd @ np.array([u])
+        if process_noise:
+            x = x + W @ rng.standard_normal(plant.n)
     return msgs, truth
+
+
+def _fault(faults, name, value, k):
+    sign, bias, onset = (faults or {}).get(name, (1.0, 0.0, 0))
+    return sign * value + bias if k >= onset else value
 
 
 def receive_order(msgs):

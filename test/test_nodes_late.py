@@ -33,9 +33,9 @@ def _pitch(ns, theta):
 
 @pytest.fixture
 def late_observer(tmp_path, request):
-    path = late_sensors.write_vehicle(tmp_path, 'full')
-    proc = Proc('observer_node', path, 'diagnostics_period:=0.2', *request.param,
-                log_dir=tmp_path)
+    kind, params = request.param
+    path = late_sensors.write_vehicle(tmp_path, kind)
+    proc = Proc('observer_node', path, 'diagnostics_period:=0.2', *params, log_dir=tmp_path)
     probe = Probe()
     try:
         listener = Listener(probe)
@@ -47,13 +47,13 @@ def late_observer(tmp_path, request):
             probe.spin_until(lambda: pub.get_subscription_count() >= 1, 30.0, f'{name} matched')
         listener.wait_matched('state/estimate', '/diagnostics')
         listener.wait_alive('observer')
-        yield proc, probe, listener, pubs, late_sensors.vehicle(tmp_path, 'full')
+        yield proc, probe, listener, pubs, late_sensors.vehicle(tmp_path, kind)
     finally:
         probe.close()
     assert proc.stop() == 0, proc.output()
 
 
-@pytest.mark.parametrize('late_observer', [()], indirect=True)
+@pytest.mark.parametrize('late_observer', [('full', ())], indirect=True)
 def test_messages_out_of_order_over_dds_give_the_stamp_order_estimate(late_observer):
     proc, probe, listener, pubs, veh = late_observer
     msgs, _ = late_sensors.messages(veh, steps=150)
@@ -86,7 +86,8 @@ def test_messages_out_of_order_over_dds_give_the_stamp_order_estimate(late_obser
     assert proc.alive(), proc.output()
 
 
-@pytest.mark.parametrize('late_observer', [('observer.publish_rate_hz:=50.0',)], indirect=True)
+@pytest.mark.parametrize('late_observer', [('full', ('observer.publish_rate_hz:=50.0',))],
+                         indirect=True)
 def test_publish_rate_gives_the_prediction_to_now(late_observer):
     proc, probe, listener, pubs, veh = late_observer
     # a measurement stamped now (the node's clock is the system clock): then predictions
@@ -105,3 +106,43 @@ def test_publish_rate_gives_the_prediction_to_now(late_observer):
         probe_est.restore_state(est.save_state())
         assert_allclose(msg.position, probe_est.predict(t), rtol=1e-9, atol=1e-12)
     listener.wait_counter('observer', 'rate_publications', 1)
+
+
+def _health(listener, sensor):
+    """Return the latest innovation status of a sensor (None before one)."""
+    for array in reversed(listener.diagnostics):
+        for status in array.status:
+            if status.name.endswith(f'observer/innovation/{sensor}'):
+                return status
+    return None
+
+
+def _level(status):
+    level = status.level
+    return level if isinstance(level, int) else int.from_bytes(level, 'little')
+
+
+@pytest.mark.parametrize('late_observer', [('kalman', ())], indirect=True)
+@pytest.mark.parametrize('fault', [(1.0, 0.1, 500), (-1.0, 0.0, 500)], ids=['bias', 'flip'])
+def test_a_faulty_sensor_is_named_on_diagnostics(late_observer, fault):
+    proc, probe, listener, pubs, veh = late_observer
+    # the pitch sensor gets a 0.1 rad bias (10 sigma), or its axis flipped, from step 500;
+    # the data stop when the monitor's window (50 pitch readings) holds only faulty ones
+    msgs, _ = late_sensors.messages(veh, steps=750, process_noise=True, seed=3,
+                                    commands=False, faults={'pitch': fault})
+    answered = 0
+    for kind, ns, _, value in late_sensors.receive_order(msgs):
+        pubs[kind].publish(_gyro(ns, value) if kind == 'gyro' else _pitch(ns, value))
+        answered += 1
+        probe.spin_until(lambda: len(listener.estimates) >= answered, 10.0,
+                         f'the answer to {kind} stamped {ns}')
+    WARN = 1
+    probe.spin_until(lambda: (s := _health(listener, 'pitch')) is not None and
+                     _level(s) == WARN, 10.0, 'an innovation WARN naming pitch')
+    status = _health(listener, 'pitch')
+    assert status.message.startswith('pitch: residuals'), status.message
+    gyro = _health(listener, 'gyro')
+    assert _level(gyro) == 0, gyro.message
+    # the node's main status is not changed by it
+    assert listener.latest_status('observer').name.endswith('observer')
+    assert proc.alive(), proc.output()

@@ -24,6 +24,7 @@ from .common import (joint_state, MESSAGE_CLASSES, run_node, SENSOR_SUB_QOS, sta
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 from ..core.estimators import History, make_estimator
+from ..core.innovation import InnovationMonitor
 from ..sensors import extract_measurement
 
 __all__ = ['ObserverNode', 'main']
@@ -94,6 +95,8 @@ class ObserverNode(VehicleNode):
         # every message goes through the history (late ones at their stamps); the
         # estimator is read (x_hat, t) but only the history changes it
         self.history = History(self.estimator, vehicle.observer.history_length)
+        self._health = InnovationMonitor([(s.name, s.noise_std) for s in vehicle.sensors],
+                                         kalman=vehicle.observer.kind == 'kalman')
         self.vehicle = vehicle
         # each sensor's rows of C, looked up once rather than per message
         self._rows = {s.name: vehicle.plant.output_rows(s.outputs) for s in vehicle.sensors}
@@ -118,6 +121,8 @@ class ObserverNode(VehicleNode):
             estimator.reset(self.estimator.x_hat, self.estimator.t)
         self.vehicle, self.design, self.estimator = vehicle, design, estimator
         self.history = History(estimator, vehicle.observer.history_length)
+        self._health = InnovationMonitor([(s.name, s.noise_std) for s in vehicle.sensors],
+                                         kalman=vehicle.observer.kind == 'kalman')
         self.get_logger().info(f'observer redesigned: poles {_poles(design.observer_poles)}')
         self.count('parameter_changes_applied')
         return SetParametersResult(successful=True)
@@ -174,6 +179,8 @@ class ObserverNode(VehicleNode):
         else:
             self._publish_estimate(t, sensor.frame_id, stamp)
         residual = history.residual
+        if residual is not None:
+            self._health.add(sensor.name, residual, history.innovation_covariance)
         if residual is not None and self._res_pub.get_subscription_count():
             self._res_pub.publish(joint_state(sensor.outputs, residual, t, sensor.frame_id,
                                               stamp))
@@ -335,7 +342,20 @@ class ObserverNode(VehicleNode):
         self.publish_diagnostics(level, message, {
             'observer_type': self.vehicle.observer.kind,
             'x_hat': np.array2string(x_hat, precision=6),
-        })
+        }, extra=self._health_statuses())
+
+    def _health_statuses(self):
+        """Return one status per sensor: its residuals' consistency with the model."""
+        out = []
+        for h in self._health.report():
+            level = DiagnosticStatus.OK if h.consistent else DiagnosticStatus.WARN
+            text = h.problem or (f'{h.name}: consistent' if h.samples >= self._health.window
+                                 else f'{h.name}: {h.samples} residuals, window not full')
+            out.append((f'innovation/{h.name}', level, text, {
+                'samples': h.samples, 'nis_mean': f'{h.nis_mean:.4g}',
+                'nis_bounds': f'{h.nis_low:.4g}..{h.nis_high:.4g}',
+                'whiteness_p': f'{h.whiteness_p:.3g}'}))
+        return out
 
 
 def _poles(poles):
