@@ -6,6 +6,7 @@ import numpy as np
 from numpy.testing import assert_allclose
 from observer_ros.core.estimators import make_estimator
 from observer_ros.nodes.common import joint_state, SENSOR_QOS, STATE_QOS
+from observer_ros.nodes.observer_node import covariance_names
 from observer_ros.timeutil import ns_to_sec, stamp_to_sec
 import pytest
 from ros_helpers import Probe, Proc
@@ -130,6 +131,10 @@ def test_a_faulty_sensor_is_named_on_diagnostics(late_observer, fault):
     # the data stop when the monitor's window (50 pitch readings) holds only faulty ones
     msgs, _ = late_sensors.messages(veh, steps=750, process_noise=True, seed=3,
                                     commands=False, faults={'pitch': fault})
+    covariances = []
+    sub = probe.node.create_subscription(JointState, 'state/covariance', covariances.append,
+                                         STATE_QOS)
+    probe.spin_until(lambda: sub.get_publisher_count() >= 1, 20.0, 'state/covariance matched')
     answered = 0
     for kind, ns, _, value in late_sensors.receive_order(msgs):
         pubs[kind].publish(_gyro(ns, value) if kind == 'gyro' else _pitch(ns, value))
@@ -145,4 +150,17 @@ def test_a_faulty_sensor_is_named_on_diagnostics(late_observer, fault):
     assert _level(gyro) == 0, gyro.message
     # the node's main status is not changed by it
     assert listener.latest_status('observer').name.endswith('observer')
+    # the Kalman covariance of the last estimate, with its stamp: that of the core filter
+    # given the messages in stamp order
+    est = make_estimator(veh.plant, veh.observer)
+    for kind, ns, _, value in late_sensors.stamp_order(msgs):
+        est.correct(ns_to_sec(ns), [value], (0,) if kind == 'gyro' else (1,))
+    probe.spin_until(lambda: covariances and covariances[-1].header.stamp ==
+                     listener.estimates[-1].header.stamp, 10.0, 'the last covariance')
+    last = covariances[-1]
+    assert last.name == covariance_names(['theta', 'w', 'q'])
+    assert last.name[:3] == ['theta,theta', 'theta,w', 'theta,q']
+    upper = np.triu_indices(3)
+    assert_allclose(last.position, est.P[upper], rtol=1e-9, atol=1e-15)
+    assert_allclose(listener.estimates[-1].position, est.x_hat, rtol=0.0, atol=1e-9)
     assert proc.alive(), proc.output()

@@ -71,6 +71,7 @@ TOPICS = {
     'true_state': 'state/true',
     'estimate': 'state/estimate',
     'residual': 'observer/residual',
+    'covariance': 'state/covariance',
     'command': 'control/u',
     'command_array': 'control/u_array',
     'reference': 'control/reference',

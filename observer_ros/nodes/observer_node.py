@@ -4,7 +4,8 @@ Observer node: sensor topics and the command u in, the state estimate x_hat out.
 
 Subscribes to every sensor of the vehicle file (sensor-data QoS) and to ``control/u``;
 publishes ``state/estimate`` (JointState named by the states) and ``observer/residual``
-(named by the outputs). Each measurement corrects with its own rows of C at its own stamp;
+(named by the outputs); a Kalman observer also ``state/covariance``, the covariance P of
+each estimate that answers a measurement (:func:`covariance_names`). Each measurement corrects with its own rows of C at its own stamp;
 a message stamped before the estimate but inside ``observer.history_length`` is used at
 its stamp (the core's :class:`~observer_ros.core.estimators.History` rewinds), so
 sensors with different latencies all count. With ``observer.publish_rate_hz`` (free
@@ -27,7 +28,7 @@ from ..core.estimators import History, make_estimator
 from ..core.innovation import InnovationMonitor
 from ..sensors import extract_measurement
 
-__all__ = ['ObserverNode', 'main']
+__all__ = ['ObserverNode', 'covariance_names', 'main']
 
 
 class ObserverNode(VehicleNode):
@@ -54,6 +55,9 @@ class ObserverNode(VehicleNode):
         self._future_bound = None
         self._future_bound_until = 0.0
         self._est_pub = self.create_publisher(JointState, TOPICS['estimate'], STATE_PUB_QOS)
+        # Kalman: P of each estimate answering a measurement (covariance_names)
+        self._cov_pub = self.create_publisher(JointState, TOPICS['covariance'], STATE_PUB_QOS) \
+            if v.observer.kind == 'kalman' else None
         self._res_pub = self.create_publisher(JointState, TOPICS['residual'], STATE_PUB_QOS)
         self._subs = []
         for sensor in v.sensors:
@@ -178,6 +182,7 @@ class ObserverNode(VehicleNode):
             self._publish_estimate(history.t, sensor.frame_id, history.head_tag)
         else:
             self._publish_estimate(t, sensor.frame_id, stamp)
+        self._publish_covariance()
         residual = history.residual
         if residual is not None:
             self._health.add(sensor.name, residual, history.innovation_covariance)
@@ -194,6 +199,21 @@ class ObserverNode(VehicleNode):
             self._pending_commands += 1
             self._pending_since = time.monotonic()
             self._pending_stamp = t
+
+    def _publish_covariance(self):
+        """Kalman: publish P of the estimate just published, with its stamp."""
+        pub = self._cov_pub
+        if pub is None or not pub.get_subscription_count():
+            return
+        P = getattr(self.estimator, 'P', None)
+        msg = self._last_estimate
+        if P is None or msg is None:
+            return
+        names = self.vehicle.plant.state_names
+        upper = np.triu_indices(len(names))
+        cov = JointState(header=msg.header, name=covariance_names(names),
+                         position=P[upper].tolist())
+        pub.publish(cov)
 
     def _answer_without_correction(self, sensor, t, stamp=None):
         """
@@ -356,6 +376,17 @@ class ObserverNode(VehicleNode):
                 'nis_bounds': f'{h.nis_low:.4g}..{h.nis_high:.4g}',
                 'whiteness_p': f'{h.whiteness_p:.3g}'}))
         return out
+
+
+def covariance_names(state_names):
+    """
+    Return the names of the entries of ``state/covariance``: the upper triangle of P.
+
+    ``'theta,w'`` is ``P[theta, w]``, row by row (``theta,theta``, ``theta,w``, ...,
+    ``w,w``, ...); n (n + 1) / 2 of them.
+    """
+    n = len(state_names)
+    return [f'{state_names[i]},{state_names[j]}' for i in range(n) for j in range(i, n)]
 
 
 def _poles(poles):
