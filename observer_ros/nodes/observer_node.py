@@ -5,10 +5,12 @@ Observer node: sensor topics and the command u in, the state estimate x_hat out.
 Subscribes to every sensor of the vehicle file (sensor-data QoS) and to ``control/u``;
 publishes ``state/estimate`` (JointState named by the states) and ``observer/residual``
 (named by the outputs); a Kalman observer also ``state/covariance``, the covariance P of
-each estimate that answers a measurement (:func:`covariance_names`). Each measurement corrects with its own rows of C at its own stamp;
-a message stamped before the estimate but inside ``observer.history_length`` is used at
-its stamp (the core's :class:`~observer_ros.core.estimators.History` rewinds), so
-sensors with different latencies all count. With ``observer.publish_rate_hz`` (free
+each estimate that answers a measurement (:func:`covariance_names`). Each measurement
+corrects with its own rows of C at its own stamp; a message stamped before the estimate
+but inside ``observer.history_length`` is used at its stamp (the core's
+:class:`~observer_ros.core.estimators.History` rewinds), so sensors with different
+latencies all count. Per sensor, /diagnostics carries the innovation health
+(``<node>/innovation/<sensor>``, :mod:`observer_ros.core.innovation`). With ``observer.publish_rate_hz`` (free
 running) the estimate predicted to now is also published at that rate.
 
 """
