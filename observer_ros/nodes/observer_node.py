@@ -10,8 +10,9 @@ corrects with its own rows of C at its own stamp; a message stamped before the e
 but inside ``observer.history_length`` is used at its stamp (the core's
 :class:`~observer_ros.core.estimators.History` rewinds), so sensors with different
 latencies all count. Per sensor, /diagnostics carries the innovation health
-(``<node>/innovation/<sensor>``, :mod:`observer_ros.core.innovation`). With ``observer.publish_rate_hz`` (free
-running) the estimate predicted to now is also published at that rate.
+(``<node>/innovation/<sensor>``, :mod:`observer_ros.core.innovation`). With
+``observer.publish_rate_hz`` (free running) the estimate predicted to now is also
+published at that rate.
 
 """
 
