@@ -468,7 +468,8 @@ class Estimator:
             For :meth:`restore_state`; the caches (matrices, gains) are not part of it.
 
         """
-        return tuple(_copy(getattr(self, name)) for name in self._STATE)
+        get = self.__getattribute__
+        return tuple([_copy(get(name)) for name in self._STATE])
 
     def restore_state(self, state):
         """
@@ -500,11 +501,10 @@ class Estimator:
 
 def _copy(value):
     """Copy a mutable part of a state (arrays and sets); numbers and tuples as they are."""
-    if isinstance(value, np.ndarray):
+    kind = type(value)
+    if kind is np.ndarray:
         return value.copy()
-    if isinstance(value, set):
-        return set(value)
-    return value
+    return set(value) if kind is set else value
 
 
 class OpenLoopEstimator(Estimator):

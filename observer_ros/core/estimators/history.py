@@ -336,9 +336,11 @@ class History:
 
     def _drop_old(self):
         entries = self._entries
-        head = self._est.t
-        horizon = head - self._length
-        drop = bisect.bisect_left(self._keys, (horizon,))      # entries stamped before it
+        horizon = self._est.t - self._length
+        last = len(entries) - 1
+        drop = 0
+        while drop < last and entries[drop].t < horizon:     # usually none or one
+            drop += 1
         drop = max(drop, len(entries) - self._max)
         # keep the newest entry whatever its stamp: the estimator's state is its state
         drop = min(drop, len(entries) - 1)
