@@ -1,13 +1,16 @@
 # test_core_history: late and out-of-order messages through the estimators' history.
 """Tests of observer_ros.core.estimators.history: any arrival order gives the stamp order."""
 
+from pathlib import Path
+
 import numpy as np
 from numpy.testing import assert_allclose, assert_array_equal
-from observer_ros.core.errors import DimensionError
+from observer_ros.core.errors import DimensionError, VehicleFileError
 from observer_ros.core.estimators import (FullOrderEstimator, History, KalmanEstimator,
                                           OpenLoopEstimator, ReducedOrderEstimator,
                                           TimeOrderError)
 from observer_ros.core.model import Plant, zoh_matrices
+from observer_ros.vehicle import load_vehicle
 import pytest
 
 # Seed 000 submarine with two sensors: a gyro (q, output 0) and a pitch sensor (theta, 1).
@@ -222,3 +225,16 @@ def test_revised_estimates_are_reported_with_their_tags():
 def test_history_length_is_checked():
     with pytest.raises(ValueError, match='history length'):
         History(make('full'), length=-1.0)
+
+
+def test_vehicle_keys_of_the_history_and_the_publish_rate():
+    config = Path(__file__).resolve().parents[1] / 'config'
+    v = load_vehicle(config / 'submarine.yaml')
+    assert v.observer.history_length == 0.25 and v.observer.publish_rate_hz is None
+    v = load_vehicle(config / 'submarine.yaml', overrides=[
+        'observer.history_length:=0.5', 'observer.publish_rate_hz:=50.0'])
+    assert v.observer.history_length == 0.5 and v.observer.publish_rate_hz == 50.0
+    with pytest.raises(VehicleFileError, match='observer.history_length'):
+        load_vehicle(config / 'submarine.yaml', overrides=['observer.history_length:=-0.1'])
+    with pytest.raises(VehicleFileError, match='observer.publish_rate_hz'):
+        load_vehicle(config / 'submarine.yaml', overrides=['observer.publish_rate_hz:=0.0'])

@@ -45,6 +45,11 @@ class ObserverNode(VehicleNode):
         ))
         self._design_and_build(self.vehicle)
         v = self.vehicle
+        if v.observer.history_length > self.param('clock_jump_tolerance'):
+            self.get_logger().warning(
+                f'observer.history_length ({v.observer.history_length:g} s) is longer than '
+                f'clock_jump_tolerance ({self.param("clock_jump_tolerance"):g} s): a message '
+                'that late resets the estimator as a clock jump instead')
         self._lockstep = v.simulator.mode == 'lockstep'
         self._pending_commands = 0          # lockstep: estimates whose command is not back
         self._pending_since = None
