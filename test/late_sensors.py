@@ -143,5 +143,5 @@ def receive_order(msgs):
 
 
 def stamp_order(msgs):
-    """Return the messages in stamp order: at one stamp the measurements, then u."""
+    """Return the messages in stamp order: at one stamp the measurements (gyro first), then u."""
     return sorted(msgs, key=lambda m: (m[1], m[0] == 'u', m[0] == 'pitch'))

@@ -68,7 +68,7 @@ def messages(duration=3.0, seed=0):
 
 
 def stamp_order(msgs):
-    """Sort messages as the history orders them (stamp, measurements first, rows)."""
+    """Sort messages by stamp; at one stamp the measurements (gyro, then pitch), then u."""
     return sorted(msgs, key=lambda m: (m[0], m[2] == 'u', m[4]))
 
 

@@ -13,11 +13,15 @@ robot_localization's ``history_length`` does.
 
 The order of the messages in the history is that of their stamps; at one stamp the
 measurements come before the commands (the lock-step protocol: the command answering a
-measurement carries its stamp), measurements of several sensors in the order of their
-rows, and messages that agree on all of these in the order they arrived. So the same
-messages give the same estimate in any arrival order whose lateness stays inside the
-window: the calls made on the estimator are those of the stamp order, on the states it
-had then (:meth:`Estimator.save_state`), hence the same to the last bit.
+measurement carries its stamp), and messages of one kind in the order they arrived (so
+messages that arrive in stamp order never cause a rewind, and the bag replay of a
+recording gives what the node computed). So the same messages give the same estimate in
+any arrival order whose lateness stays inside the window: the calls made on the
+estimator are those of the stamp order, on the states it had then
+(:meth:`Estimator.save_state`), hence the same to the last bit. Only measurements of
+several sensors at one stamp may then come in another order: the full- and reduced-order
+observers fuse them into one correction (the same result), a Kalman filter updates with
+them in turn (the same to round-off).
 
 The node and the bag replay both use this class: what one estimates from a recording,
 the other estimates live.
@@ -291,7 +295,7 @@ class History:
             raise TimeOrderError(f'time {t!r} s is older than the history '
                                  f'({self._length:g} s before {est.t!r} s)')
         self._seq += 1
-        key = (t, kind, rows, self._seq)
+        key = (t, kind, self._seq)
         entry = _Entry(key, kind, t, value, rows, tag)
         keys = self._keys
         self.revised = []
