@@ -6,7 +6,8 @@ from pathlib import Path
 import numpy as np
 from numpy.testing import assert_allclose, assert_array_equal
 from observer_ros.core.errors import DimensionError, VehicleFileError
-from observer_ros.core.estimators import (FullOrderEstimator, History, KalmanEstimator,
+from observer_ros.core.estimators import (CHECKPOINT_EVERY, FullOrderEstimator, History,
+                                          KalmanEstimator,
                                           OpenLoopEstimator, ReducedOrderEstimator,
                                           TimeOrderError)
 from observer_ros.core.model import Plant, zoh_matrices
@@ -174,17 +175,20 @@ def test_a_message_never_costs_more_than_one_rewind():
         feed(history, [m])
         assert history.rewinds - before_rewinds <= 1
         assert history.reapplied - before_reapplied <= kept
-    # bounded: only the last 0.25 s (and the entry before it) are kept
-    assert len(history) <= 0.26 * 220 + 1
+    # bounded: the last 0.25 s (220 messages a second), and at most CHECKPOINT_EVERY
+    # before them (the base of a rewind is a checkpoint)
+    assert len(history) <= 0.25 * 220 + CHECKPOINT_EVERY + 1
 
 
 def test_history_is_bounded_by_the_number_of_messages():
     history = History(make('full'), length=10.0, max_messages=50)
     for k in range(200):
         history.correct(1.0 + 0.001 * k, [0.0], GYRO)
-    assert len(history) == 50
+    assert 50 - CHECKPOINT_EVERY <= len(history) <= 50
     assert not history.accepts(1.0 + 0.001 * 149)      # dropped, though within 10 s
-    assert history.accepts(1.0 + 0.001 * 151)
+    oldest = 200 - len(history)
+    assert history.accepts(1.0 + 0.001 * oldest)
+    assert not history.accepts(1.0 + 0.001 * (oldest - 1))
 
 
 def test_a_bad_late_message_leaves_the_history_as_it_was():

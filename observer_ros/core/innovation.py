@@ -191,11 +191,13 @@ class InnovationMonitor:
         self._alpha = float(alpha)
         self._kalman = bool(kalman)
         self._std = {}
+        self._inv_std = {}              # None where a noise_std is 0 (cannot whiten)
         self._buf = {}
         self._count = {}
         for name, std in sensors:
             std = np.asarray(std, dtype=float).reshape(-1)
             self._std[name] = std
+            self._inv_std[name] = 1.0 / std if np.all(std > 0.0) else None
             self._buf[name] = np.full((self._window, std.size), np.nan)
             self._count[name] = 0
 
@@ -219,20 +221,21 @@ class InnovationMonitor:
             cannot be whitened (a zero noise_std, a non-finite value) is not counted.
 
         """
-        std = self._std[name]
+        buf = self._buf[name]
         try:
             if S is None:
-                if not np.all(std > 0.0):
+                inv = self._inv_std[name]
+                if inv is None:
                     return
-                e = np.asarray(residual, dtype=float).reshape(-1) / std
+                e = np.multiply(residual, inv)
             else:
                 e = whiten(residual, S)
         except (ValueError, np.linalg.LinAlgError):
             return
-        if e.size != std.size or not np.all(np.isfinite(e)):
+        if e.shape != buf.shape[1:] or not math.isfinite(float(e @ e)):
             return
         k = self._count[name]
-        self._buf[name][k % self._window] = e
+        buf[k % self._window] = e
         self._count[name] = k + 1
 
     def health(self, name):

@@ -35,12 +35,18 @@ import numpy as np
 from .base import TimeOrderError
 from ..spec import HISTORY_LENGTH
 
-__all__ = ['History', 'HISTORY_LENGTH', 'HISTORY_MAX_MESSAGES']
+__all__ = ['History', 'HISTORY_LENGTH', 'HISTORY_MAX_MESSAGES', 'CHECKPOINT_EVERY']
 
 #: At most this many messages are kept, whatever their stamps (a bound on the memory and
 #: on the cost of a rewind when stamps crowd: 2.5e4 is 0.25 s at 100 kHz). When it is
 #: reached, the oldest are dropped and the window is shorter.
 HISTORY_MAX_MESSAGES = 25000
+
+#: The estimator's state is kept after every this many messages (a checkpoint); a rewind
+#: starts from the newest checkpoint before the late message and re-applies the messages
+#: in between (at most this many more). Copying the state after every message cost
+#: about as much as the correction itself (benchmarks/README.md, P5).
+CHECKPOINT_EVERY = 8
 
 _MEASUREMENT, _COMMAND = 0, 1
 
@@ -103,6 +109,7 @@ class History:
     def _clear(self):
         self._entries = []
         self._keys = []
+        self._since = 0                           # messages since the last checkpoint
         self._base = self._est.save_state()      # the state before the first entry
         self._dropped_t = -np.inf                 # the newest stamp no longer kept
         self._residual = None
@@ -308,7 +315,8 @@ class History:
         self._drop_old()
         return entry
 
-    def _apply(self, entry):
+    def _apply(self, entry, checkpoint=None):
+        """Apply an entry; keep the state after it every CHECKPOINT_EVERY messages."""
         est = self._est
         if entry.kind == _MEASUREMENT:
             entry.x = est.correct(entry.t, entry.value, entry.rows)
@@ -316,38 +324,64 @@ class History:
             entry.S = est.innovation_covariance
         else:
             est.set_input(entry.t, entry.value)
-        entry.state = est.save_state()
+        if checkpoint is None:
+            self._since += 1
+            checkpoint = self._since >= CHECKPOINT_EVERY
+            if checkpoint:
+                self._since = 0
+        entry.state = est.save_state() if checkpoint else None
 
     def _rewind(self, pos, entry):
         est = self._est
         entries = self._entries
-        before = entries[pos - 1].state if pos else self._base
-        est.restore_state(before)
+        # the newest checkpoint before the new entry, and the entries from it on
+        start = pos
+        while start > 0 and entries[start - 1].state is None:
+            start -= 1
+        head = est.save_state()
+        est.restore_state(entries[start - 1].state if start else self._base)
+        # checkpoints again every CHECKPOINT_EVERY messages from the one restored
+        count = 0
         try:
-            self._apply(entry)
+            for e in entries[start:pos]:                  # unchanged: before the new one
+                count += 1
+                self._apply(e, count % CHECKPOINT_EVERY == 0)
+            count += 1
+            self._apply(entry, count % CHECKPOINT_EVERY == 0)
         except Exception:
-            est.restore_state(entries[-1].state if entries else self._base)   # unchanged
+            # a bad message changes nothing (the states the entries before it got are
+            # those they had: the same messages from the same checkpoint)
+            est.restore_state(head)
             raise
         self.rewinds += 1
         later = entries[pos:]
         for e in later:
-            self._apply(e)
+            count += 1
+            self._apply(e, count % CHECKPOINT_EVERY == 0)
             if e.kind == _MEASUREMENT:
                 self.revised.append((e.tag, e.x, e.residual, e.S))
-        self.reapplied += len(later)
+        self._since = count % CHECKPOINT_EVERY
+        self.reapplied += len(later) + pos - start
         entries.insert(pos, entry)
         self._keys.insert(pos, entry.key)
 
     def _drop_old(self):
         entries = self._entries
         horizon = self._est.t - self._length
-        last = len(entries) - 1
+        last = len(entries) - 1       # the newest entry is kept whatever its stamp
         drop = 0
         while drop < last and entries[drop].t < horizon:     # usually none or one
             drop += 1
-        drop = max(drop, len(entries) - self._max)
-        # keep the newest entry whatever its stamp: the estimator's state is its state
-        drop = min(drop, len(entries) - 1)
+        # the state after the last dropped entry becomes the base, so drop up to a
+        # checkpoint: fewer for the horizon, more for the number of messages
+        while drop > 0 and entries[drop - 1].state is None:
+            drop -= 1
+        if len(entries) - drop > self._max:
+            drop = len(entries) - self._max
+            while drop < last and entries[drop - 1].state is None:
+                drop += 1
+            if entries[drop - 1].state is None:
+                drop = 0
         if drop > 0:
             self._base = entries[drop - 1].state
             self._dropped_t = max(self._dropped_t, entries[drop - 1].t)
