@@ -120,8 +120,10 @@ def run_closed_loop(params_file, bag_path, storage='mcap', namespace=None, overr
         deadline = time.monotonic() + timeout
         while sim.poll() is None:
             if time.monotonic() > deadline:
-                raise ObserverError(f'the run did not finish within {timeout:.0f} s; '
-                                    f'see the logs in {log_dir}')
+                raise ObserverError(f'the run did not finish within {timeout:.0f} s (lock-step '
+                                    'waits for every answer; a slow observer, e.g. one '
+                                    'designing many gains at its first steps, needs a '
+                                    f'longer --timeout); see the logs in {log_dir}')
             for name, (proc, _) in procs.items():
                 if proc.poll() is not None and name != 'plant_simulator':
                     raise ObserverError(f'{name} exited with code {proc.returncode}; '
@@ -315,6 +317,10 @@ def main(argv=None):
                              '"observer.poles:=[-1.0,-1.1,-1.2]"')
     parser.add_argument('--container', action='store_true',
                         help='run the observer and the compensator in one process')
+    parser.add_argument('--timeout', type=float, default=None, metavar='S',
+                        help='wall-time limit of the run in seconds (default 60 s plus 20 ms '
+                             'per step; lock-step waits for every answer, and a large '
+                             "observer's first steps can take a minute)")
     parser.add_argument('--evaluate', action='store_true',
                         help='replay the bag through the design, slower and faster poles and '
                              'the open-loop observer; run the loop again with the slower '
@@ -328,8 +334,10 @@ def main(argv=None):
         bag = Path(args.out) if args.out else Path('bags/runs') / f'{vehicle.name}_{stamp}'
         bag.parent.mkdir(parents=True, exist_ok=True)
         t0 = time.monotonic()
+        if args.timeout is not None and not args.timeout > 0:
+            raise ObserverError(f'--timeout must be > 0 s; got {args.timeout}')
         run_closed_loop(vehicle_path, bag, storage=args.storage, namespace=args.namespace,
-                        overrides=args.param, container=args.container)
+                        overrides=args.param, container=args.container, timeout=args.timeout)
         print(f'closed loop ran in {time.monotonic() - t0:.1f} s wall time')
         summary = summarize_bag(bag, vehicle, args.namespace)
         problems = _print_summary(vehicle, summary)
