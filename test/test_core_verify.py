@@ -269,3 +269,53 @@ def test_kalman_gain_filter_convention_matches_dlqe():
     M = kalman_update_gain(P, C, Rd)
     assert_allclose(A @ M, L_ref, rtol=1e-9, atol=1e-12)
     assert_allclose(P, P_ref, rtol=1e-9, atol=1e-12)
+
+
+# ---------------------------------------------------------------- --sensors
+
+
+def _cart_two_sensors():
+    cart = load_vehicle(str(Path(SUBMARINE).parent / 'cart_pendulum.yaml'))
+    A, B = cart.plant.A, cart.plant.B
+    C = np.array([[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]])      # x, theta
+    plant = Plant(A, B, C, None, None, cart.plant.state_names, cart.plant.input_names,
+                  ('x', 'theta'))
+    sensors = tuple(SensorSpec(f's_{o}', f'{o}/data', 'std_msgs/msg/Float64', ('data',), (o,),
+                               np.array([1e-3])) for o in ('x', 'theta'))
+    sim = SimulatorSpec(100.0, np.zeros(4), process_noise_std=np.full(4, 1e-4))
+    return Vehicle('cart2', plant, sensors, ObserverSpec('full', poles=-np.arange(2.0, 6.0)),
+                   ControllerSpec(K=np.zeros((1, 4))), sim)
+
+
+def test_sensors_cart_pendulum_x_suffices_theta_does_not(tmp_path, capsys):
+    from observer_ros.core.sensor_subsets import sensor_subsets
+    v = _cart_two_sensors()
+    subsets = sensor_subsets(v)
+    by = {s.outputs: s for s in subsets}
+    assert subsets[0].outputs == ('x',)                   # smallest observable first
+    assert by[('x',)].observable and by[('x', 'theta')].observable
+    assert not by[('theta',)].observable and not by[('theta',)].detectable
+    assert any('x' in m for m in by[('theta',)].unobservable_modes)
+    assert by[('theta',)].variance is None
+    both, alone = by[('x', 'theta')].variance, by[('x',)].variance
+    assert np.all(both > 0) and np.all(both <= alone * (1 + 1e-9))   # a sensor more helps
+    rc, out, err = run_tool(tmp_path, capsys, v, '--sensors', '--json')
+    assert rc == 0, err
+    data = json.loads(out)['sensor_subsets']
+    assert data[0]['outputs'] == ['x'] and data[0]['observable']
+    assert set(data[0]['kalman_error_variance']) == set(v.plant.state_names)
+
+
+def test_sensors_example_515_names_the_unobservable_mode(tmp_path, capsys):
+    from observer_ros.core.sensor_subsets import sensor_subsets
+    # seed 002 Example 5.15: x1' = 2 x1 + 3 u, x2' = -x2, x3' = 5 x3 - u, y = x1 + x2
+    A = np.diag([2.0, -1.0, 5.0])
+    B = np.array([[3.0], [0.0], [-1.0]])
+    C = np.array([[1.0, 1.0, 0.0]])
+    v = vehicle(A, B, C, ObserverSpec('open_loop'), ControllerSpec(K=np.zeros((1, 3))))
+    (only,) = sensor_subsets(v)
+    assert not only.observable and not only.detectable and only.rank == 2
+    assert len(only.unobservable_modes) == 1 and 'eigenvalue 5 (unstable): x3' in \
+        only.unobservable_modes[0]
+    rc, out, _ = run_tool(tmp_path, capsys, v, '--sensors')
+    assert rc == 0 and 'NOT detectable' in out and 'eigenvalue 5 (unstable): x3' in out
