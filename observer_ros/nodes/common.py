@@ -24,9 +24,9 @@ from ..core.errors import ObserverError
 from ..timeutil import sec_to_stamp_parts, stamp_to_sec
 from ..vehicle import vehicle_from_parameters
 
-__all__ = ['VEHICLE_SECTIONS', 'SENSOR_QOS', 'SENSOR_SUB_QOS', 'STATE_QOS', 'STATE_PUB_QOS',
-           'LATCHED_QOS', 'MESSAGE_CLASSES', 'TOPICS', 'VehicleNode', 'joint_state',
-           'stamp_to_sec', 'to_stamp', 'make_executor', 'spin_until', 'exit_status',
+__all__ = ['VEHICLE_SECTIONS', 'SAFE_COMMAND_FRAME', 'SENSOR_QOS', 'SENSOR_SUB_QOS',
+           'STATE_QOS', 'STATE_PUB_QOS', 'LATCHED_QOS', 'MESSAGE_CLASSES', 'TOPICS',
+           'VehicleNode', 'joint_state', 'stamp_to_sec', 'to_stamp', 'make_executor', 'spin_until', 'exit_status',
            'run_node', 'run_nodes']
 
 # Which executor spins the nodes: OBSERVER_ROS_EXECUTOR=events (default) or single_threaded.
@@ -81,6 +81,12 @@ def to_stamp(t):
     """Return a builtin_interfaces/Time for t seconds."""
     sec, nanosec = sec_to_stamp_parts(t)
     return Time(sec=sec, nanosec=nanosec)
+
+
+#: header.frame_id of a command that is the compensator's safe command (no estimate
+#: behind it): a lock-step simulator does not take it for the answer while the observer
+#: is alive.
+SAFE_COMMAND_FRAME = 'safe_command'
 
 
 def joint_state(names, values, t, frame_id='', stamp=None):

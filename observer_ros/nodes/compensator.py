@@ -15,8 +15,8 @@ from rcl_interfaces.msg import SetParametersResult
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from .common import (joint_state, LATCHED_QOS, run_node, stamp_to_sec, STATE_PUB_QOS, STATE_QOS,
-                     TOPICS, vector_from_joint_state, VehicleNode)
+from .common import (joint_state, LATCHED_QOS, run_node, SAFE_COMMAND_FRAME, stamp_to_sec,
+                     STATE_PUB_QOS, STATE_QOS, TOPICS, vector_from_joint_state, VehicleNode)
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 
@@ -110,16 +110,17 @@ class CompensatorNode(VehicleNode):
         except (AttributeError, TypeError):
             return self.get_clock().now().nanoseconds * 1e-9
 
-    def _publish(self, u, t, stamp=None):
+    def _publish(self, u, t, stamp=None, frame_id=''):
         self._last_u = u
-        self._cmd_pub.publish(joint_state(self.vehicle.plant.input_names, u, t, stamp=stamp))
+        self._cmd_pub.publish(joint_state(self.vehicle.plant.input_names, u, t,
+                                          frame_id=frame_id, stamp=stamp))
         if self._array_pub is not None:
             self._array_pub.publish(Float64MultiArray(data=[float(v) for v in u]))
 
     def _publish_safe(self, t):
         c = self.vehicle.controller
         u = self._last_u if c.safe_command == 'hold' else np.zeros(self.vehicle.plant.m)
-        self._publish(u, t)
+        self._publish(u, t, frame_id=SAFE_COMMAND_FRAME)
         self.count('safe_commands')
 
     def _on_watchdog(self):

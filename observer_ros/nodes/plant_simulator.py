@@ -28,8 +28,8 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool
 
-from .common import (joint_state, LATCHED_QOS, MESSAGE_CLASSES, run_node, SENSOR_QOS,
-                     stamp_to_sec, STATE_PUB_QOS, STATE_QOS, to_stamp, TOPICS,
+from .common import (joint_state, LATCHED_QOS, MESSAGE_CLASSES, run_node, SAFE_COMMAND_FRAME,
+                     SENSOR_QOS, stamp_to_sec, STATE_PUB_QOS, STATE_QOS, to_stamp, TOPICS,
                      vector_from_joint_state, VehicleNode)
 from ..core.model import zoh_matrices
 from ..sensors import fill_measurement
@@ -218,6 +218,12 @@ class PlantSimulatorNode(VehicleNode):
             return
         if abs(stamp - self.t) > 0.25 * self.dt:
             self.count('stale_commands')     # an answer to an older step: ignored
+            return
+        if msg.header.frame_id == SAFE_COMMAND_FRAME and \
+                self.count_publishers(TOPICS['estimate']) > 0:
+            # the compensator's safe command while the observer is alive (busy, e.g. a
+            # 20-state observer designing its gains): not the answer, keep waiting
+            self.count('safe_commands_waited_out')
             return
         self.u = u
         self._answers += 1
