@@ -26,8 +26,8 @@ from ..vehicle import vehicle_from_parameters
 
 __all__ = ['VEHICLE_SECTIONS', 'SAFE_COMMAND_FRAME', 'SENSOR_QOS', 'SENSOR_SUB_QOS',
            'STATE_QOS', 'STATE_PUB_QOS', 'LATCHED_QOS', 'MESSAGE_CLASSES', 'TOPICS',
-           'VehicleNode', 'joint_state', 'stamp_to_sec', 'to_stamp', 'make_executor', 'spin_until', 'exit_status',
-           'run_node', 'run_nodes']
+           'VehicleNode', 'joint_state', 'stamp_to_sec', 'to_stamp', 'make_executor',
+           'spin_until', 'exit_status', 'run_node', 'run_nodes']
 
 # Which executor spins the nodes: OBSERVER_ROS_EXECUTOR=events (default) or single_threaded.
 EXECUTOR_ENV = 'OBSERVER_ROS_EXECUTOR'
