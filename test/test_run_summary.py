@@ -42,3 +42,6 @@ def test_diverging_trajectory_is_never_settled():
     assert diverging(np.array([[1.0], [np.inf]]))
     decay = np.exp(-0.8 * t)[:, None] * np.array([[1.0, -0.5]])
     assert not diverging(decay)
+    # the n = 20 run of issue #11: 1e57 within the first steps, then "decaying"
+    blew = np.concatenate([[[0.45]], [[3e7]], [[1e57]], 1e57 * decay[:, :1]])
+    assert diverging(blew)

@@ -229,17 +229,20 @@ def summarize_bag(bag_path, vehicle, namespace=None):
     }
 
 
-def diverging(x, growth=10.0):
+def diverging(x, growth=10.0, blow_up=1e6):
     """
-    Return True when a trajectory grows instead of settling.
+    Return True when a trajectory grows or blows up instead of settling.
 
     Parameters
     ----------
     x : (N, n) array_like
         The true state, one row per step.
     growth : float
-        Factor by which the largest ``|x|`` of the last tenth of the run must exceed the
-        largest of the first tenth (or any non-finite value) to call it diverging.
+        Diverging when the largest ``|x|`` of the last tenth of the run exceeds the
+        largest of the first tenth by this factor,
+    blow_up : float
+        or when ``|x|`` anywhere exceeds ``|x(0)|`` by this factor (a loop that reached
+        1e57 in its first steps and "decays" from there), or is not finite.
 
     Returns
     -------
@@ -249,10 +252,14 @@ def diverging(x, growth=10.0):
     x = np.asarray(x, dtype=float)
     if not np.all(np.isfinite(x)):
         return True
+    if not x.size:
+        return False
     k = max(1, len(x) // 10)
-    first = float(np.max(np.abs(x[:k]))) if x.size else 0.0
-    last = float(np.max(np.abs(x[-k:]))) if x.size else 0.0
-    return last > growth * max(first, 1e-300)
+    first = float(np.max(np.abs(x[:k])))
+    last = float(np.max(np.abs(x[-k:])))
+    start = float(np.max(np.abs(x[0])))
+    return last > growth * max(first, 1e-300) or \
+        float(np.max(np.abs(x))) > blow_up * max(start, 1e-300)
 
 
 def _lost_steps(bag_path, vehicle, prefix, t_true, t_est):
@@ -293,7 +300,7 @@ def _print_summary(vehicle, summary):
                         'run is not the lock-step closed loop of the design')
     if summary['diverging']:
         problems.append('the closed loop diverges: the true state grows more than 10x over '
-                        'the run')
+                        'the run, or to more than 1e6 times its initial size')
     for text in problems:
         print(f'  FAILED: {text}')
     return problems
