@@ -4,8 +4,12 @@ Compensator node: ``state/estimate`` in, the command ``control/u`` out.
 
 The control law is the seeds' tracking form u = K (x_d - x_hat) - Kd x_d (seed 002,
 Eq. 5.109; with x_d = 0 it is u = -K x_hat), clipped to the file's input limits. The
-command carries the stamp of the estimate it answers. A stale or non-finite estimate
-gives the file's safe command (zero or hold) and an error on /diagnostics.
+command carries the stamp of the estimate it answers. A stale or non-finite estimate, or
+a malformed stamp, gives the file's safe command (zero or hold) and an error on
+/diagnostics. Every command passes one gate before it is sent: finite and inside
+``controller.u_min``/``u_max``, or it is not sent (the safe command instead, an ERROR on
+/diagnostics). A second publisher of ``control/u`` or ``state/estimate`` is reported as
+an ERROR naming the topic.
 
 """
 
@@ -15,12 +19,12 @@ from rcl_interfaces.msg import SetParametersResult
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from .common import (joint_state, LATCHED_QOS, run_node, SAFE_COMMAND_FRAME, stamp_to_sec,
+from .common import (checked_stamp, joint_state, LATCHED_QOS, run_node, SAFE_COMMAND_FRAME,
                      STATE_PUB_QOS, STATE_QOS, TOPICS, vector_from_joint_state, VehicleNode)
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 
-__all__ = ['CompensatorNode', 'control_law', 'main']
+__all__ = ['CompensatorNode', 'command_problem', 'control_law', 'main']
 
 
 def control_law(K, x_hat, x_d, Kd, u_min=None, u_max=None):
@@ -47,6 +51,30 @@ def control_law(K, x_hat, x_d, Kd, u_min=None, u_max=None):
     return u
 
 
+def command_problem(u, m, u_min=None, u_max=None):
+    """
+    Return why a command must not be sent, or None when it may.
+
+    A command is sent only when it has ``m`` values, all finite and inside
+    ``[u_min, u_max]`` (None: no limit on that side).
+
+    Returns
+    -------
+    str or None
+
+    """
+    u = np.asarray(u, dtype=float)
+    if u.shape != (m,):
+        return f'{u.size} values for {m} inputs'
+    if not np.isfinite(u).all():
+        return f'not finite: {u.tolist()}'
+    low = -np.inf if u_min is None else np.asarray(u_min, dtype=float)
+    high = np.inf if u_max is None else np.asarray(u_max, dtype=float)
+    if np.any(u < low) or np.any(u > high):
+        return f'{u.tolist()} outside the limits [{u_min}, {u_max}]'
+    return None
+
+
 class CompensatorNode(VehicleNode):
     """Close the loop on the estimate."""
 
@@ -59,6 +87,8 @@ class CompensatorNode(VehicleNode):
         self._last_u = np.zeros(self.vehicle.plant.m)
         self._last_estimate_time = None      # node clock when the last good x_hat came
         self._stale = False
+        self._refused = None                 # why the last command was not sent
+        self._duplicates = []                # other publishers of our topics
         self._cmd_pub = self.create_publisher(JointState, TOPICS['command'], STATE_PUB_QOS)
         self._array_pub = None
         if self.param('publish_array'):
@@ -91,36 +121,61 @@ class CompensatorNode(VehicleNode):
     def _on_estimate(self, msg):
         topic = TOPICS['estimate']
         try:
-            t = stamp_to_sec(msg.header.stamp)
+            t = checked_stamp(msg.header.stamp, topic)
+        except ObserverError as err:
+            self.count('bad_stamps')
+            self.get_logger().error(f'{err}; safe command', throttle_duration_sec=1.0)
+            self._publish_safe(self._now())     # the stamp is not usable: the node's time
+            return
+        try:
             x_hat = vector_from_joint_state(msg, self.vehicle.plant.state_names, topic)
         except (ObserverError, ValueError) as err:
             self.count('bad_estimates')
             self.get_logger().error(f'{err}; safe command', throttle_duration_sec=1.0)
-            self._publish_safe(self._stamp_of(msg))
+            self._publish_safe(t, msg.header.stamp)
             return
-        u = control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
+        with np.errstate(all='ignore'):     # an overflow gives inf/NaN: refused below
+            u = control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
         self._last_estimate_time = self.wall_now()
         self._stale = False
-        self._publish(u, t, msg.header.stamp)       # the estimate's stamp, to the ns
-        self.count('commands')
+        if self._publish(u, t, msg.header.stamp):   # the estimate's stamp, to the ns
+            self.count('commands')
 
-    def _stamp_of(self, msg):
-        try:
-            return stamp_to_sec(msg.header.stamp)
-        except (AttributeError, TypeError):
-            return self.get_clock().now().nanoseconds * 1e-9
+    def _now(self):
+        return self.get_clock().now().nanoseconds * 1e-9
 
-    def _publish(self, u, t, stamp=None, frame_id=''):
+    def _publish(self, u, t, stamp=None):
+        """Send a command that passes the gate; else the safe command. Return True if sent."""
+        problem = command_problem(u, self.vehicle.plant.m, self.u_min, self.u_max)
+        if problem is not None:
+            self.count('refused_commands')
+            self._refused = f'command {problem}: safe command sent instead'
+            self.get_logger().error(self._refused, throttle_duration_sec=1.0)
+            self._publish_safe(t, stamp)
+            return False
+        self._send(u, t, stamp)
+        return True
+
+    def _send(self, u, t, stamp=None, frame_id=''):
         self._last_u = u
         self._cmd_pub.publish(joint_state(self.vehicle.plant.input_names, u, t,
                                           frame_id=frame_id, stamp=stamp))
         if self._array_pub is not None:
             self._array_pub.publish(Float64MultiArray(data=[float(v) for v in u]))
 
-    def _publish_safe(self, t):
+    def _publish_safe(self, t, stamp=None, frame_id=''):
+        """
+        Send the safe command: the one entry point of every fallback.
+
+        ``hold`` repeats the last command sent (it passed the gate), ``zero`` sends zero,
+        clipped into the limits (a vehicle whose limits exclude zero). ``frame_id``
+        SAFE_COMMAND_FRAME marks one that answers no estimate (a stale one).
+        """
         c = self.vehicle.controller
         u = self._last_u if c.safe_command == 'hold' else np.zeros(self.vehicle.plant.m)
-        self._publish(u, t, frame_id=SAFE_COMMAND_FRAME)
+        if self.u_min is not None or self.u_max is not None:
+            u = np.clip(u, self.u_min, self.u_max)
+        self._send(u, t, stamp, frame_id)
         self.count('safe_commands')
 
     def _on_watchdog(self):
@@ -132,7 +187,8 @@ class CompensatorNode(VehicleNode):
                 self.get_logger().error(f'estimate stale ({age:.2f} s); safe command '
                                         f'({self.vehicle.controller.safe_command})')
             self._stale = True
-            self._publish_safe(self.get_clock().now().nanoseconds * 1e-9)
+            # no estimate behind it: marked, so that lock-step does not take it for one
+            self._publish_safe(self._now(), frame_id=SAFE_COMMAND_FRAME)
 
     def _on_set_parameters(self, params):
         changed = [p for p in params if p.name.startswith('controller.')]
@@ -158,7 +214,14 @@ class CompensatorNode(VehicleNode):
         return SetParametersResult(successful=True)
 
     def _on_diagnostics(self):
-        if self._stale:
+        self._duplicates = self.duplicate_publishers((TOPICS['command'], TOPICS['estimate']))
+        refused, self._refused = self._refused, None
+        if self._duplicates:
+            level = DiagnosticStatus.ERROR
+            message = f'more than one publisher: {", ".join(self._duplicates)}'
+        elif refused:
+            level, message = DiagnosticStatus.ERROR, refused
+        elif self._stale:
             level, message = DiagnosticStatus.ERROR, 'estimate stale: safe command'
         elif self._last_estimate_time is None:
             level, message = DiagnosticStatus.WARN, 'waiting for state/estimate'
