@@ -2,8 +2,11 @@
 
 from bag_synth import CONFIG, simulate, write_bag
 import numpy as np
+from observer_ros.bag.evaluate import evaluate_bag
+from observer_ros.core.errors import DesignVerificationError
 from observer_ros.tools.run_closed_loop import _print_summary, diverging, summarize_bag
 from observer_ros.vehicle import load_vehicle
+import pytest
 
 
 def _run(tmp_path, drop_every=0, name='bag'):
@@ -45,3 +48,14 @@ def test_diverging_trajectory_is_never_settled():
     # the n = 20 run of issue #11: 1e57 within the first steps, then "decaying"
     blew = np.concatenate([[[0.45]], [[3e7]], [[1e57]], 1e57 * decay[:, :1]])
     assert diverging(blew)
+
+
+def test_eval_variant_gains_are_verified_before_replay(tmp_path):
+    """observer-eval's variants pass the same design verification (issue #11)."""
+    vehicle = load_vehicle(str(CONFIG / 'submarine.yaml'), overrides=['simulator.duration:=1.0'])
+    path = tmp_path / 'bag'
+    write_bag(path, simulate(vehicle)['messages'])
+    bad = ['observer.poles:=null', 'observer.gain:=[0.0, 0.0, -5.0]']
+    with pytest.raises(DesignVerificationError, match=r"variant 'bad': observer\.gain does "
+                       r'not stabilize the loop: eig\(A - L C\) has the eigenvalue'):
+        evaluate_bag(path, vehicle, {'bad': bad})
