@@ -34,6 +34,8 @@ setup(
             'observer-design = observer_ros.tools.design_report:main',
             'observer_eval = observer_ros.bag.evaluate:main',
             'observer-eval = observer_ros.bag.evaluate:main',
+            'observer_eval_batch = observer_ros.bag.batch:main',
+            'observer-eval-batch = observer_ros.bag.batch:main',
             'observer_tune = observer_ros.bag.tune:main',
             'observer-tune = observer_ros.bag.tune:main',
             'observer_play = observer_ros.bag.play:main',

@@ -27,6 +27,9 @@ DEPENDENCY_KEYS = {
 }
 # optional imports guarded by ImportError (zstd and lz4 codecs for compressed chunks)
 OPTIONAL_IMPORTS = {'backports', 'compression', 'lz4'}
+# tool dependencies with no rosdep key, installed with pip (README's install notes);
+# observer-eval-batch says so when they are missing
+OPTIONAL_IMPORTS |= {'distributed'}
 
 
 @pytest.fixture(scope='module')

@@ -113,6 +113,23 @@ def parse_variant(text):
     return name, overrides
 
 
+def parse_options(variant_texts, tolerance):
+    """
+    Check the ``--variant`` and ``--tolerance`` options of a command line.
+
+    Returns ``{name: [overrides]}`` (the same name repeated merges its overrides); raises
+    BagToolError on a bad one (:func:`parse_variant`, :func:`parse_tolerance`).
+
+    """
+    variants = {}
+    for text in variant_texts:
+        name, overrides = parse_variant(text)
+        variants.setdefault(name, []).extend(overrides)
+    if tolerance is not None:
+        parse_tolerance(tolerance)
+    return variants
+
+
 def parse_compare(text):
     """
     Parse ``--compare [NAME=]FILE`` into ``(name, file)``.
@@ -524,13 +541,8 @@ def main(argv=None):
     started = time.perf_counter()
     progress = _Progress(args.progress or sys.stderr.isatty())
     try:
-        variants = {}
-        for text in args.variant:
-            name, overrides = parse_variant(text)
-            variants.setdefault(name, []).extend(overrides)
+        variants = parse_options(args.variant, args.tolerance)
         compare = dict(parse_compare(text) for text in args.compare)
-        if args.tolerance is not None:
-            parse_tolerance(args.tolerance)
         if not Path(args.bag).exists():
             raise BagToolError(f'{args.bag}: no such file or directory')
         out = Path(args.out) if args.out else _default_out(args.bag)

@@ -42,12 +42,13 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
                                 QosReliability, QosTime)
-from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2 import StoragePlugin
 from rosbags.typesys import get_typestore, Stores
 from std_msgs.msg import Bool
 
 from .common import (exit_status, LATCHED_QOS, make_executor, SENSOR_QOS, spin_until,
                      STATE_PUB_QOS, STATE_QOS, TOPICS, VehicleNode)
+from ..bag.integrity import CrcWriter
 from ..bag.play import message_class
 from ..core.errors import ObserverError
 
@@ -196,7 +197,7 @@ class RecorderNode(VehicleNode):
             raise ObserverError(f'recorder: queue_depth must be >= 1; got {depth}')
         reserve = self._number('disk_reserve', int)
         _check_free_space(path, reserve)
-        self.writer = Writer(path, version=9, storage_plugin=STORAGES[storage])
+        self.writer = CrcWriter(path, version=9, storage_plugin=STORAGES[storage])
         try:
             self.writer.open()
         except OSError as err:
