@@ -80,8 +80,9 @@ class CompensatorNode(VehicleNode):
 
     def __init__(self):
         super().__init__('compensator', own_parameters=(
-            ('publish_array', False),      # also publish Float64MultiArray (ros2_control)
-            ('diagnostics_period', 1.0),
+            ('publish_array', False, 'also publish control/u_array, a Float64MultiArray '
+             '(ros2_control)'),
+            ('diagnostics_period', 1.0, 's (wall) between /diagnostics reports'),
         ))
         self._apply(self.vehicle, design_vehicle(self.vehicle))
         self._last_u = np.zeros(self.vehicle.plant.m)
@@ -222,9 +223,11 @@ class CompensatorNode(VehicleNode):
         elif refused:
             level, message = DiagnosticStatus.ERROR, refused
         elif self._stale:
-            level, message = DiagnosticStatus.ERROR, 'estimate stale: safe command'
+            level, message = DiagnosticStatus.ERROR, \
+                f'estimate stale: safe command ({self.resolve_topic_name(TOPICS["estimate"])})'
         elif self._last_estimate_time is None:
-            level, message = DiagnosticStatus.WARN, 'waiting for state/estimate'
+            level, message = DiagnosticStatus.WARN, \
+                f'waiting for {self.resolve_topic_name(TOPICS["estimate"])}'
         else:
             level, message = DiagnosticStatus.OK, 'closing the loop'
         self.publish_diagnostics(level, message, {'u': np.array2string(self._last_u)})

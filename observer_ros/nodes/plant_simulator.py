@@ -42,12 +42,12 @@ class PlantSimulatorNode(VehicleNode):
 
     def __init__(self):
         super().__init__('plant_simulator', own_parameters=(
-            ('start_time', 1.0),
-            ('publish_clock', True),
-            ('wait_for_subscribers', 1),     # lockstep: matched readers of each sensor
-            ('wait_for_recorder', False),    # lockstep: start once recorder/ready is true
-            ('exit_when_done', True),
-            ('diagnostics_period', 1.0),
+            ('start_time', 1.0, 's: simulated time of step 0 (a zero stamp reads as unset)'),
+            ('wait_for_subscribers', 1, 'lockstep: matched readers of each sensor to wait '
+             'for'),
+            ('wait_for_recorder', False, 'lockstep: start once recorder/ready is true'),
+            ('exit_when_done', True, 'exit (status 0) when simulator.duration is over'),
+            ('diagnostics_period', 1.0, 's (wall) between /diagnostics reports'),
         ))
         v = self.vehicle
         plant = v.plant
@@ -61,7 +61,8 @@ class PlantSimulatorNode(VehicleNode):
         self.u = np.zeros(plant.m)
         self.k = 0
         self.t0 = float(self.param('start_time'))
-        self.steps = int(round(v.simulator.duration / self.dt))
+        # simulator.duration 0: no end, the run goes on until the node is stopped
+        self.steps = int(round(v.simulator.duration / self.dt)) or None
         self.rng = np.random.default_rng(v.simulator.seed)
         self.noise = v.simulator.noise
         self._lockstep = v.simulator.mode == 'lockstep'
@@ -70,7 +71,7 @@ class PlantSimulatorNode(VehicleNode):
              plant.output_rows(s.outputs)) for s in v.sensors]
         self._state_pub = self.create_publisher(JointState, TOPICS['true_state'], STATE_PUB_QOS)
         self._clock_pub = None
-        if self.param('publish_clock'):
+        if v.simulator.publish_clock:
             self._clock_pub = self.create_publisher(Clock, '/clock', 10)
         self._cmd_sub = self.create_subscription(
             JointState, TOPICS['command'], self._on_command, STATE_QOS)
@@ -170,8 +171,8 @@ class PlantSimulatorNode(VehicleNode):
             return
         self._start_timer.cancel()
         self._started = True
-        self.get_logger().info(f'{self.vehicle.name}: lockstep run of {self.steps} steps '
-                               f'of {self.dt} s')
+        self.get_logger().info(f'{self.vehicle.name}: lockstep run of '
+                               f'{self.steps or "unlimited"} steps of {self.dt} s')
         self._begin_step()
         self._publish_next()
 
@@ -189,7 +190,7 @@ class PlantSimulatorNode(VehicleNode):
                 self._waiting_since = time.monotonic()
                 return
             # every sensor of step k answered (or none due): next step
-            if self.k >= self.steps:
+            if self.steps is not None and self.k >= self.steps:
                 self._finish()
                 return
             self._advance()
@@ -253,10 +254,12 @@ class PlantSimulatorNode(VehicleNode):
     def _finish(self):
         self._done = True
         self._waiting_since = None
+        if not self._lockstep:
+            self._step_timer.cancel()
         self.get_logger().info(f'run complete at t={self.t:.3f} s; x = {self.x.tolist()}')
         self.publish_diagnostics(DiagnosticStatus.OK, 'run complete')
         if self.param('exit_when_done'):
-            raise SystemExit(0)
+            self.exit_code = 0      # run_nodes stops spinning: a clean exit, no exception
 
     # -- realtime ---------------------------------------------------------------------------
     def _realtime_step(self):
@@ -285,7 +288,7 @@ class PlantSimulatorNode(VehicleNode):
         self._step_wall = time.monotonic() if due else None
         self._publish_step_state()
         self.count('steps')
-        if self.k >= self.steps:
+        if self.steps is not None and self.k >= self.steps:
             self._finish()
 
     def _on_diagnostics(self):

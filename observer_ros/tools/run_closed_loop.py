@@ -87,6 +87,10 @@ def run_closed_loop(params_file, bag_path, storage='mcap', namespace=None, overr
     Path
 
     """
+    vehicle = load_vehicle(params_file, overrides=list(overrides))
+    if vehicle.simulator.duration == 0.0:
+        raise ObserverError(f'{params_file}: simulator.duration: 0 (run until stopped) has no '
+                            'end for observer-run; give a duration in s')
     timeout = timeout if timeout is not None else run_limit(params_file, overrides)
     bag_path = Path(bag_path)
     log_dir = Path(log_dir) if log_dir else bag_path.parent / (bag_path.name + '_logs')
@@ -350,6 +354,9 @@ def main(argv=None):
                         '<time>)')
     parser.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
     parser.add_argument('--namespace', help='run the vehicle in this namespace')
+    parser.add_argument('--no-clock', action='store_true',
+                        help="another vehicle of this ROS graph owns /clock: this one's "
+                             'simulator does not publish it (simulator.publish_clock:=false)')
     parser.add_argument('-p', '--param', action='append', default=[], metavar='NAME:=VALUE',
                         help='parameter override for every node, e.g. '
                              '"observer.poles:=[-1.0,-1.1,-1.2]"')
@@ -364,6 +371,8 @@ def main(argv=None):
                              'the open-loop observer; run the loop again with the slower '
                              'poles; print the comparison')
     args = parser.parse_args(argv)
+    if args.no_clock:       # one /clock per ROS graph
+        args.param = args.param + ['simulator.publish_clock:=false']
     vehicle_path = Path(args.vehicle) if args.vehicle else _default_vehicle()
     try:
         # the file with every -p override, and every output, checked before anything starts
