@@ -30,9 +30,9 @@ from ..core.errors import ObserverError
 from ..timeutil import sec_to_stamp_parts, stamp_to_sec
 from ..vehicle import vehicle_from_parameters
 
-__all__ = ['VEHICLE_SECTIONS', 'SENSOR_QOS', 'SENSOR_SUB_QOS', 'STATE_QOS', 'STATE_PUB_QOS',
-           'LATCHED_QOS', 'MESSAGE_CLASSES', 'TOPICS', 'VehicleNode', 'joint_state',
-           'checked_stamp', 'vector_from_joint_state',
+__all__ = ['VEHICLE_SECTIONS', 'SAFE_COMMAND_FRAME', 'SENSOR_QOS', 'SENSOR_SUB_QOS',
+           'STATE_QOS', 'STATE_PUB_QOS', 'LATCHED_QOS', 'MESSAGE_CLASSES', 'TOPICS',
+           'VehicleNode', 'joint_state', 'checked_stamp', 'vector_from_joint_state',
            'stamp_to_sec', 'to_stamp', 'make_executor', 'spin_until', 'exit_status',
            'init_ros', 'run_node', 'run_nodes']
 
@@ -91,6 +91,12 @@ def to_stamp(t):
     """Return a builtin_interfaces/Time for t seconds."""
     sec, nanosec = sec_to_stamp_parts(t)
     return Time(sec=sec, nanosec=nanosec)
+
+
+#: header.frame_id of the compensator's safe command for a stale estimate (no estimate
+#: behind it): a lock-step simulator does not take it for the answer while the observer
+#: is alive. A safe command that answers a refused estimate or command is not marked.
+SAFE_COMMAND_FRAME = 'safe_command'
 
 
 def joint_state(names, values, t, frame_id='', stamp=None):
