@@ -25,8 +25,8 @@ import yaml
 
 from .core.errors import ObserverError, VehicleFileError
 from .core.model import as_poles, Plant
-from .core.spec import (ControllerSpec, OBSERVER_TYPES, ObserverSpec, SENSOR_TYPES,
-                        SensorSpec, SimulatorSpec, Vehicle)
+from .core.spec import (ControllerSpec, HISTORY_LENGTH, OBSERVER_TYPES, ObserverSpec,
+                        SENSOR_TYPES, SensorSpec, SimulatorSpec, Vehicle)
 from .params_file import _yaml_load, flatten_parameters, load_parameters
 from .sensors import (extract_measurement, fill_measurement, MeasurementError,
                       parse_field)
@@ -116,6 +116,11 @@ KNOWN_KEYS = _keys(
     KeySpec('observer.initial_estimate', DOUBLE_ARRAY, 'x_hat(0) (n); default zeros'),
     KeySpec('observer.rate_hz', DOUBLE, 'Hz, prediction-only publish rate; default the '
             'simulator rate', minimum=0.0),
+    KeySpec('observer.history_length', DOUBLE, 's, >= 0: late messages this much older '
+            'than the estimate are used at their stamps (0: refused)', default=HISTORY_LENGTH,
+            minimum=0.0),
+    KeySpec('observer.publish_rate_hz', DOUBLE, 'Hz, > 0: also publish the estimate '
+            'predicted to now at this rate (free-running); default off', minimum=0.0),
     KeySpec('controller.poles', DOUBLE_ARRAY, 'real parts of eig(A - B K) (n)'),
     KeySpec('controller.poles_imag', DOUBLE_ARRAY, 'imaginary parts; default all 0'),
     KeySpec('controller.K', DOUBLE_ARRAY, 'm x n, row-major'),
@@ -535,7 +540,13 @@ class _Checker:
         return np.array(values, dtype=float)
 
     def symmetric(self, key, M, definite):
-        """Refuse a matrix that is not symmetric positive (semi)definite."""
+        """
+        Return M symmetrised, refusing one that is not symmetric positive (semi)definite.
+
+        Symmetric to round-off (``|M - M^T| <= 1e-9 max(1, |M|)``) is made exactly
+        symmetric, ``(M + M^T) / 2``: the Riccati solvers demand symmetry to the last bit.
+
+        """
         if not np.all(np.isfinite(M)):
             self.fail(key, 'has values that are not finite (too large to square?)')
         scale = max(1.0, float(np.max(np.abs(M))))
@@ -551,6 +562,7 @@ class _Checker:
         if not definite and np.min(eig) < -1e-9:
             self.fail(key, f'must be positive semidefinite (smallest eigenvalue '
                       f'{np.min(eig) * scale:.3g})')
+        return (M + M.T) / 2.0
 
     def poles(self, prefix, count, exact, count_label, discrete):
         """Complex poles from <prefix>.poles and <prefix>.poles_imag, or None."""
@@ -838,14 +850,16 @@ def _read_controller(check, plant, discrete):
     if len(options) > 1:
         check.fail(options[1], f'give only one of controller.poles, controller.K and '
                    f'controller.lqr_Q/lqr_R (got {" and ".join(options)})')
-    poles = check.poles('controller', n, True, 'one per state', discrete)
+    # the observer's rule: at most n here; the design asks for exactly one per
+    # controllable mode (n for a controllable plant) and names the count
+    poles = check.poles('controller', n, False, 'one per controllable mode', discrete)
     K = check.matrix('controller.K', m, n, ('inputs', 'states'))
     Q = R = None
     if options[0] == 'controller.lqr_Q':
         Q = check.matrix('controller.lqr_Q', n, n, ('states', 'states'))
         R = check.matrix('controller.lqr_R', m, m, ('inputs', 'inputs'), required=True)
-        check.symmetric('controller.lqr_Q', Q, definite=False)
-        check.symmetric('controller.lqr_R', R, definite=True)
+        Q = check.symmetric('controller.lqr_Q', Q, definite=False)
+        R = check.symmetric('controller.lqr_R', R, definite=True)
     reference = check.vector('controller.reference', n, 'states')
     Kd = check.matrix('controller.Kd', m, n, ('inputs', 'states'))
     u_min = check.vector('controller.u_min', m, 'inputs', allow_inf=True)
@@ -914,7 +928,7 @@ def _read_observer(check, plant, discrete, sensors, simulator, warnings):
             check.fail('observer.Qd', 'missing: a kalman observer needs observer.Qd (the '
                        'default, diag(simulator.process_noise_std**2), needs all of them > 0 '
                        'and no observer.Bd)')
-        check.symmetric('observer.Qd', Qd, definite=False)
+        Qd = check.symmetric('observer.Qd', Qd, definite=False)
         if check.double_array('observer.Rd') is not None:
             Rd = check.matrix('observer.Rd', p, p, ('outputs', 'outputs'))
         else:
@@ -926,13 +940,16 @@ def _read_observer(check, plant, discrete, sensors, simulator, warnings):
                            '(the default, diag(noise_std**2) of the sensors, needs every '
                            'noise_std > 0)')
             Rd = np.diag(std ** 2)
-        check.symmetric('observer.Rd', Rd, definite=True)
+        Rd = check.symmetric('observer.Rd', Rd, definite=True)
     else:   # open_loop
         _warn_unused(check, design_keys + kalman_keys, 'by an open_loop observer', warnings)
     initial = check.vector('observer.initial_estimate', n, 'states')
     rate = check.double('observer.rate_hz', positive=True)
+    history = check.double('observer.history_length', minimum=0.0)
+    publish_rate = check.double('observer.publish_rate_hz', positive=True)
     return ObserverSpec(kind=kind, poles=poles, gain=gain, method=method, Qd=Qd, Rd=Rd,
-                        Bd=Bd, initial_estimate=initial, rate_hz=rate)
+                        Bd=Bd, initial_estimate=initial, rate_hz=rate,
+                        history_length=history, publish_rate_hz=publish_rate)
 
 
 # -- writing ------------------------------------------------------------------------------
@@ -1003,6 +1020,9 @@ def vehicle_to_parameters(vehicle):
         flat['observer.method'] = o.method
     if o.rate_hz is not None:
         flat['observer.rate_hz'] = float(o.rate_hz)
+    flat['observer.history_length'] = float(o.history_length)
+    if o.publish_rate_hz is not None:
+        flat['observer.publish_rate_hz'] = float(o.publish_rate_hz)
     c = vehicle.controller
     if c.poles is not None:
         _put_poles(flat, 'controller', c.poles)

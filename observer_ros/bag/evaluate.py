@@ -45,6 +45,7 @@ from .reader import read_recording
 from .replay import CLOCK_JUMP_TOLERANCE, epochs_of, live_replay, replay
 from .report import BAG_MAX_MESSAGES, format_table, write_results
 from .results import EvalResult, jsonable, VariantResult
+from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 
 __all__ = ['DEFAULT_TOLERANCE', 'STEADY_FRACTION', 'WHITENESS_LAGS', 'VariantResult',
@@ -273,6 +274,12 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
         if tuple(v.plant.state_names) != tuple(base.plant.state_names):
             raise BagToolError(f'variant {name!r} has states {list(v.plant.state_names)}; '
                                f'the vehicle has {list(base.plant.state_names)}')
+        try:   # every configuration's gains pass the design verification first
+            with warnings.catch_warnings():
+                warnings.simplefilter('ignore')
+                design_vehicle(v)
+        except ObserverError as err:
+            raise type(err)(f'variant {name!r}: {err}') from None
 
     def stage(label):
         if progress is None:

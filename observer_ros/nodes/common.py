@@ -30,9 +30,9 @@ from ..core.errors import ObserverError
 from ..timeutil import sec_to_stamp_parts, stamp_to_sec
 from ..vehicle import vehicle_from_parameters
 
-__all__ = ['VEHICLE_SECTIONS', 'SENSOR_QOS', 'SENSOR_SUB_QOS', 'STATE_QOS', 'STATE_PUB_QOS',
-           'LATCHED_QOS', 'MESSAGE_CLASSES', 'TOPICS', 'VehicleNode', 'joint_state',
-           'checked_stamp', 'vector_from_joint_state',
+__all__ = ['VEHICLE_SECTIONS', 'SAFE_COMMAND_FRAME', 'SENSOR_QOS', 'SENSOR_SUB_QOS',
+           'STATE_QOS', 'STATE_PUB_QOS', 'LATCHED_QOS', 'MESSAGE_CLASSES', 'TOPICS',
+           'VehicleNode', 'joint_state', 'checked_stamp', 'vector_from_joint_state',
            'stamp_to_sec', 'to_stamp', 'make_executor', 'spin_until', 'exit_status',
            'init_ros', 'run_node', 'run_nodes']
 
@@ -80,6 +80,7 @@ TOPICS = {
     'true_state': 'state/true',
     'estimate': 'state/estimate',
     'residual': 'observer/residual',
+    'covariance': 'state/covariance',
     'command': 'control/u',
     'command_array': 'control/u_array',
     'reference': 'control/reference',
@@ -90,6 +91,12 @@ def to_stamp(t):
     """Return a builtin_interfaces/Time for t seconds."""
     sec, nanosec = sec_to_stamp_parts(t)
     return Time(sec=sec, nanosec=nanosec)
+
+
+#: header.frame_id of the compensator's safe command for a stale estimate (no estimate
+#: behind it): a lock-step simulator does not take it for the answer while the observer
+#: is alive. A safe command that answers a refused estimate or command is not marked.
+SAFE_COMMAND_FRAME = 'safe_command'
 
 
 def joint_state(names, values, t, frame_id='', stamp=None):
@@ -276,8 +283,13 @@ class VehicleNode(Node):
         """Increment a diagnostics counter."""
         self._counters[key] = self._counters.get(key, 0) + n
 
-    def publish_diagnostics(self, level, message, values=None):
-        """Publish one DiagnosticStatus for this node on /diagnostics."""
+    def publish_diagnostics(self, level, message, values=None, extra=()):
+        """
+        Publish this node's DiagnosticStatus on /diagnostics (and ``extra`` ones after it).
+
+        ``extra``: ``(name suffix, level, message, values)`` of statuses named
+        ``<node>/<suffix>`` in the same array (the observer's per-sensor innovation health).
+        """
         status = DiagnosticStatus()
         status.level = level
         status.name = f'{self.get_fully_qualified_name()}'
@@ -289,6 +301,11 @@ class VehicleNode(Node):
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
         array.status = [status]
+        for suffix, level, text, more in extra:
+            part = DiagnosticStatus(level=level, name=f'{status.name}/{suffix}', message=text,
+                                    hardware_id=status.hardware_id)
+            part.values = [KeyValue(key=str(k), value=str(v)) for k, v in sorted(more.items())]
+            array.status.append(part)
         self._diag_pub.publish(array)
 
 

@@ -19,8 +19,8 @@ from rcl_interfaces.msg import SetParametersResult
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from .common import (checked_stamp, joint_state, LATCHED_QOS, run_node, STATE_PUB_QOS,
-                     STATE_QOS, TOPICS, vector_from_joint_state, VehicleNode)
+from .common import (checked_stamp, joint_state, LATCHED_QOS, run_node, SAFE_COMMAND_FRAME,
+                     STATE_PUB_QOS, STATE_QOS, TOPICS, vector_from_joint_state, VehicleNode)
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 
@@ -157,24 +157,26 @@ class CompensatorNode(VehicleNode):
         self._send(u, t, stamp)
         return True
 
-    def _send(self, u, t, stamp=None):
+    def _send(self, u, t, stamp=None, frame_id=''):
         self._last_u = u
-        self._cmd_pub.publish(joint_state(self.vehicle.plant.input_names, u, t, stamp=stamp))
+        self._cmd_pub.publish(joint_state(self.vehicle.plant.input_names, u, t,
+                                          frame_id=frame_id, stamp=stamp))
         if self._array_pub is not None:
             self._array_pub.publish(Float64MultiArray(data=[float(v) for v in u]))
 
-    def _publish_safe(self, t, stamp=None):
+    def _publish_safe(self, t, stamp=None, frame_id=''):
         """
         Send the safe command: the one entry point of every fallback.
 
         ``hold`` repeats the last command sent (it passed the gate), ``zero`` sends zero,
-        clipped into the limits (a vehicle whose limits exclude zero).
+        clipped into the limits (a vehicle whose limits exclude zero). ``frame_id``
+        SAFE_COMMAND_FRAME marks one that answers no estimate (a stale one).
         """
         c = self.vehicle.controller
         u = self._last_u if c.safe_command == 'hold' else np.zeros(self.vehicle.plant.m)
         if self.u_min is not None or self.u_max is not None:
             u = np.clip(u, self.u_min, self.u_max)
-        self._send(u, t, stamp)
+        self._send(u, t, stamp, frame_id)
         self.count('safe_commands')
 
     def _on_watchdog(self):
@@ -186,7 +188,8 @@ class CompensatorNode(VehicleNode):
                 self.get_logger().error(f'estimate stale ({age:.2f} s); safe command '
                                         f'({self.vehicle.controller.safe_command})')
             self._stale = True
-            self._publish_safe(self._now())
+            # no estimate behind it: marked, so that lock-step does not take it for one
+            self._publish_safe(self._now(), frame_id=SAFE_COMMAND_FRAME)
 
     def _on_set_parameters(self, params):
         changed = [p for p in params if p.name.startswith('controller.')]
