@@ -4,8 +4,10 @@ Compensator node: ``state/estimate`` in, the command ``control/u`` out.
 
 The control law is the seeds' tracking form u = K (x_d - x_hat) - Kd x_d (seed 002,
 Eq. 5.109; with x_d = 0 it is u = -K x_hat), clipped to the file's input limits. The
-command carries the stamp of the estimate it answers. A stale or non-finite estimate
-gives the file's safe command (zero or hold) and an error on /diagnostics.
+command carries the stamp of the estimate it answers. A stale, non-finite or diverging
+estimate gives the safe command (core/safe_command.py: predict-and-hold for
+``controller.predict_timeout``, then ``controller.safe_command``) and an ERROR on
+/diagnostics.
 
 """
 
@@ -17,8 +19,10 @@ from std_msgs.msg import Float64MultiArray
 
 from .common import (joint_state, LATCHED_QOS, run_node, stamp_to_sec, STATE_PUB_QOS, STATE_QOS,
                      TOPICS, vector_from_joint_state, VehicleNode)
+from .checks import changed_pole_problem, divergence_envelopes, own_parameter_problem
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
+from ..core.safe_command import SafeCommand
 
 __all__ = ['CompensatorNode', 'control_law', 'main']
 
@@ -54,11 +58,15 @@ class CompensatorNode(VehicleNode):
         super().__init__('compensator', own_parameters=(
             ('publish_array', False),      # also publish Float64MultiArray (ros2_control)
             ('diagnostics_period', 1.0),
+            ('clock_jump_tolerance', 0.5),     # s: an estimate this far back: clock restarted
         ))
         self._apply(self.vehicle, design_vehicle(self.vehicle))
-        self._last_u = np.zeros(self.vehicle.plant.m)
         self._last_estimate_time = None      # node clock when the last good x_hat came
+        self._last_stamp = None              # its stamp (s): the estimates' time base
         self._stale = False
+        self._diverging = None               # what diverges (a report), or None
+        self._safe_mode = None               # how the last safe command was decided
+        self._safe_timer = None
         self._cmd_pub = self.create_publisher(JointState, TOPICS['command'], STATE_PUB_QOS)
         self._array_pub = None
         if self.param('publish_array'):
@@ -83,6 +91,16 @@ class CompensatorNode(VehicleNode):
         self.Kd = np.zeros((m, n)) if c.Kd is None else np.asarray(c.Kd, float).reshape(m, n)
         self.u_min, self.u_max = c.u_min, c.u_max
         self.design = design
+        last = getattr(self, 'safe', None)
+        self.safe = SafeCommand(vehicle.plant, self._law, vehicle.sample_time, c.safe_command,
+                                c.predict_timeout)
+        if last is not None:
+            self.safe.sent(last.last_command)
+        self.x_envelope, self.u_envelope = divergence_envelopes(vehicle, self.K, self.x_d,
+                                                                self.Kd)
+
+    def _law(self, x_hat):
+        return control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
 
     def _publish_reference(self):
         now = self.get_clock().now().nanoseconds * 1e-9
@@ -98,42 +116,105 @@ class CompensatorNode(VehicleNode):
             self.get_logger().error(f'{err}; safe command', throttle_duration_sec=1.0)
             self._publish_safe(self._stamp_of(msg))
             return
-        u = control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
+        if self._last_stamp is not None and \
+                self._last_stamp - t > self.param('clock_jump_tolerance'):
+            self._clock_restarted(t)
         self._last_estimate_time = self.wall_now()
+        self._last_stamp = t
         self._stale = False
+        u_law = control_law(self.K, x_hat, self.x_d, self.Kd)    # before the limits
+        problem = self.x_envelope.check(t, x_hat) or self.u_envelope.check(t, u_law)
+        if problem is not None:
+            if self._diverging is None:
+                self.get_logger().error(f'diverging: {problem}; safe command')
+            self._diverging = problem
+            self.count('divergence_safe_commands')
+            self._publish_safe(t, msg.header.stamp)
+            return
+        self._diverging = None
+        self._stop_safe_timer()
+        u = control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
+        self.safe.trusted(t, x_hat, u)
         self._publish(u, t, msg.header.stamp)       # the estimate's stamp, to the ns
         self.count('commands')
+
+    def _clock_restarted(self, t):
+        """Estimates from a clock that started over: forget the old run's commands."""
+        self.get_logger().warning(f'state/estimate: clock jumped back {self._last_stamp - t:.3f}'
+                                  ' s (a restarted simulator?); safe command and limits reset')
+        self.count('clock_jumps')
+        self.safe.reset()
+        self.x_envelope.reset()
+        self.u_envelope.reset()
 
     def _stamp_of(self, msg):
         try:
             return stamp_to_sec(msg.header.stamp)
         except (AttributeError, TypeError):
+            return self._estimate_clock()
+
+    def _estimate_clock(self):
+        """Return now on the estimates' time base (their last stamp plus the time since)."""
+        if self._last_stamp is None:
             return self.get_clock().now().nanoseconds * 1e-9
+        sim = self.vehicle.simulator
+        rate = sim.realtime_factor if sim.mode == 'realtime' else 1.0
+        return self._last_stamp + (self.wall_now() - self._last_estimate_time) * rate
 
     def _publish(self, u, t, stamp=None):
-        self._last_u = u
         self._cmd_pub.publish(joint_state(self.vehicle.plant.input_names, u, t, stamp=stamp))
         if self._array_pub is not None:
             self._array_pub.publish(Float64MultiArray(data=[float(v) for v in u]))
 
-    def _publish_safe(self, t):
-        c = self.vehicle.controller
-        u = self._last_u if c.safe_command == 'hold' else np.zeros(self.vehicle.plant.m)
-        self._publish(u, t)
+    def _publish_safe(self, t, stamp=None):
+        """
+        Send the safe command for time t: the one place it is decided (SafeCommand).
+
+        Predict-and-hold within ``controller.predict_timeout`` of the last trusted estimate,
+        then ``controller.safe_command`` (zero or hold).
+        """
+        u, self._safe_mode = self.safe.command(t)
+        self._publish(u, t, stamp)
         self.count('safe_commands')
+        self.count(f'safe_commands_{self._safe_mode}')
+
+    def _stop_safe_timer(self):
+        if self._safe_timer is not None:
+            self._safe_timer.cancel()
+            self.destroy_timer(self._safe_timer)
+            self._safe_timer = None
 
     def _on_watchdog(self):
         if self._last_estimate_time is None:
             return
         age = self.wall_now() - self._last_estimate_time
-        if age > self.vehicle.controller.stale_timeout:
-            if not self._stale:
-                self.get_logger().error(f'estimate stale ({age:.2f} s); safe command '
-                                        f'({self.vehicle.controller.safe_command})')
+        if age > self.vehicle.controller.stale_timeout and not self._stale:
+            c = self.vehicle.controller
+            self.get_logger().error(f'estimate stale ({age:.2f} s); safe command '
+                                    f'(predict {c.predict_timeout:g} s, then '
+                                    f'{c.safe_command})')
             self._stale = True
-            self._publish_safe(self.get_clock().now().nanoseconds * 1e-9)
+            # a safe command every sample time while stale (the prediction's step)
+            self._stop_safe_timer()
+            self._safe_timer = self.wall_timer(
+                self.vehicle.sample_time / self._time_rate(), self._on_safe_tick)
+            self._on_safe_tick()
+
+    def _time_rate(self):
+        sim = self.vehicle.simulator
+        return sim.realtime_factor if sim.mode == 'realtime' else 1.0
+
+    def _on_safe_tick(self):
+        if not self._stale:
+            self._stop_safe_timer()
+            return
+        self._publish_safe(self._estimate_clock())
 
     def _on_set_parameters(self, params):
+        problem = own_parameter_problem(params)
+        if problem is not None:
+            self.count('parameter_changes_refused')
+            return SetParametersResult(successful=False, reason=problem)
         changed = [p for p in params if p.name.startswith('controller.')]
         if not changed:
             return SetParametersResult(successful=True)
@@ -147,9 +228,12 @@ class CompensatorNode(VehicleNode):
             # stabilise
             vehicle = self.load_vehicle(overrides)
             design = design_vehicle(vehicle)
+            problem = changed_pole_problem(vehicle, 'controller', names)
         except (ObserverError, ValueError) as err:
+            problem = str(err)
+        if problem is not None:
             self.count('parameter_changes_refused')
-            return SetParametersResult(successful=False, reason=str(err))
+            return SetParametersResult(successful=False, reason=problem)
         self._apply(vehicle, design)
         self._publish_reference()
         self.get_logger().info(f'controller redesigned: K = {self.K.tolist()}')
@@ -157,13 +241,17 @@ class CompensatorNode(VehicleNode):
         return SetParametersResult(successful=True)
 
     def _on_diagnostics(self):
-        if self._stale:
-            level, message = DiagnosticStatus.ERROR, 'estimate stale: safe command'
+        values = {'u': np.array2string(self.safe.last_command)}
+        if self._diverging is not None:
+            level, message = DiagnosticStatus.ERROR, f'diverging: {self._diverging}'
+        elif self._stale:
+            level = DiagnosticStatus.ERROR
+            message = f'estimate stale: safe command ({self._safe_mode})'
         elif self._last_estimate_time is None:
             level, message = DiagnosticStatus.WARN, 'waiting for state/estimate'
         else:
             level, message = DiagnosticStatus.OK, 'closing the loop'
-        self.publish_diagnostics(level, message, {'u': np.array2string(self._last_u)})
+        self.publish_diagnostics(level, message, values)
 
 
 def main(args=None):

@@ -17,12 +17,17 @@ from sensor_msgs.msg import JointState
 
 from .common import (joint_state, MESSAGE_CLASSES, run_node, SENSOR_SUB_QOS, stamp_to_sec,
                      STATE_PUB_QOS, STATE_QOS, TOPICS, vector_from_joint_state, VehicleNode)
+from .checks import changed_pole_problem, own_parameter_problem, state_scale
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 from ..core.estimators import make_estimator
+from ..core.health import Envelope, LoadMeter
 from ..sensors import extract_measurement
 
 __all__ = ['ObserverNode', 'main']
+
+# wall s: a divergence stays reported (ERROR) this long after the last implausible estimate
+DIVERGENCE_HOLD = 2.0
 
 
 class ObserverNode(VehicleNode):
@@ -48,6 +53,9 @@ class ObserverNode(VehicleNode):
         # second, or when a stamp passes it, rather than per message): see _check_time
         self._future_bound = None
         self._future_bound_until = 0.0
+        self._load = LoadMeter()            # overload: busy fraction, missed stamps
+        self._diverging = None              # the last divergence report, and its wall time
+        self._diverged_at = None
         self._est_pub = self.create_publisher(JointState, TOPICS['estimate'], STATE_PUB_QOS)
         self._res_pub = self.create_publisher(JointState, TOPICS['residual'], STATE_PUB_QOS)
         self._subs = []
@@ -89,20 +97,32 @@ class ObserverNode(VehicleNode):
         self._rows = {s.name: vehicle.plant.output_rows(s.outputs) for s in vehicle.sensors}
         self._stamped = {s.name: hasattr(MESSAGE_CLASSES[s.msg_type], 'header')
                          for s in vehicle.sensors}
+        # each sensor's period (s): a longer gap between its stamps is missed messages
+        self._periods = {s.name: s.rate_divider / vehicle.simulator.rate_hz
+                         for s in vehicle.sensors}
+        self._envelope = Envelope(vehicle.plant.state_names, state_scale(vehicle), 'x_hat')
 
     def _on_set_parameters(self, params):
+        problem = own_parameter_problem(params)
+        if problem is not None:
+            self.count('parameter_changes_refused')
+            return SetParametersResult(successful=False, reason=problem)
         observer_params = [p for p in params if p.name.startswith('observer.')]
         if not observer_params:
             return SetParametersResult(successful=True)
         overrides = {p.name: p.value for p in params}
         try:
-            # the loader refuses unstable or unpaired poles, the design an unusable gain
+            # the loader refuses unstable or unpaired poles, the design an unusable gain,
+            # the margin check poles stable in name only
             vehicle = self.load_vehicle(overrides)
             design = design_vehicle(vehicle)
+            problem = changed_pole_problem(vehicle, 'observer', set(overrides))
             estimator = make_estimator(vehicle.plant, vehicle.observer)
         except (ObserverError, ValueError) as err:
+            problem = str(err)
+        if problem is not None:
             self.count('parameter_changes_refused')
-            return SetParametersResult(successful=False, reason=str(err))
+            return SetParametersResult(successful=False, reason=problem)
         # Keep the estimate: only the gain changes.
         if self.estimator.t is not None:
             estimator.reset(self.estimator.x_hat, self.estimator.t)
@@ -113,11 +133,24 @@ class ObserverNode(VehicleNode):
 
     # -- callbacks ----------------------------------------------------------------------
     def _on_measurement(self, sensor, msg):
-        self._last_seen[sensor.name] = self.wall_now()
+        start = self._last_seen[sensor.name] = self.wall_now()
+        missed = self._missed_before(sensor, msg)
         if self._lockstep and self._pending_commands > 0:
             self._queue.append((sensor, msg))
-            return
-        self._process_measurement(sensor, msg)
+        else:
+            self._process_measurement(sensor, msg)
+        if self._load.took(start, self.wall_now(), missed) and self._load.overloaded:
+            # said at once: a saturated executor may run the diagnostics timer late
+            self._on_diagnostics()
+
+    def _missed_before(self, sensor, msg):
+        """Return how many messages of the sensor its stamp says were missed (0 if none)."""
+        last = self._last_stamp.get(sensor.name)
+        if last is None or not self._stamped[sensor.name]:
+            return 0
+        gap = stamp_to_sec(msg.header.stamp) - last
+        period = self._periods[sensor.name]
+        return max(int(round(gap / period)) - 1, 0) if gap < 100.0 * period else 0
 
     def _process_measurement(self, sensor, msg):
         t = None
@@ -151,6 +184,9 @@ class ObserverNode(VehicleNode):
             self._reject('numerical_resets', f'{sensor.topic}: estimate not finite; reset')
             self._answer_without_correction(sensor, t, stamp)
             return
+        problem = self._envelope.check(t, x_hat)
+        if problem is not None:
+            self._on_divergence(t, problem)
         self._last_stamp[sensor.name] = t
         self.count('measurements')
         # the estimate first: it is what the compensator waits for (benchmarks P1)
@@ -159,6 +195,21 @@ class ObserverNode(VehicleNode):
         if residual is not None and self._res_pub.get_subscription_count():
             self._res_pub.publish(joint_state(sensor.outputs, residual, t, sensor.frame_id,
                                               stamp))
+
+    def _on_divergence(self, t, problem):
+        """
+        An estimate beyond the plausible envelope: report ERROR, restart from x_hat(0).
+
+        The estimate, its input history and the envelope start over at t, as after a clock
+        jump; the compensator sees the ERROR and its own envelope.
+        """
+        if self._diverging is None:
+            self.get_logger().error(f'diverging: {problem}; estimator reset')
+        self._diverging, self._diverged_at = problem, self.wall_now()
+        self.count('divergence_resets')
+        self.estimator.reset(None, t)
+        self._envelope.reset()
+        self._on_diagnostics()
 
     def _publish_estimate(self, t, frame_id, stamp=None):
         msg = joint_state(self.vehicle.plant.state_names, self.estimator.x_hat, t, frame_id,
@@ -196,10 +247,7 @@ class ObserverNode(VehicleNode):
             if last - t > self.param('clock_jump_tolerance'):
                 self.get_logger().warning(
                     f'{sensor.topic}: clock jumped back {last - t:.3f} s; estimator reset')
-                self.count('clock_jumps')
-                self.estimator.reset(None, None)
-                self._last_stamp.clear()
-                self._future_bound = None
+                self._clock_restarted()
                 return True
             self._reject('out_of_order', f'{sensor.topic}: stamp {t:.6f} older than '
                          f'the estimate ({last:.6f}); skipped')
@@ -230,17 +278,30 @@ class ObserverNode(VehicleNode):
         self._future_bound_until = self._last_seen[sensor.name] + 1.0
         return True
 
+    def _clock_restarted(self):
+        """The clock started over: estimate, input history and envelope start over too."""
+        self.count('clock_jumps')
+        self.estimator.reset(None, None)
+        self._last_stamp.clear()
+        self._future_bound = None
+        self._envelope.reset()
+
     def _on_command(self, msg):
         t = None
         try:
             t = stamp_to_sec(msg.header.stamp)
             u = vector_from_joint_state(msg, self.vehicle.plant.input_names, TOPICS['command'])
             last = self.estimator.t
-            if last is not None and t < last:
-                if last - t > self.param('clock_jump_tolerance'):
-                    self.estimator.reset(None, None)
-                    self._future_bound = None
-                    self.count('clock_jumps')
+            tolerance = self.param('clock_jump_tolerance')
+            if last is not None and t - last > tolerance:
+                # a command far ahead of the estimate (a compensator still on the time of
+                # a run before a restart, or on another clock): propagating to it would
+                # throw the estimate seconds or years ahead; hold it from now on
+                self.count('future_commands')
+                self.estimator.set_input(last, u)
+            elif last is not None and t < last:
+                if last - t > tolerance:
+                    self._clock_restarted()
                     self.estimator.set_input(t, u)
                 else:   # a command for an older stamp: hold it from now on
                     self.estimator.set_input(last, u)
@@ -305,11 +366,22 @@ class ObserverNode(VehicleNode):
         if silent:
             level = DiagnosticStatus.WARN
             message = f'predicting only: no data on {", ".join(silent)}'
-        x_hat = self.estimator.x_hat
-        self.publish_diagnostics(level, message, {
-            'observer_type': self.vehicle.observer.kind,
-            'x_hat': np.array2string(x_hat, precision=6),
-        })
+        values = {'observer_type': self.vehicle.observer.kind,
+                  'x_hat': np.array2string(self.estimator.x_hat, precision=6)}
+        load = self._load
+        load.idle(now)
+        if load.rate is not None:
+            values.update(answered_per_s=f'{load.rate:.1f}', busy=f'{load.busy:.2f}',
+                          missed_per_s=f'{load.missed_rate:.1f}')
+        if load.overloaded:
+            level = DiagnosticStatus.ERROR
+            message = (f'overloaded: answering {load.rate:.1f} measurements/s, '
+                       f'{load.missed_rate:.1f}/s missed, busy {100 * load.busy:.0f} %')
+        if self._diverged_at is not None and now - self._diverged_at < DIVERGENCE_HOLD:
+            level, message = DiagnosticStatus.ERROR, f'diverging: {self._diverging}'
+        elif self._diverged_at is not None:
+            self._diverging = self._diverged_at = None
+        self.publish_diagnostics(level, message, values)
 
 
 def _poles(poles):

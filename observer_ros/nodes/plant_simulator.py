@@ -21,6 +21,7 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticStatus
 import numpy as np
+from rcl_interfaces.msg import SetParametersResult
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool
@@ -28,10 +29,14 @@ from std_msgs.msg import Bool
 from .common import (joint_state, LATCHED_QOS, MESSAGE_CLASSES, run_node, SENSOR_QOS,
                      stamp_to_sec, STATE_PUB_QOS, STATE_QOS, to_stamp, TOPICS,
                      vector_from_joint_state, VehicleNode)
+from .checks import own_parameter_problem
 from ..core.model import zoh_matrices
 from ..sensors import fill_measurement
 
 __all__ = ['PlantSimulatorNode', 'main']
+
+# s: a realtime command stamped further ahead of the simulated time is not for this run
+FUTURE_COMMAND = 0.5
 
 
 class PlantSimulatorNode(VehicleNode):
@@ -83,6 +88,7 @@ class PlantSimulatorNode(VehicleNode):
         self._started = False
         self._done = False
         self._latest_cmd_stamp = None
+        self._ready_since = None            # realtime: wall time of the first tick
         self._step_wall = None              # realtime: wall time the step's gyro went out
         self._loop_us = []                  # realtime: measurement -> its command, us
         self._last_sent = None
@@ -98,6 +104,11 @@ class PlantSimulatorNode(VehicleNode):
             self.count('late_commands', 0)
         self._diag_timer = self.wall_timer(self.param('diagnostics_period'),
                                            self._on_diagnostics)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+    def _on_set_parameters(self, params):
+        problem = own_parameter_problem(params)
+        return SetParametersResult(successful=problem is None, reason=problem or '')
 
     def _on_recorder_ready(self, msg):
         self._recorder_ready = bool(msg.data)
@@ -202,6 +213,11 @@ class PlantSimulatorNode(VehicleNode):
             self.get_logger().warning(f'{err}', throttle_duration_sec=1.0)
             return
         if not self._lockstep:
+            if stamp > self.t + FUTURE_COMMAND:
+                # not an answer to this run (a compensator still on the time of a run
+                # before a restart): never applied
+                self.count('future_commands')
+                return
             self.u = u
             self._latest_cmd_stamp = stamp
             if self._step_wall is not None and abs(stamp - self.t) <= 0.25 * self.dt:
@@ -254,6 +270,8 @@ class PlantSimulatorNode(VehicleNode):
     def _realtime_step(self):
         if self._done:
             return
+        if not self._started and not self._realtime_ready():
+            return
         if self._started:       # (k stays 0 until the first advance)
             # the command answering the previous step should be here by now; before the
             # first command the loop is not closed yet (peers starting, DDS matching):
@@ -279,6 +297,21 @@ class PlantSimulatorNode(VehicleNode):
         self.count('steps')
         if self.k >= self.steps:
             self._finish()
+
+    def _realtime_ready(self):
+        """
+        Realtime: start once a command publisher is matched (or command_timeout passed).
+
+        A simulator restarted under a running observer and compensator must not step before
+        their commands reach it: the observer would correct with commands the plant never
+        gets, and an unstable compensator (the cart's D(s)) then diverges on its own.
+        """
+        if self._ready_since is None:
+            self._ready_since = time.monotonic()
+        if self._cmd_sub.get_publisher_count() >= 1:
+            return True
+        waited = time.monotonic() - self._ready_since
+        return waited > self.vehicle.simulator.command_timeout
 
     def _on_diagnostics(self):
         level = DiagnosticStatus.OK
