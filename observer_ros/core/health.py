@@ -9,13 +9,16 @@ publish what they find on /diagnostics.
 
 import numpy as np
 
-__all__ = ['ENVELOPE_FACTOR', 'ENVELOPE_LEARN_S', 'Envelope', 'LoadMeter', 'pole_margin_problem',
+__all__ = ['ENVELOPE_FACTOR', 'ENVELOPE_LEARN_CAP', 'ENVELOPE_LEARN_S', 'Envelope', 'LoadMeter', 'pole_margin_problem',
            'POLE_SLOWEST', 'POLE_FASTEST']
 
 # A value this many times beyond the plausible scale is divergence, not a transient.
 ENVELOPE_FACTOR = 100.0
 # Seconds (on the values' own time base) during which the envelope learns the run's scale.
 ENVELOPE_LEARN_S = 3.0
+# What it learns is capped at this many times the file's scale (a divergence that starts
+# at once cannot teach it that a growing value is plausible).
+ENVELOPE_LEARN_CAP = 10.0
 # Pole margins: no pole slower than the plant's slowest non-zero mode / POLE_SLOWEST, none
 # faster than POLE_FASTEST / sample time (exp(-5) per step: faster is not realised).
 POLE_SLOWEST = 100.0
@@ -28,9 +31,9 @@ class Envelope:
 
     The plausible magnitude of component i is ``max(scale_i, seen_i)``, where ``scale``
     comes from the vehicle file (initial state, reference, input limits) and ``seen_i`` is
-    the largest magnitude of the first ``learn`` seconds (learned only from values that
-    passed the check, so a divergence that starts at once is not learned). A value beyond
-    ``factor`` times it is divergence.
+    the largest magnitude of the first ``learn`` seconds, capped at
+    :data:`ENVELOPE_LEARN_CAP` times ``scale_i`` (so a divergence that starts at once is not
+    learned). A value beyond ``factor`` times it is divergence.
 
     Parameters
     ----------
@@ -94,7 +97,8 @@ class Envelope:
         if self._t0 is None:
             self._t0 = t
         if t - self._t0 <= self.learn:
-            np.maximum(self._seen, mag, out=self._seen)
+            np.maximum(self._seen, np.minimum(mag, ENVELOPE_LEARN_CAP * self.scale),
+                       out=self._seen)
         return None
 
 

@@ -295,10 +295,9 @@ class ObserverNode(VehicleNode):
             tolerance = self.param('clock_jump_tolerance')
             if last is not None and t - last > tolerance:
                 # a command far ahead of the estimate (a compensator still on the time of
-                # a run before a restart, or on another clock): propagating to it would
-                # throw the estimate seconds or years ahead; hold it from now on
+                # a run before a restart, or on another clock): not an input the plant
+                # gets now; propagating to it would throw the estimate seconds ahead
                 self.count('future_commands')
-                self.estimator.set_input(last, u)
             elif last is not None and t < last:
                 if last - t > tolerance:
                     self._clock_restarted()
