@@ -6,7 +6,7 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import numpy as np
-from observer_ros.nodes.common import joint_state, SENSOR_QOS, STATE_QOS
+from observer_ros.nodes.common import joint_state, STATE_QOS
 from observer_ros.timeutil import stamp_to_sec
 import pytest
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue

@@ -9,8 +9,8 @@ publish what they find on /diagnostics.
 
 import numpy as np
 
-__all__ = ['ENVELOPE_FACTOR', 'ENVELOPE_LEARN_CAP', 'ENVELOPE_LEARN_S', 'Envelope', 'LoadMeter', 'pole_margin_problem',
-           'POLE_SLOWEST', 'POLE_FASTEST']
+__all__ = ['ENVELOPE_FACTOR', 'ENVELOPE_LEARN_CAP', 'ENVELOPE_LEARN_S', 'Envelope',
+           'LoadMeter', 'pole_margin_problem', 'POLE_SLOWEST', 'POLE_FASTEST']
 
 # A value this many times beyond the plausible scale is divergence, not a transient.
 ENVELOPE_FACTOR = 100.0

@@ -73,7 +73,7 @@ class SafeCommand:
         self._trusted_t = self._t = self._x = self._u = None
 
     def sent(self, u):
-        """Note a command that was sent (the one ``hold`` repeats)."""
+        """Remember the last command sent: the one ``hold`` repeats."""
         self._last_u = np.array(u, dtype=float)
 
     def trusted(self, t, x_hat, u):

@@ -17,9 +17,9 @@ from rcl_interfaces.msg import SetParametersResult
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
+from .checks import changed_pole_problem, divergence_envelopes, own_parameter_problem
 from .common import (joint_state, LATCHED_QOS, run_node, stamp_to_sec, STATE_PUB_QOS, STATE_QOS,
                      TOPICS, vector_from_joint_state, VehicleNode)
-from .checks import changed_pole_problem, divergence_envelopes, own_parameter_problem
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 from ..core.safe_command import SafeCommand

@@ -15,9 +15,9 @@ import numpy as np
 from rcl_interfaces.msg import SetParametersResult
 from sensor_msgs.msg import JointState
 
+from .checks import changed_pole_problem, own_parameter_problem, state_scale
 from .common import (joint_state, MESSAGE_CLASSES, run_node, SENSOR_SUB_QOS, stamp_to_sec,
                      STATE_PUB_QOS, STATE_QOS, TOPICS, vector_from_joint_state, VehicleNode)
-from .checks import changed_pole_problem, own_parameter_problem, state_scale
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 from ..core.estimators import make_estimator
@@ -198,7 +198,7 @@ class ObserverNode(VehicleNode):
 
     def _on_divergence(self, t, problem):
         """
-        An estimate beyond the plausible envelope: report ERROR, restart from x_hat(0).
+        Report an estimate beyond the plausible envelope (ERROR); restart from x_hat(0).
 
         The estimate, its input history and the envelope start over at t, as after a clock
         jump; the compensator sees the ERROR and its own envelope.
@@ -279,7 +279,7 @@ class ObserverNode(VehicleNode):
         return True
 
     def _clock_restarted(self):
-        """The clock started over: estimate, input history and envelope start over too."""
+        """Start the estimate, input history and envelope over with the clock."""
         self.count('clock_jumps')
         self.estimator.reset(None, None)
         self._last_stamp.clear()

@@ -26,10 +26,10 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool
 
+from .checks import own_parameter_problem
 from .common import (joint_state, LATCHED_QOS, MESSAGE_CLASSES, run_node, SENSOR_QOS,
                      stamp_to_sec, STATE_PUB_QOS, STATE_QOS, to_stamp, TOPICS,
                      vector_from_joint_state, VehicleNode)
-from .checks import own_parameter_problem
 from ..core.model import zoh_matrices
 from ..sensors import fill_measurement
 
