@@ -10,7 +10,7 @@ publish what they find on /diagnostics.
 import numpy as np
 
 __all__ = ['ENVELOPE_FACTOR', 'ENVELOPE_LEARN_CAP', 'ENVELOPE_LEARN_S', 'Envelope',
-           'LoadMeter', 'pole_margin_problem', 'POLE_SLOWEST', 'POLE_FASTEST']
+           'LoadMeter', 'max_prediction_gap', 'pole_margin_problem', 'POLE_SLOWEST', 'POLE_FASTEST']
 
 # A value this many times beyond the plausible scale is divergence, not a transient.
 ENVELOPE_FACTOR = 100.0
@@ -167,6 +167,41 @@ class LoadMeter:
             self._start = self._last_end = None
             self._idle, self._answered, self._missed = 0.0, 0, 0
             self.overloaded = False
+
+
+def max_prediction_gap(A, dt, discrete=False, factor=ENVELOPE_FACTOR):
+    """
+    Return the longest open-loop prediction, s, over which no mode grows ``factor`` times.
+
+    An estimate predicted further than this (an observer paused for seconds on an unstable
+    plant) has its error multiplied by more than ``factor``: it is no estimate any more.
+
+    Parameters
+    ----------
+    A : (n, n) array_like
+        The plant's state matrix (discrete: per sample).
+    dt : float
+        The sample time, s.
+    discrete : bool
+        Whether A is discrete.
+    factor : float
+        The growth allowed.
+
+    Returns
+    -------
+    gap : float
+        ``log(factor) / rate`` for the fastest growing mode's rate; ``inf`` for a plant
+        without one.
+
+    """
+    eig = np.linalg.eigvals(np.asarray(A, dtype=float))
+    if discrete:
+        with np.errstate(divide='ignore'):
+            rates = np.log(np.abs(eig)) / dt
+    else:
+        rates = eig.real
+    rate = float(np.max(rates)) if rates.size else 0.0
+    return np.inf if rate <= 1e-12 else float(np.log(factor) / rate)
 
 
 def pole_margin_problem(poles, A, dt, discrete=False, name='poles'):

@@ -21,7 +21,7 @@ from .common import (joint_state, MESSAGE_CLASSES, run_node, SENSOR_SUB_QOS, sta
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 from ..core.estimators import make_estimator
-from ..core.health import Envelope, LoadMeter
+from ..core.health import ENVELOPE_FACTOR, Envelope, LoadMeter, max_prediction_gap
 from ..sensors import extract_measurement
 
 __all__ = ['ObserverNode', 'main']
@@ -56,6 +56,7 @@ class ObserverNode(VehicleNode):
         self._load = LoadMeter()            # overload: busy fraction, missed stamps
         self._diverging = None              # the last divergence report, and its wall time
         self._diverged_at = None
+        self._fenced = False                # commands of a run before a clock restart
         self._est_pub = self.create_publisher(JointState, TOPICS['estimate'], STATE_PUB_QOS)
         self._res_pub = self.create_publisher(JointState, TOPICS['residual'], STATE_PUB_QOS)
         self._subs = []
@@ -101,6 +102,8 @@ class ObserverNode(VehicleNode):
         self._periods = {s.name: s.rate_divider / vehicle.simulator.rate_hz
                          for s in vehicle.sensors}
         self._envelope = Envelope(vehicle.plant.state_names, state_scale(vehicle), 'x_hat')
+        self._max_gap = max_prediction_gap(vehicle.plant.A, vehicle.sample_time,
+                                           vehicle.plant.is_discrete)
 
     def _on_set_parameters(self, params):
         problem = own_parameter_problem(params)
@@ -172,6 +175,8 @@ class ObserverNode(VehicleNode):
         if not self._check_time(sensor, t, stamp):
             return
         rows = self._rows[sensor.name]
+        if self.estimator.t is not None and t - self.estimator.t > self._max_gap:
+            self._long_gap(sensor, t, y, rows)
         try:
             x_hat = self.estimator.correct(t, y, rows)
         except (ObserverError, ValueError) as err:
@@ -198,18 +203,42 @@ class ObserverNode(VehicleNode):
 
     def _on_divergence(self, t, problem):
         """
-        Report an estimate beyond the plausible envelope (ERROR); restart from x_hat(0).
+        Report an estimate beyond the plausible envelope: ERROR on /diagnostics at once.
 
-        The estimate, its input history and the envelope start over at t, as after a clock
-        jump; the compensator sees the ERROR and its own envelope.
+        The estimate goes on (a plant that really went far must still be tracked); the
+        compensator, with its own envelope, sends the safe command.
         """
         if self._diverging is None:
-            self.get_logger().error(f'diverging: {problem}; estimator reset')
+            self.get_logger().error(f'diverging: {problem}')
         self._diverging, self._diverged_at = problem, self.wall_now()
-        self.count('divergence_resets')
-        self.estimator.reset(None, t)
-        self._envelope.reset()
+        self.count('divergence_reports')
         self._on_diagnostics()
+
+    def _long_gap(self, sensor, t, y, rows):
+        """
+        Start over at the measurement: predicting across this gap would amplify the error.
+
+        The new estimate is the one nearest x_hat(0) that agrees with y (least squares on
+        C's rows, u taken as zero): restarting from x_hat(0) itself would leave the whole
+        distance to the plant as an estimation error, which the cart's fast observer turns
+        into a theta_dot transient of 1e4 rad/s.
+        """
+        gap = t - self.estimator.t
+        self.get_logger().warning(
+            f'{sensor.topic}: {gap:.2f} s since the estimate, longer than the '
+            f'{self._max_gap:.2f} s over which the unstable model grows the error '
+            f'{ENVELOPE_FACTOR:g} x; estimator restarted at the measurement',
+            throttle_duration_sec=1.0)
+        self.count('long_gap_resets')
+        self.estimator.reset(None, None)
+        x0 = self.estimator.x_hat
+        C = self.vehicle.plant.C[list(rows)]
+        x0 = x0 + np.linalg.pinv(C) @ (np.asarray(y, dtype=float) - C @ x0)
+        self.estimator.reset(x0, None)
+        self._envelope.reset()
+        # the commands queued meanwhile are ahead of the backlog of measurements: held
+        # from their stamps they would throw the new estimate seconds ahead
+        self._fenced = True
 
     def _publish_estimate(self, t, frame_id, stamp=None):
         msg = joint_state(self.vehicle.plant.state_names, self.estimator.x_hat, t, frame_id,
@@ -281,6 +310,7 @@ class ObserverNode(VehicleNode):
     def _clock_restarted(self):
         """Start the estimate, input history and envelope over with the clock."""
         self.count('clock_jumps')
+        self._fenced = True
         self.estimator.reset(None, None)
         self._last_stamp.clear()
         self._future_bound = None
@@ -293,14 +323,21 @@ class ObserverNode(VehicleNode):
             u = vector_from_joint_state(msg, self.vehicle.plant.input_names, TOPICS['command'])
             last = self.estimator.t
             tolerance = self.param('clock_jump_tolerance')
-            if last is not None and t - last > tolerance:
-                # a command far ahead of the estimate (a compensator still on the time of
-                # a run before a restart, or on another clock): not an input the plant
-                # gets now; propagating to it would throw the estimate seconds ahead
+            ahead = -np.inf if last is None else t - last
+            if ahead > self.param('future_tolerance') or \
+                    (self._fenced and ahead > tolerance):
+                # a command far ahead of the estimate: on another clock, or, just after the
+                # clock started over, still on the time of the run before (until the first
+                # command on the new time); not an input the plant gets now, and
+                # propagating to it would throw the estimate seconds ahead. (A command
+                # ahead after a pause of this node is applied: the plant got it.)
                 self.count('future_commands')
-            elif last is not None and t < last:
+                return
+            self._fenced = False
+            if last is not None and t < last:
                 if last - t > tolerance:
                     self._clock_restarted()
+                    self._fenced = False    # this command is on the new time
                     self.estimator.set_input(t, u)
                 else:   # a command for an older stamp: hold it from now on
                     self.estimator.set_input(last, u)
