@@ -128,8 +128,6 @@ def test_paused_observer_loop_recovers_on_the_prediction(loop_of):
     lp.wait(lambda: (s := lp.status.get('compensator')) is not None
             and s.level == DiagnosticStatus.OK, 'the loop closed again')
     lp.wait_converged(since, t_resume + 2.0)
-    worst = max(np.max(np.abs(x - lp.x_d)) for _, x in lp.true[since:])
-    assert worst < 1.0, worst
 
 
 def _set(probe, node, name, value):

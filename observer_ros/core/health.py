@@ -10,7 +10,7 @@ publish what they find on /diagnostics.
 import numpy as np
 
 __all__ = ['ENVELOPE_FACTOR', 'ENVELOPE_LEARN_CAP', 'ENVELOPE_LEARN_S', 'Envelope',
-           'LoadMeter', 'max_prediction_gap', 'pole_margin_problem', 'POLE_SLOWEST', 'POLE_FASTEST']
+           'LoadMeter', 'max_prediction_gap', 'pole_margin_problem', 'settling_time', 'POLE_SLOWEST', 'POLE_FASTEST']
 
 # A value this many times beyond the plausible scale is divergence, not a transient.
 ENVELOPE_FACTOR = 100.0
@@ -53,14 +53,25 @@ class Envelope:
         scale = np.where(np.isfinite(scale), scale, 0.0)
         top = scale.max() if scale.size and scale.max() > 0.0 else 1.0
         self.names = list(names)
-        self.scale = np.where(scale > 0.0, scale, top)
+        self.scale = self.file_scale = np.where(scale > 0.0, scale, top)
         self.what = what
         self.factor = float(factor)
         self.learn = float(learn)
         self.reset()
 
     def reset(self):
-        """Start learning again (a clock that starts over)."""
+        """Start learning again from the file's scale (a clock that starts over)."""
+        self.rebase(None)
+
+    def rebase(self, value):
+        """
+        Start learning again from the magnitudes of ``value`` (or the file's scale if None).
+
+        After an outage the plant may really be far from where the run started: what is
+        plausible is judged from where the loop closes again.
+        """
+        self.scale = self.file_scale if value is None else np.maximum(
+            self.file_scale, np.where(np.isfinite(value), np.abs(value), 0.0))
         self._t0 = None
         self._seen = np.zeros_like(self.scale)
 
@@ -202,6 +213,32 @@ def max_prediction_gap(A, dt, discrete=False, factor=ENVELOPE_FACTOR):
         rates = eig.real
     rate = float(np.max(rates)) if rates.size else 0.0
     return np.inf if rate <= 1e-12 else float(np.log(factor) / rate)
+
+
+def settling_time(poles, dt, discrete=False):
+    """
+    Return the time, s, in which the slowest of the poles decays to 2 % (4 time constants).
+
+    Parameters
+    ----------
+    poles : array_like of complex
+        s-plane poles, or z-plane if ``discrete``.
+    dt : float
+        The sample time, s (for discrete poles).
+    discrete : bool
+        Whether the poles are discrete.
+
+    Returns
+    -------
+    t : float
+        ``inf`` if a pole does not decay.
+
+    """
+    poles = np.asarray(poles, dtype=complex).ravel()
+    with np.errstate(divide='ignore'):
+        rates = -np.log(np.abs(poles)) / dt if discrete else -poles.real
+    slowest = float(np.min(rates)) if rates.size else np.inf
+    return np.inf if slowest <= 0.0 else 4.0 / slowest
 
 
 def pole_margin_problem(poles, A, dt, discrete=False, name='poles'):

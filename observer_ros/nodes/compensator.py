@@ -22,6 +22,7 @@ from .common import (joint_state, LATCHED_QOS, run_node, stamp_to_sec, STATE_PUB
                      TOPICS, vector_from_joint_state, VehicleNode)
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
+from ..core.health import settling_time
 from ..core.safe_command import SafeCommand
 
 __all__ = ['CompensatorNode', 'control_law', 'main']
@@ -66,6 +67,8 @@ class CompensatorNode(VehicleNode):
         self._stale = False
         self._diverging = None               # what diverges (a report), or None
         self._safe_mode = None               # how the last safe command was decided
+        self._resync_until = None            # estimates before this stamp are not used
+        self._recovering = False             # closing the loop again after an outage
         self._safe_timer = None
         self._cmd_pub = self.create_publisher(JointState, TOPICS['command'], STATE_PUB_QOS)
         self._array_pub = None
@@ -98,6 +101,9 @@ class CompensatorNode(VehicleNode):
             self.safe.sent(last.last_command)
         self.x_envelope, self.u_envelope = divergence_envelopes(vehicle, self.K, self.x_d,
                                                                 self.Kd)
+        # after an outage the observer needs this long (its slowest pole) to converge
+        self.settle = settling_time(design.observer_poles, vehicle.sample_time,
+                                    vehicle.plant.is_discrete)
 
     def _law(self, x_hat):
         return control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
@@ -119,9 +125,23 @@ class CompensatorNode(VehicleNode):
         if self._last_stamp is not None and \
                 self._last_stamp - t > self.param('clock_jump_tolerance'):
             self._clock_restarted(t)
+        elif self._stale and np.isfinite(self.settle):
+            # back after an outage: the observer restarts or catches up and needs its
+            # settling time; until then the prediction keeps closing the loop
+            self._resync_until = self._estimate_clock() + self.settle
         self._last_estimate_time = self.wall_now()
         self._last_stamp = t
         self._stale = False
+        if self._resync_until is not None:
+            if t < self._resync_until:
+                self.count('resync_commands')
+                self._publish_safe(t, msg.header.stamp)
+                return
+            self._resync_until = None
+            self._recovering = True
+        if self._recovering:
+            self._recover(t, x_hat, msg.header.stamp)
+            return
         u_law = control_law(self.K, x_hat, self.x_d, self.Kd)    # before the limits
         problem = self.x_envelope.check(t, x_hat) or self.u_envelope.check(t, u_law)
         if problem is not None:
@@ -138,11 +158,35 @@ class CompensatorNode(VehicleNode):
         self._publish(u, t, msg.header.stamp)       # the estimate's stamp, to the ns
         self.count('commands')
 
+    def _recover(self, t, x_hat, stamp):
+        """
+        Close the loop on the estimate after an outage, even beyond the envelope.
+
+        The prediction has had its time (predict_timeout, then the observer's settling
+        time): the plant may really be far away now (an unstable plant predicted open loop
+        for seconds), and only the closed loop brings it back. Beyond the envelope this is
+        reported as ERROR (``diverging``); back inside it, the envelope is armed again.
+        """
+        u_law = control_law(self.K, x_hat, self.x_d, self.Kd)
+        problem = self.x_envelope.check(t, x_hat) or self.u_envelope.check(t, u_law)
+        if problem is None:
+            self._recovering = False
+            self._diverging = None
+        else:
+            self._diverging = f'{problem} (recovering after an outage: closing the loop)'
+            self.count('recovery_commands')
+        u = control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
+        self.safe.trusted(t, x_hat, u)
+        self._publish(u, t, stamp)
+        self.count('commands')
+
     def _clock_restarted(self, t):
         """Estimates from a clock that started over: forget the old run's commands."""
         self.get_logger().warning(f'state/estimate: clock jumped back {self._last_stamp - t:.3f}'
                                   ' s (a restarted simulator?); safe command and limits reset')
         self.count('clock_jumps')
+        self._resync_until = None
+        self._recovering = False
         self.safe.reset()
         self.x_envelope.reset()
         self.u_envelope.reset()

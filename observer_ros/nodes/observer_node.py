@@ -341,6 +341,12 @@ class ObserverNode(VehicleNode):
                     self.estimator.set_input(t, u)
                 else:   # a command for an older stamp: hold it from now on
                     self.estimator.set_input(last, u)
+            elif last is not None and t > last:
+                # ahead of the last measurement (a compensator predicting while this node
+                # was paused, on a clock a little ahead of the plant's): held from the
+                # estimate's time; propagating to its stamp would make the measurements
+                # that follow look out of order
+                self.estimator.set_input(last, u)
             else:
                 self.estimator.set_input(t, u)
         except (ObserverError, ValueError) as err:

@@ -36,7 +36,7 @@ from ..sensors import fill_measurement
 __all__ = ['PlantSimulatorNode', 'main']
 
 # s: a realtime command stamped further ahead of the simulated time is not for this run
-FUTURE_COMMAND = 0.5
+FUTURE_COMMAND = 2.0
 # realtime: how many command_timeouts to wait for a matched command publisher at start
 READY_WAIT = 10.0
 
