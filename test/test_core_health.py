@@ -5,7 +5,7 @@ from types import SimpleNamespace
 
 import numpy as np
 from observer_ros.core.design import controller_gain
-from observer_ros.core.health import Envelope, LoadMeter, pole_margin_problem
+from observer_ros.core.health import Envelope, LoadMeter, pole_margin_problem, SettleCheck
 from observer_ros.core.model import zoh_matrices
 from observer_ros.core.safe_command import SafeCommand
 from observer_ros.nodes.checks import own_parameter_problem
@@ -114,3 +114,26 @@ def test_safe_command_predicts_the_closed_loop_like_scipy():
     assert mode == 'hold' and np.allclose(u, u0)
     hold.reset()
     assert np.all(hold.command(2.0)[0] == 0.0)
+
+
+def test_settle_check_waits_for_estimates_that_follow_the_model():
+    v = load_vehicle(CONFIG / 'cart_pendulum.yaml')
+    dt = v.sample_time
+    Ad, Bd = zoh_matrices(v.plant.A, v.plant.B, dt)
+    check = SettleCheck(Ad, Bd, dt, np.ones(4), tol=0.1, count=10)
+    check.start(deadline=100.0)
+    rng = np.random.default_rng(0)
+    x, u = np.array([0.01, 1.0, 0.0, 0.0]), np.array([0.1])
+    # a converging observer's estimates jump by far more than the scale: never settled
+    for k in range(30):
+        assert not check.settled(k * dt, x + rng.normal(0, 5.0, 4), u)
+    # estimates that follow the model step by step: settled after 10 in a row
+    results = []
+    for k in range(30, 45):
+        x = Ad @ x + Bd @ u
+        results.append(check.settled(k * dt, x, u))
+    assert results.index(True) == 10
+    # a gap in the stamps is not compared; the deadline ends the wait anyway
+    check.start(deadline=1.0)
+    assert not check.settled(0.5, x, u)
+    assert check.settled(1.0, x + 100.0, u)

@@ -10,7 +10,8 @@ publish what they find on /diagnostics.
 import numpy as np
 
 __all__ = ['ENVELOPE_FACTOR', 'ENVELOPE_LEARN_CAP', 'ENVELOPE_LEARN_S', 'Envelope',
-           'LoadMeter', 'max_prediction_gap', 'pole_margin_problem', 'settling_time', 'POLE_SLOWEST', 'POLE_FASTEST']
+           'LoadMeter', 'max_prediction_gap', 'SettleCheck', 'pole_margin_problem', 'settling_time',
+           'POLE_SLOWEST', 'POLE_FASTEST']
 
 # A value this many times beyond the plausible scale is divergence, not a transient.
 ENVELOPE_FACTOR = 100.0
@@ -178,6 +179,54 @@ class LoadMeter:
             self._start = self._last_end = None
             self._idle, self._answered, self._missed = 0.0, 0, 0
             self.overloaded = False
+
+
+class SettleCheck:
+    """
+    Tell when an observer has settled again: its estimates follow the model step by step.
+
+    While it converges its corrections are large; once settled, ``x_k`` agrees with
+    ``Ad x_{k-1} + Bd u_{k-1}`` within ``tol`` times each state's scale, ``count`` times
+    in a row (only consecutive estimates one sample time apart are compared). An
+    innovation-consistency test that needs no access to the observer's residual.
+
+    Parameters
+    ----------
+    Ad, Bd : ndarray
+        The model over one sample time.
+    dt : float
+        The sample time, s.
+    scale : array_like
+        Each state's scale (the divergence envelope's).
+    tol : float
+        Allowed one-step mismatch, in units of the scale.
+    count : int
+        Consecutive consistent estimates needed.
+
+    """
+
+    def __init__(self, Ad, Bd, dt, scale, tol=0.1, count=10):
+        self.Ad, self.Bd, self.dt = Ad, Bd, float(dt)
+        self.scale = np.asarray(scale, dtype=float)
+        self.tol, self.count = float(tol), int(count)
+        self.start(np.inf)
+
+    def start(self, deadline):
+        """Start watching; give up waiting (settled) at time ``deadline``."""
+        self.deadline = deadline
+        self._prev = None
+        self._ok = 0
+
+    def settled(self, t, x_hat, u):
+        """Note the estimate at t and the command sent for it; return True once settled."""
+        ok = False
+        if self._prev is not None and abs(t - self._prev[0] - self.dt) < 1e-3 * self.dt:
+            _, x_prev, u_prev = self._prev
+            pred = self.Ad @ x_prev + self.Bd @ u_prev
+            ok = bool(np.max(np.abs(np.asarray(x_hat) - pred) / self.scale) < self.tol)
+        self._ok = self._ok + 1 if ok else 0
+        self._prev = (t, np.array(x_hat, dtype=float), np.array(u, dtype=float))
+        return self._ok >= self.count or t >= self.deadline
 
 
 def max_prediction_gap(A, dt, discrete=False, factor=ENVELOPE_FACTOR):

@@ -22,10 +22,13 @@ from .common import (joint_state, LATCHED_QOS, run_node, stamp_to_sec, STATE_PUB
                      TOPICS, vector_from_joint_state, VehicleNode)
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
-from ..core.health import settling_time
+from ..core.health import SettleCheck, settling_time
 from ..core.safe_command import SafeCommand
 
 __all__ = ['CompensatorNode', 'control_law', 'main']
+
+# After an outage, wait at most this many observer settling times for it to settle again.
+RESYNC_SETTLINGS = 10.0
 
 
 def control_law(K, x_hat, x_d, Kd, u_min=None, u_max=None):
@@ -67,7 +70,7 @@ class CompensatorNode(VehicleNode):
         self._stale = False
         self._diverging = None               # what diverges (a report), or None
         self._safe_mode = None               # how the last safe command was decided
-        self._resync_until = None            # estimates before this stamp are not used
+        self._resyncing = False              # back from an outage, the observer settling
         self._recovering = False             # closing the loop again after an outage
         self._safe_timer = None
         self._cmd_pub = self.create_publisher(JointState, TOPICS['command'], STATE_PUB_QOS)
@@ -104,6 +107,8 @@ class CompensatorNode(VehicleNode):
         # after an outage the observer needs this long (its slowest pole) to converge
         self.settle = settling_time(design.observer_poles, vehicle.sample_time,
                                     vehicle.plant.is_discrete)
+        self.settle_check = SettleCheck(self.safe.Ad, self.safe.Bd, self.safe.dt,
+                                        self.x_envelope.file_scale)
 
     def _law(self, x_hat):
         return control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
@@ -126,19 +131,21 @@ class CompensatorNode(VehicleNode):
                 self._last_stamp - t > self.param('clock_jump_tolerance'):
             self._clock_restarted(t)
         elif self._stale and np.isfinite(self.settle):
-            # back after an outage: the observer restarts or catches up and needs its
-            # settling time; until then the prediction keeps closing the loop
-            self._resync_until = self._estimate_clock() + self.settle
+            # back after an outage: the observer restarts or catches up; until it has
+            # settled (its estimates follow the model again; at most RESYNC_SETTLINGS of
+            # its settling times) the prediction keeps closing the loop
+            self._resyncing = True
+            self.settle_check.start(self._estimate_clock() + RESYNC_SETTLINGS * self.settle)
         self._last_estimate_time = self.wall_now()
         self._last_stamp = t
         self._stale = False
-        if self._resync_until is not None:
-            if t < self._resync_until:
-                self.count('resync_commands')
-                self._publish_safe(t, msg.header.stamp)
-                return
-            self._resync_until = None
-            self._recovering = True
+        if self._resyncing:
+            self.count('resync_commands')
+            self._publish_safe(t, msg.header.stamp)
+            if self.settle_check.settled(t, x_hat, self.safe.last_command):
+                self._resyncing = False
+                self._recovering = True
+            return
         if self._recovering:
             self._recover(t, x_hat, msg.header.stamp)
             return
@@ -185,7 +192,7 @@ class CompensatorNode(VehicleNode):
         self.get_logger().warning(f'state/estimate: clock jumped back {self._last_stamp - t:.3f}'
                                   ' s (a restarted simulator?); safe command and limits reset')
         self.count('clock_jumps')
-        self._resync_until = None
+        self._resyncing = False
         self._recovering = False
         self.safe.reset()
         self.x_envelope.reset()

@@ -21,7 +21,7 @@ from .common import (joint_state, MESSAGE_CLASSES, run_node, SENSOR_SUB_QOS, sta
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 from ..core.estimators import make_estimator
-from ..core.health import ENVELOPE_FACTOR, Envelope, LoadMeter, max_prediction_gap
+from ..core.health import Envelope, ENVELOPE_FACTOR, LoadMeter, max_prediction_gap
 from ..sensors import extract_measurement
 
 __all__ = ['ObserverNode', 'main']
