@@ -10,8 +10,8 @@ publish what they find on /diagnostics.
 import numpy as np
 
 __all__ = ['ENVELOPE_FACTOR', 'ENVELOPE_LEARN_CAP', 'ENVELOPE_LEARN_S', 'Envelope',
-           'LoadMeter', 'max_prediction_gap', 'SettleCheck', 'pole_margin_problem', 'settling_time',
-           'POLE_SLOWEST', 'POLE_FASTEST']
+           'LoadMeter', 'max_prediction_gap', 'SettleCheck', 'pole_margin_problem',
+           'settling_time', 'POLE_SLOWEST', 'POLE_FASTEST']
 
 # A value this many times beyond the plausible scale is divergence, not a transient.
 ENVELOPE_FACTOR = 100.0
