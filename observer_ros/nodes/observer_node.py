@@ -15,22 +15,19 @@ import numpy as np
 from rcl_interfaces.msg import SetParametersResult
 from sensor_msgs.msg import JointState
 
-from .checks import changed_pole_problem, own_parameter_problem, state_scale
+from .checks import changed_pole_problem, own_parameter_problem
 from .common import (joint_state, MESSAGE_CLASSES, run_node, SENSOR_SUB_QOS, stamp_to_sec,
                      STATE_PUB_QOS, STATE_QOS, TOPICS, vector_from_joint_state, VehicleNode)
+from .observer_health import ObserverHealth
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 from ..core.estimators import make_estimator
-from ..core.health import Envelope, ENVELOPE_FACTOR, LoadMeter, max_prediction_gap
 from ..sensors import extract_measurement
 
 __all__ = ['ObserverNode', 'main']
 
-# wall s: a divergence stays reported (ERROR) this long after the last implausible estimate
-DIVERGENCE_HOLD = 2.0
 
-
-class ObserverNode(VehicleNode):
+class ObserverNode(ObserverHealth, VehicleNode):
     """Estimate the state from the vehicle's sensors and commands."""
 
     def __init__(self):
@@ -53,10 +50,8 @@ class ObserverNode(VehicleNode):
         # second, or when a stamp passes it, rather than per message): see _check_time
         self._future_bound = None
         self._future_bound_until = 0.0
-        self._load = LoadMeter()            # overload: busy fraction, missed stamps
-        self._diverging = None              # the last divergence report, and its wall time
-        self._diverged_at = None
         self._fenced = False                # commands of a run before a clock restart
+        self._init_health()
         self._est_pub = self.create_publisher(JointState, TOPICS['estimate'], STATE_PUB_QOS)
         self._res_pub = self.create_publisher(JointState, TOPICS['residual'], STATE_PUB_QOS)
         self._subs = []
@@ -98,12 +93,7 @@ class ObserverNode(VehicleNode):
         self._rows = {s.name: vehicle.plant.output_rows(s.outputs) for s in vehicle.sensors}
         self._stamped = {s.name: hasattr(MESSAGE_CLASSES[s.msg_type], 'header')
                          for s in vehicle.sensors}
-        # each sensor's period (s): a longer gap between its stamps is missed messages
-        self._periods = {s.name: s.rate_divider / vehicle.simulator.rate_hz
-                         for s in vehicle.sensors}
-        self._envelope = Envelope(vehicle.plant.state_names, state_scale(vehicle), 'x_hat')
-        self._max_gap = max_prediction_gap(vehicle.plant.A, vehicle.sample_time,
-                                           vehicle.plant.is_discrete)
+        self._build_health(vehicle)
 
     def _on_set_parameters(self, params):
         problem = own_parameter_problem(params)
@@ -145,15 +135,6 @@ class ObserverNode(VehicleNode):
         if self._load.took(start, self.wall_now(), missed) and self._load.overloaded:
             # said at once: a saturated executor may run the diagnostics timer late
             self._on_diagnostics()
-
-    def _missed_before(self, sensor, msg):
-        """Return how many messages of the sensor its stamp says were missed (0 if none)."""
-        last = self._last_stamp.get(sensor.name)
-        if last is None or not self._stamped[sensor.name]:
-            return 0
-        gap = stamp_to_sec(msg.header.stamp) - last
-        period = self._periods[sensor.name]
-        return max(int(round(gap / period)) - 1, 0) if gap < 100.0 * period else 0
 
     def _process_measurement(self, sensor, msg):
         t = None
@@ -200,45 +181,6 @@ class ObserverNode(VehicleNode):
         if residual is not None and self._res_pub.get_subscription_count():
             self._res_pub.publish(joint_state(sensor.outputs, residual, t, sensor.frame_id,
                                               stamp))
-
-    def _on_divergence(self, t, problem):
-        """
-        Report an estimate beyond the plausible envelope: ERROR on /diagnostics at once.
-
-        The estimate goes on (a plant that really went far must still be tracked); the
-        compensator, with its own envelope, sends the safe command.
-        """
-        if self._diverging is None:
-            self.get_logger().error(f'diverging: {problem}')
-        self._diverging, self._diverged_at = problem, self.wall_now()
-        self.count('divergence_reports')
-        self._on_diagnostics()
-
-    def _long_gap(self, sensor, t, y, rows):
-        """
-        Start over at the measurement: predicting across this gap would amplify the error.
-
-        The new estimate is the one nearest x_hat(0) that agrees with y (least squares on
-        C's rows, u taken as zero): restarting from x_hat(0) itself would leave the whole
-        distance to the plant as an estimation error, which the cart's fast observer turns
-        into a theta_dot transient of 1e4 rad/s.
-        """
-        gap = t - self.estimator.t
-        self.get_logger().warning(
-            f'{sensor.topic}: {gap:.2f} s since the estimate, longer than the '
-            f'{self._max_gap:.2f} s over which the unstable model grows the error '
-            f'{ENVELOPE_FACTOR:g} x; estimator restarted at the measurement',
-            throttle_duration_sec=1.0)
-        self.count('long_gap_resets')
-        self.estimator.reset(None, None)
-        x0 = self.estimator.x_hat
-        C = self.vehicle.plant.C[list(rows)]
-        x0 = x0 + np.linalg.pinv(C) @ (np.asarray(y, dtype=float) - C @ x0)
-        self.estimator.reset(x0, None)
-        self._envelope.reset()
-        # the commands queued meanwhile are ahead of the backlog of measurements: held
-        # from their stamps they would throw the new estimate seconds ahead
-        self._fenced = True
 
     def _publish_estimate(self, t, frame_id, stamp=None):
         msg = joint_state(self.vehicle.plant.state_names, self.estimator.x_hat, t, frame_id,
@@ -410,19 +352,7 @@ class ObserverNode(VehicleNode):
             message = f'predicting only: no data on {", ".join(silent)}'
         values = {'observer_type': self.vehicle.observer.kind,
                   'x_hat': np.array2string(self.estimator.x_hat, precision=6)}
-        load = self._load
-        load.idle(now)
-        if load.rate is not None:
-            values.update(answered_per_s=f'{load.rate:.1f}', busy=f'{load.busy:.2f}',
-                          missed_per_s=f'{load.missed_rate:.1f}')
-        if load.overloaded:
-            level = DiagnosticStatus.ERROR
-            message = (f'overloaded: answering {load.rate:.1f} measurements/s, '
-                       f'{load.missed_rate:.1f}/s missed, busy {100 * load.busy:.0f} %')
-        if self._diverged_at is not None and now - self._diverged_at < DIVERGENCE_HOLD:
-            level, message = DiagnosticStatus.ERROR, f'diverging: {self._diverging}'
-        elif self._diverged_at is not None:
-            self._diverging = self._diverged_at = None
+        level, message = self._health_status(now, level, message, values)
         self.publish_diagnostics(level, message, values)
 
 
