@@ -126,8 +126,10 @@ class FieldAccessor:
         try:
             index = names.index(self.joint)
         except ValueError:
+            shown = names[:8] + (['...'] if len(names) > 8 else [])   # a bounded log line
             raise MeasurementError(
-                f'{where}joint {self.joint!r} is not in JointState.name {names}') from None
+                f'{where}joint {self.joint!r} is not in JointState.name {shown} '
+                f'({len(names)} names)') from None
         if len(array) <= index:
             raise MeasurementError(
                 f'{where}joint {self.joint!r}: JointState.{self.path[0]} has {len(array)} '

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 from observer_ros.core.compensator import design_vehicle
-from observer_ros.core.estimators import make_estimator
+from observer_ros.core.estimators import make_estimator, process_noise_covariance
 from observer_ros.core.model import zoh_matrices
 from observer_ros.sensors import extract_measurement, fill_measurement
 from observer_ros.timeutil import ns_to_sec, sec_to_stamp_parts
@@ -90,9 +90,14 @@ def control_law(design, vehicle, x_hat):
     return K @ (x_d - x_hat) - Kd @ x_d
 
 
-def simulate(vehicle, steps=None, noise=False, seed=0, t0=1.0, closed_loop=True):
+def simulate(vehicle, steps=None, noise=False, seed=0, t0=1.0, closed_loop=True,
+             process_noise=None):
     """
     Run the lockstep closed loop; return the published messages in order.
+
+    ``process_noise=(G, Qc)`` adds white process noise ``G w`` of intensity Qc (k x k)
+    to a continuous plant (per sample for a discrete one): each step adds noise of the
+    exact covariance ``process_noise_covariance(A, Qc, dt, G)`` (``G Qc G^T``).
 
     Returns
     -------
@@ -113,6 +118,13 @@ def simulate(vehicle, steps=None, noise=False, seed=0, t0=1.0, closed_loop=True)
     rng = np.random.default_rng(seed)
     x = np.array(vehicle.simulator.initial_state, dtype=float)
     u = np.zeros(plant.m)
+    S = None
+    if process_noise is not None:
+        G, Qc = (np.atleast_2d(np.asarray(a, dtype=float)) for a in process_noise)
+        Qk = G @ Qc @ G.T if plant.is_discrete else \
+            process_noise_covariance(plant.A, Qc, dt, G)
+        w, V = np.linalg.eigh(Qk)
+        S = V * np.sqrt(np.maximum(w, 0.0))
     messages = []
     xs, estimates, ys = [], [], {s.name: [] for s in vehicle.sensors}
     for k in range(steps + 1):
@@ -148,6 +160,8 @@ def simulate(vehicle, steps=None, noise=False, seed=0, t0=1.0, closed_loop=True)
                                  vector_msg(plant.input_names, u, ns)))
                 est.set_input(ns_to_sec(ns), u)
         x = Ad @ x + Bd @ u
+        if S is not None:
+            x = x + S @ rng.standard_normal(plant.n)
     return {'messages': messages, 'x_true': xs, 'x_hat': estimates, 'y': ys,
             'design': design}
 

@@ -12,6 +12,7 @@ sequence, exact ZOH plant, u from the estimate of the vehicle's own estimator), 
 import copy
 import json
 from pathlib import Path
+import pickle
 import shutil
 import subprocess
 import sys
@@ -21,8 +22,8 @@ from bag_synth import (bag_file, blank, CONFIG, FLOAT64, IMU, JOINT_STATE, simul
 import numpy as np
 from numpy.testing import assert_allclose, assert_array_equal
 from observer_ros.bag.errors import BagToolError
-from observer_ros.bag.evaluate import (evaluate_bag, main, parse_tolerance, parse_variant,
-                                       whiteness, write_results)
+from observer_ros.bag.evaluate import (evaluate_bag, evaluate_job, main, parse_tolerance,
+                                       parse_variant, whiteness, write_results)
 from observer_ros.bag.reader import bag_info, decode_messages, read_recording
 from observer_ros.bag.replay import affine_scan, epochs_of, live_replay, replay
 from observer_ros.core.errors import ObserverError
@@ -424,6 +425,24 @@ def test_bag_metrics_design_beats_open_loop_on_the_unstable_cart(runs, bags):
     for state in vehicle.plant.state_names:
         assert result.variants['live'].states[state]['rmse'] == pytest.approx(
             design.states[state]['rmse'], rel=1e-9)
+
+
+def test_bag_evaluate_job_is_one_variant_of_evaluate_bag_as_plain_data(runs, bags):
+    vehicle, _ = runs['sub_noisy']
+    path = CONFIG / 'submarine.yaml'
+    full = evaluate_bag(bags['sub_noisy'], path, {'fast': FAST})
+    for name, overrides in (('design', ()), ('fast', FAST), ('live', ())):
+        job = evaluate_job(bags['sub_noisy'], str(path), name, overrides)
+        job = pickle.loads(pickle.dumps(job))        # crosses processes as it is
+        vr = full.variants[name]
+        assert job.variant == name and job.estimates == len(vr.replay)
+        assert job.ground_truth
+        for state in vehicle.plant.state_names:
+            assert job.states[state]['rmse'] == vr.states[state]['rmse']
+        assert job.outputs['q']['ljung_box_q'] == vr.outputs['q']['ljung_box_q']
+        json.dumps(job.to_dict())
+    with pytest.raises(BagToolError, match='takes no overrides'):
+        evaluate_job(bags['sub_noisy'], str(path), 'design', FAST)
 
 
 def test_bag_metrics_faster_poles_let_more_noise_through(runs, bags):

@@ -5,8 +5,10 @@ The bags under bags/samples/ (how each was made: bags/README.md) replayed offlin
 They were recorded by the project's own main command (four processes over DDS in
 lockstep), so ``state/estimate`` in each is what the live observer node computed:
 
-- the vehicle's own design replayed call by call gives the live estimate bit for bit,
-  and in bulk to round-off;
+- the vehicle's own design replayed call by call gives the live estimate to round-off
+  (bit for bit on the machine that recorded them: numpy's BLAS picks its kernels per
+  processor, so another CPU may round the last bit differently; the bit-for-bit claim is
+  tested on bags recorded in the same run, in test_bag_eval.py), and in bulk too;
 - on the unstable cart the design's error is far below the open-loop observer's;
 - observer poles 5x faster let more measurement noise through (larger steady-state
   spread) and poles 6x slower settle later, the comparison ``observer-run --evaluate``
@@ -99,14 +101,15 @@ def test_sample_design_replay_reproduces_the_live_estimate(sample):
     live = live_replay(rec, vehicle)
     exact = replay(rec, vehicle, exact=True)
     assert_array_equal(exact.stamp_ns, live.stamp_ns)
-    assert_array_equal(exact.x_hat, live.x_hat)          # the node's code, bit for bit
+    # round-off: relative to the size of each state over the run (the cart's maps in x
+    # coordinates have entries of 1e3..1e4 that cancel: about 1e-11 there, 1e-15 else);
+    # measured on another CPU than the recording one: 1.4e-12 absolute on the cart
+    scale = np.max(np.abs(live.x_hat), axis=0)
+    assert np.max(np.abs(exact.x_hat - live.x_hat) / scale) < 1e-10   # the node's code
     bulk = replay(rec, vehicle)
     assert not bulk.warnings
     assert bulk.bulk_steps >= len(bulk) - 1
     assert_array_equal(bulk.stamp_ns, live.stamp_ns)
-    # round-off: relative to the size of each state over the run (the cart's maps in x
-    # coordinates have entries of 1e3..1e4 that cancel: about 1e-11 there, 1e-15 else)
-    scale = np.max(np.abs(live.x_hat), axis=0)
     assert np.max(np.abs(bulk.x_hat - live.x_hat) / scale) < 1e-10
     assert np.nanmax(np.abs(bulk.residual - exact.residual)) < 1e-9
 

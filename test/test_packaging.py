@@ -14,7 +14,7 @@ import pytest
 from ros_helpers import Probe, REPO, ros_env
 
 EXECUTABLES = ('plant_simulator', 'observer', 'compensator', 'recorder', 'observer_design',
-               'observer_eval', 'observer_play', 'observer_run')
+               'observer_eval', 'observer_tune', 'observer_play', 'observer_run')
 
 # import name -> the package.xml key that provides it
 DEPENDENCY_KEYS = {

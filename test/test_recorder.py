@@ -9,7 +9,7 @@ import subprocess
 import sys
 
 from diagnostic_msgs.msg import DiagnosticArray
-from observer_ros.bagrecover import BagRecoveryError, recover_bag
+from observer_ros.bag.recover import BagRecoveryError, recover_bag
 from observer_ros.nodes.common import STATE_PUB_QOS, STATE_QOS
 import pytest
 from ros_helpers import CONFIG, Probe, Proc
@@ -169,12 +169,12 @@ def test_recover_command_line(tmp_path, feeder):
         rec.stop(signal.SIGKILL)
     finally:
         rec.stop(signal.SIGKILL)
-    out = subprocess.run([sys.executable, '-m', 'observer_ros.bagrecover', str(bag)],
+    out = subprocess.run([sys.executable, '-m', 'observer_ros.bag.recover', str(bag)],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert f'{TOPIC}: 30' in out.stdout
     assert _numbers(bag) == list(range(30))
-    bad = subprocess.run([sys.executable, '-m', 'observer_ros.bagrecover',
+    bad = subprocess.run([sys.executable, '-m', 'observer_ros.bag.recover',
                           str(tmp_path / 'nothing')], capture_output=True, text=True,
                          timeout=120)
     assert bad.returncode == 2 and 'not a bag directory' in bad.stderr

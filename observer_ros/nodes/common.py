@@ -26,6 +26,7 @@ from ..vehicle import vehicle_from_parameters
 
 __all__ = ['VEHICLE_SECTIONS', 'SENSOR_QOS', 'SENSOR_SUB_QOS', 'STATE_QOS', 'STATE_PUB_QOS',
            'LATCHED_QOS', 'MESSAGE_CLASSES', 'TOPICS', 'VehicleNode', 'joint_state',
+           'checked_stamp', 'vector_from_joint_state',
            'stamp_to_sec', 'to_stamp', 'make_executor', 'spin_until', 'exit_status',
            'run_node', 'run_nodes']
 
@@ -103,17 +104,56 @@ def joint_state(names, values, t, frame_id='', stamp=None):
     return msg
 
 
+def checked_stamp(stamp, topic):
+    """
+    Return the seconds of a message's ``header.stamp``; refuse a malformed one.
+
+    A stamp is refused (ObserverError naming the topic) when ``nanosec`` is not below
+    10^9, ``sec`` is negative, or it lies in the first second of its clock (``sec`` 0:
+    an unset header, 0 s + 1 ns included; the simulator starts at 1 s). Called first by
+    the callbacks, before a stamp reaches the estimator's time logic.
+
+    """
+    sec, nanosec = int(stamp.sec), int(stamp.nanosec)
+    if not 0 <= nanosec < 1_000_000_000:
+        raise ObserverError(f'{topic}: header.stamp.nanosec {nanosec} is not below 10^9')
+    if sec < 0:
+        raise ObserverError(f'{topic}: header.stamp.sec {sec} is negative')
+    if sec == 0:
+        raise ObserverError(f'{topic}: header.stamp {sec} s {nanosec} ns is in the first '
+                            'second (an unset stamp)')
+    return stamp_to_sec(stamp)
+
+
+def max_components(names):
+    """Return the most components a vector message of ``names`` may carry (extra joints)."""
+    return max(64, 4 * len(names))
+
+
+def _few(items, limit=5):
+    """Return at most ``limit`` items as text, with the count of the rest (bounded logs)."""
+    items = list(items[:limit + 1])
+    text = ', '.join(repr(x) for x in items[:limit])
+    return f'[{text}, ...]' if len(items) > limit else f'[{text}]'
+
+
 def vector_from_joint_state(msg, names, topic):
     """
     Read the components ``names`` of a vector topic by name, in that order.
 
     Raises ObserverError naming the topic for unknown/missing names, wrong sizes or
-    values that are not finite.
+    values that are not finite. The sizes are checked first, before anything is
+    converted (a message of 10^6 components costs two ``len`` calls), and the error
+    texts list at most a few names and values.
 
     """
-    if len(msg.position) != len(msg.name):
-        raise ObserverError(f'{topic}: {len(msg.name)} names but {len(msg.position)} '
-                            'positions')
+    n_names, n_values = len(msg.name), len(msg.position)
+    limit = max_components(names)
+    if max(n_names, n_values) > limit:
+        raise ObserverError(f'{topic}: {max(n_names, n_values)} components, more than the '
+                            f'{limit} accepted for {len(names)}')
+    if n_values != n_names:
+        raise ObserverError(f'{topic}: {n_names} names but {n_values} positions')
     if (msg.name == list(names)) if msg.name else len(msg.position) == len(names):
         # the usual case, the names in order (or none): no lookup
         values = np.array(msg.position, dtype=float)
@@ -121,11 +161,11 @@ def vector_from_joint_state(msg, names, topic):
         index = {name: i for i, name in enumerate(msg.name)}
         missing = [name for name in names if name not in index]
         if missing:
-            raise ObserverError(f'{topic}: missing component(s) {missing}; '
-                                f'got names {list(msg.name)}')
+            raise ObserverError(f'{topic}: missing component(s) {_few(missing)}; '
+                                f'got names {_few(msg.name)}')
         values = np.array([msg.position[index[name]] for name in names], dtype=float)
     if not np.isfinite(values).all():
-        raise ObserverError(f'{topic}: non-finite value in {values.tolist()}')
+        raise ObserverError(f'{topic}: non-finite value in {_few(values.tolist())}')
     return values
 
 
@@ -183,6 +223,21 @@ class VehicleNode(Node):
         for text in vehicle.warnings:
             self.get_logger().warning(text)
         return vehicle
+
+    def duplicate_publishers(self, topics):
+        """
+        Return ``"topic (N publishers)"`` for each topic with more than one publisher.
+
+        One node publishes the estimate and one the command of a vehicle: a second one
+        (two observers started with one name, a stray node) sends conflicting data.
+
+        """
+        found = []
+        for topic in topics:
+            n = self.count_publishers(topic)
+            if n > 1:
+                found.append(f'{self.resolve_topic_name(topic)} ({n} publishers)')
+        return found
 
     def param(self, name):
         """Return the value of one of the node's own parameters."""

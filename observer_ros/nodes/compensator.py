@@ -5,9 +5,12 @@ Compensator node: ``state/estimate`` in, the command ``control/u`` out.
 The control law is the seeds' tracking form u = K (x_d - x_hat) - Kd x_d (seed 002,
 Eq. 5.109; with x_d = 0 it is u = -K x_hat), clipped to the file's input limits. The
 command carries the stamp of the estimate it answers. A stale, non-finite or diverging
-estimate gives the safe command (core/safe_command.py: predict-and-hold for
-``controller.predict_timeout``, then ``controller.safe_command``) and an ERROR on
-/diagnostics.
+estimate, or a malformed stamp, gives the safe command (core/safe_command.py:
+predict-and-hold for ``controller.predict_timeout``, then ``controller.safe_command``)
+and an ERROR on /diagnostics. Every command passes one gate before it is sent: finite and
+inside ``controller.u_min``/``u_max``, or it is not sent (the safe command instead, an
+ERROR on /diagnostics). A second publisher of ``control/u`` or ``state/estimate`` is
+reported as an ERROR naming the topic.
 
 """
 
@@ -18,14 +21,14 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from .checks import changed_pole_problem, divergence_envelopes, own_parameter_problem
-from .common import (joint_state, LATCHED_QOS, run_node, stamp_to_sec, STATE_PUB_QOS, STATE_QOS,
-                     TOPICS, vector_from_joint_state, VehicleNode)
+from .common import (checked_stamp, joint_state, LATCHED_QOS, run_node, STATE_PUB_QOS,
+                     STATE_QOS, TOPICS, vector_from_joint_state, VehicleNode)
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 from ..core.health import SettleCheck, settling_time
 from ..core.safe_command import SafeCommand
 
-__all__ = ['CompensatorNode', 'control_law', 'main']
+__all__ = ['CompensatorNode', 'command_problem', 'control_law', 'main']
 
 # After an outage, wait at most this many observer settling times for it to settle again.
 RESYNC_SETTLINGS = 10.0
@@ -55,6 +58,30 @@ def control_law(K, x_hat, x_d, Kd, u_min=None, u_max=None):
     return u
 
 
+def command_problem(u, m, u_min=None, u_max=None):
+    """
+    Return why a command must not be sent, or None when it may.
+
+    A command is sent only when it has ``m`` values, all finite and inside
+    ``[u_min, u_max]`` (None: no limit on that side).
+
+    Returns
+    -------
+    str or None
+
+    """
+    u = np.asarray(u, dtype=float)
+    if u.shape != (m,):
+        return f'{u.size} values for {m} inputs'
+    if not np.isfinite(u).all():
+        return f'not finite: {u.tolist()}'
+    low = -np.inf if u_min is None else np.asarray(u_min, dtype=float)
+    high = np.inf if u_max is None else np.asarray(u_max, dtype=float)
+    if np.any(u < low) or np.any(u > high):
+        return f'{u.tolist()} outside the limits [{u_min}, {u_max}]'
+    return None
+
+
 class CompensatorNode(VehicleNode):
     """Close the loop on the estimate."""
 
@@ -73,6 +100,8 @@ class CompensatorNode(VehicleNode):
         self._resyncing = False              # back from an outage, the observer settling
         self._recovering = False             # closing the loop again after an outage
         self._safe_timer = None
+        self._refused = None                 # why the last command was not sent
+        self._duplicates = []                # other publishers of our topics
         self._cmd_pub = self.create_publisher(JointState, TOPICS['command'], STATE_PUB_QOS)
         self._array_pub = None
         if self.param('publish_array'):
@@ -120,12 +149,18 @@ class CompensatorNode(VehicleNode):
     def _on_estimate(self, msg):
         topic = TOPICS['estimate']
         try:
-            t = stamp_to_sec(msg.header.stamp)
+            t = checked_stamp(msg.header.stamp, topic)
+        except ObserverError as err:
+            self.count('bad_stamps')
+            self.get_logger().error(f'{err}; safe command', throttle_duration_sec=1.0)
+            self._publish_safe(self._estimate_clock())   # the stamp is not usable
+            return
+        try:
             x_hat = vector_from_joint_state(msg, self.vehicle.plant.state_names, topic)
         except (ObserverError, ValueError) as err:
             self.count('bad_estimates')
             self.get_logger().error(f'{err}; safe command', throttle_duration_sec=1.0)
-            self._publish_safe(self._stamp_of(msg))
+            self._publish_safe(t, msg.header.stamp)
             return
         if self._last_stamp is not None and \
                 self._last_stamp - t > self.param('clock_jump_tolerance'):
@@ -149,7 +184,9 @@ class CompensatorNode(VehicleNode):
         if self._recovering:
             self._recover(t, x_hat, msg.header.stamp)
             return
-        u_law = control_law(self.K, x_hat, self.x_d, self.Kd)    # before the limits
+        with np.errstate(all='ignore'):     # an overflow gives inf/NaN: caught below
+            u_law = control_law(self.K, x_hat, self.x_d, self.Kd)    # before the limits
+            u = control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
         problem = self.x_envelope.check(t, x_hat) or self.u_envelope.check(t, u_law)
         if problem is not None:
             if self._diverging is None:
@@ -160,10 +197,9 @@ class CompensatorNode(VehicleNode):
             return
         self._diverging = None
         self._stop_safe_timer()
-        u = control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
-        self.safe.trusted(t, x_hat, u)
-        self._publish(u, t, msg.header.stamp)       # the estimate's stamp, to the ns
-        self.count('commands')
+        if self._publish(u, t, msg.header.stamp):   # the estimate's stamp, to the ns
+            self.safe.trusted(t, x_hat, u)
+            self.count('commands')
 
     def _recover(self, t, x_hat, stamp):
         """
@@ -174,7 +210,9 @@ class CompensatorNode(VehicleNode):
         for seconds), and only the closed loop brings it back. Beyond the envelope this is
         reported as ERROR (``diverging``); back inside it, the envelope is armed again.
         """
-        u_law = control_law(self.K, x_hat, self.x_d, self.Kd)
+        with np.errstate(all='ignore'):
+            u_law = control_law(self.K, x_hat, self.x_d, self.Kd)
+            u = control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
         problem = self.x_envelope.check(t, x_hat) or self.u_envelope.check(t, u_law)
         if problem is None:
             self._recovering = False
@@ -182,10 +220,9 @@ class CompensatorNode(VehicleNode):
         else:
             self._diverging = f'{problem} (recovering after an outage: closing the loop)'
             self.count('recovery_commands')
-        u = control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
-        self.safe.trusted(t, x_hat, u)
-        self._publish(u, t, stamp)
-        self.count('commands')
+        if self._publish(u, t, stamp):
+            self.safe.trusted(t, x_hat, u)
+            self.count('commands')
 
     def _clock_restarted(self, t):
         """Estimates from a clock that started over: forget the old run's commands."""
@@ -198,21 +235,31 @@ class CompensatorNode(VehicleNode):
         self.x_envelope.reset()
         self.u_envelope.reset()
 
-    def _stamp_of(self, msg):
-        try:
-            return stamp_to_sec(msg.header.stamp)
-        except (AttributeError, TypeError):
-            return self._estimate_clock()
-
     def _estimate_clock(self):
         """Return now on the estimates' time base (their last stamp plus the time since)."""
         if self._last_stamp is None:
-            return self.get_clock().now().nanoseconds * 1e-9
+            return self._now()
         sim = self.vehicle.simulator
         rate = sim.realtime_factor if sim.mode == 'realtime' else 1.0
         return self._last_stamp + (self.wall_now() - self._last_estimate_time) * rate
 
+    def _now(self):
+        return self.get_clock().now().nanoseconds * 1e-9
+
     def _publish(self, u, t, stamp=None):
+        """Send a command that passes the gate; else the safe command. Return True if sent."""
+        problem = command_problem(u, self.vehicle.plant.m, self.u_min, self.u_max)
+        if problem is not None:
+            self.count('refused_commands')
+            self._refused = f'command {problem}: safe command sent instead'
+            self.get_logger().error(self._refused, throttle_duration_sec=1.0)
+            self._publish_safe(t, stamp)
+            return False
+        self._send(u, t, stamp)
+        return True
+
+    def _send(self, u, t, stamp=None):
+        self.safe.sent(u)
         self._cmd_pub.publish(joint_state(self.vehicle.plant.input_names, u, t, stamp=stamp))
         if self._array_pub is not None:
             self._array_pub.publish(Float64MultiArray(data=[float(v) for v in u]))
@@ -222,10 +269,13 @@ class CompensatorNode(VehicleNode):
         Send the safe command for time t: the one place it is decided (SafeCommand).
 
         Predict-and-hold within ``controller.predict_timeout`` of the last trusted estimate,
-        then ``controller.safe_command`` (zero or hold).
+        then ``controller.safe_command`` (zero or hold), clipped into the limits; sent
+        without the gate (every fallback comes here: #15's refused commands too).
         """
         u, self._safe_mode = self.safe.command(t)
-        self._publish(u, t, stamp)
+        if self.u_min is not None or self.u_max is not None:
+            u = np.clip(u, self.u_min, self.u_max)     # (limits that exclude zero)
+        self._send(u, t, stamp)
         self.count('safe_commands')
         self.count(f'safe_commands_{self._safe_mode}')
 
@@ -293,7 +343,14 @@ class CompensatorNode(VehicleNode):
 
     def _on_diagnostics(self):
         values = {'u': np.array2string(self.safe.last_command)}
-        if self._diverging is not None:
+        self._duplicates = self.duplicate_publishers((TOPICS['command'], TOPICS['estimate']))
+        refused, self._refused = self._refused, None
+        if self._duplicates:
+            level = DiagnosticStatus.ERROR
+            message = f'more than one publisher: {", ".join(self._duplicates)}'
+        elif refused:
+            level, message = DiagnosticStatus.ERROR, refused
+        elif self._diverging is not None:
             level, message = DiagnosticStatus.ERROR, f'diverging: {self._diverging}'
         elif self._stale:
             level = DiagnosticStatus.ERROR

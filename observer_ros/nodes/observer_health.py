@@ -77,15 +77,13 @@ class ObserverHealth:
             f'{ENVELOPE_FACTOR:g} x; estimator restarted at the measurement',
             throttle_duration_sec=1.0)
         self.count('long_gap_resets')
+        self.count('estimator_resets')
         self.estimator.reset(None, None)
         x0 = self.estimator.x_hat
         C = self.vehicle.plant.C[list(rows)]
         x0 = x0 + np.linalg.pinv(C) @ (np.asarray(y, dtype=float) - C @ x0)
         self.estimator.reset(x0, None)
         self._envelope.reset()
-        # the commands queued meanwhile are ahead of the backlog of measurements: held
-        # from their stamps they would throw the new estimate seconds ahead
-        self._fenced = True
 
     def _health_status(self, now, level, message, values):
         """Return the diagnostics level and message with overload and divergence in them."""

@@ -6,6 +6,14 @@ Subscribes to every sensor of the vehicle file (sensor-data QoS) and to ``contro
 publishes ``state/estimate`` (JointState named by the states) and ``observer/residual``
 (named by the outputs). Each measurement corrects with its own rows of C at its own stamp.
 
+A malformed stamp (``nanosec`` >= 10^9, negative ``sec``, the first second) is refused and
+counted (``bad_stamps``) before it reaches the estimator; a command stamped far in the
+future of the clock, or more than ``clock_jump_tolerance`` ahead of the estimate, is
+refused (``future_stamps``), one older than the estimate is held from the estimate's time
+(``late_commands`` past ``clock_jump_tolerance``): a command never resets the estimator.
+A reset is always logged and counted (``estimator_resets``). A second publisher
+of ``state/estimate`` or ``control/u`` is reported as an ERROR naming the topic.
+
 """
 
 import time
@@ -16,7 +24,7 @@ from rcl_interfaces.msg import SetParametersResult
 from sensor_msgs.msg import JointState
 
 from .checks import changed_pole_problem, own_parameter_problem
-from .common import (joint_state, MESSAGE_CLASSES, run_node, SENSOR_SUB_QOS, stamp_to_sec,
+from .common import (checked_stamp, joint_state, MESSAGE_CLASSES, run_node, SENSOR_SUB_QOS,
                      STATE_PUB_QOS, STATE_QOS, TOPICS, vector_from_joint_state, VehicleNode)
 from .observer_health import ObserverHealth
 from ..core.compensator import design_vehicle
@@ -50,7 +58,6 @@ class ObserverNode(ObserverHealth, VehicleNode):
         # second, or when a stamp passes it, rather than per message): see _check_time
         self._future_bound = None
         self._future_bound_until = 0.0
-        self._fenced = False                # commands of a run before a clock restart
         self._init_health()
         self._est_pub = self.create_publisher(JointState, TOPICS['estimate'], STATE_PUB_QOS)
         self._res_pub = self.create_publisher(JointState, TOPICS['residual'], STATE_PUB_QOS)
@@ -141,12 +148,14 @@ class ObserverNode(ObserverHealth, VehicleNode):
         # every answer to this message carries its own stamp, to the nanosecond (float
         # seconds keep only ~0.2 us of a wall-clock stamp)
         stamp = msg.header.stamp if self._stamped[sensor.name] else None
+        if stamp is not None:
+            try:
+                t = checked_stamp(stamp, sensor.topic)
+            except ObserverError as err:    # no usable time: not even a prediction
+                self._reject('bad_stamps', str(err))
+                return
         try:
-            if stamp is not None:
-                t = stamp_to_sec(msg.header.stamp)
-                if t == 0.0:
-                    raise ObserverError(f'{sensor.topic}: zero stamp (unset header.stamp)')
-            else:   # std_msgs/Float64 carries no stamp: the time it was received
+            if stamp is None:   # std_msgs/Float64 carries no stamp: the time it was received
                 t = self.get_clock().now().nanoseconds * 1e-9
             y = extract_measurement(msg, sensor)
         except (ObserverError, ValueError) as err:
@@ -166,8 +175,8 @@ class ObserverNode(ObserverHealth, VehicleNode):
             return
         if not np.isfinite(x_hat).all():
             # Never publish a NaN: restart from the initial estimate.
-            self.estimator.reset(None, t)
-            self._reject('numerical_resets', f'{sensor.topic}: estimate not finite; reset')
+            self._reset_estimator('numerical_resets', f'{sensor.topic}: estimate not finite',
+                                  t)
             self._answer_without_correction(sensor, t, stamp)
             return
         problem = self._envelope.check(t, x_hat)
@@ -216,9 +225,11 @@ class ObserverNode(ObserverHealth, VehicleNode):
         last = self.estimator.t
         if last is not None and t < last:
             if last - t > self.param('clock_jump_tolerance'):
-                self.get_logger().warning(
-                    f'{sensor.topic}: clock jumped back {last - t:.3f} s; estimator reset')
-                self._clock_restarted()
+                self._reset_estimator('clock_jumps', f'{sensor.topic}: clock jumped back '
+                                      f'{last - t:.3f} s')
+                self._last_stamp.clear()
+                self._future_bound = None
+                self._envelope.reset()
                 return True
             self._reject('out_of_order', f'{sensor.topic}: stamp {t:.6f} older than '
                          f'the estimate ({last:.6f}); skipped')
@@ -249,50 +260,51 @@ class ObserverNode(ObserverHealth, VehicleNode):
         self._future_bound_until = self._last_seen[sensor.name] + 1.0
         return True
 
-    def _clock_restarted(self):
-        """Start the estimate, input history and envelope over with the clock."""
-        self.count('clock_jumps')
-        self._fenced = True
-        self.estimator.reset(None, None)
-        self._last_stamp.clear()
-        self._future_bound = None
-        self._envelope.reset()
+    def _reset_estimator(self, counter, reason, t=None):
+        """Reset the estimator to its initial estimate: always logged and counted."""
+        self.estimator.reset(None, t)
+        self.count(counter)
+        self.count('estimator_resets')
+        self.get_logger().warning(f'{reason}; estimator reset to its initial estimate',
+                                  throttle_duration_sec=1.0)
 
     def _on_command(self, msg):
         t = None
+        topic = TOPICS['command']
         try:
-            t = stamp_to_sec(msg.header.stamp)
-            u = vector_from_joint_state(msg, self.vehicle.plant.input_names, TOPICS['command'])
+            t = checked_stamp(msg.header.stamp, topic)
+        except ObserverError as err:
+            self._reject('bad_stamps', str(err))
+            return
+        try:
+            u = vector_from_joint_state(msg, self.vehicle.plant.input_names, topic)
+            now = self.get_clock().now().nanoseconds * 1e-9
             last = self.estimator.t
-            tolerance = self.param('clock_jump_tolerance')
-            ahead = -np.inf if last is None else t - last
-            if ahead > self.param('future_tolerance') or \
-                    (self._fenced and ahead > tolerance):
-                # a command far ahead of the estimate: on another clock, or, just after the
-                # clock started over, still on the time of the run before (until the first
-                # command on the new time); not an input the plant gets now, and
-                # propagating to it would throw the estimate seconds ahead. (A command
-                # ahead after a pause of this node is applied: the plant got it.)
-                self.count('future_commands')
-                return
-            self._fenced = False
-            if last is not None and t < last:
-                if last - t > tolerance:
-                    self._clock_restarted()
-                    self._fenced = False    # this command is on the new time
-                    self.estimator.set_input(t, u)
-                else:   # a command for an older stamp: hold it from now on
-                    self.estimator.set_input(last, u)
+            jump = self.param('clock_jump_tolerance')
+            # a command is not a time source: it never moves the estimator's time far (set_input
+            # propagates x_hat to its stamp) nor resets it; only the sensors' stamps can
+            if now > 0.0 and t - now > self.param('future_tolerance'):
+                self._reject('future_stamps', f'{topic}: stamp {t:.3f} is {t - now:.1f} s '
+                             'ahead of the clock; skipped')
+            elif last is not None and t - last > jump:
+                self._reject('future_stamps', f'{topic}: stamp {t:.6f} is {t - last:.3f} s '
+                             'ahead of the estimate; skipped')
+            elif last is not None and t < last:
+                # a command for an older stamp: held from the estimate's time on
+                if last - t > jump:
+                    self._reject('late_commands', f'{topic}: stamp {t:.6f} is {last - t:.3f} '
+                                 's older than the estimate; held from now on')
+                self.estimator.set_input(last, u)
             elif last is not None and t > last:
-                # ahead of the last measurement (a compensator predicting while this node
-                # was paused, on a clock a little ahead of the plant's): held from the
-                # estimate's time; propagating to its stamp would make the measurements
-                # that follow look out of order
+                # ahead of the last measurement, within clock_jump_tolerance (a compensator
+                # predicting while this node was paused, on a clock a little ahead of the
+                # plant's): held from the estimate's time; propagating to its stamp would
+                # make the measurements that follow look out of order
                 self.estimator.set_input(last, u)
             else:
                 self.estimator.set_input(t, u)
         except (ObserverError, ValueError) as err:
-            self._reject('bad_commands', f'{TOPICS["command"]}: {err}')
+            self._reject('bad_commands', f'{topic}: {err}')
         if self._lockstep and self._pending_commands > 0 and t == self._pending_stamp:
             self._pending_commands -= 1
             if self._pending_commands == 0:
@@ -353,6 +365,10 @@ class ObserverNode(ObserverHealth, VehicleNode):
         values = {'observer_type': self.vehicle.observer.kind,
                   'x_hat': np.array2string(self.estimator.x_hat, precision=6)}
         level, message = self._health_status(now, level, message, values)
+        duplicates = self.duplicate_publishers((TOPICS['estimate'], TOPICS['command']))
+        if duplicates:
+            level = DiagnosticStatus.ERROR
+            message = f'more than one publisher: {", ".join(duplicates)}'
         self.publish_diagnostics(level, message, values)
 
 

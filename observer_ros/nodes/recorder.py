@@ -15,7 +15,7 @@ in it. Every ``flush_period`` seconds (wall time) the writer flushes: mcap close
 pending chunk and flushes the file, sqlite3 commits; then the recorder reports on
 /diagnostics (``messages``: the total on disk, ``messages <topic>`` per topic). A SIGKILL
 therefore loses at most the messages since the last flush, and ``observer-bag-recover BAG``
-(observer_ros.bagrecover) makes such a bag readable again.
+(observer_ros.bag.recover) makes such a bag readable again.
 
 A write that fails (disk full, I/O error) stops the recorder with a logged error naming
 the bag and exit status 1; the bag is then recovered in place up to its last flush (or,
@@ -29,6 +29,7 @@ overwritten: the recorder refuses to start (status 2) and names the path.
 
 import os
 from pathlib import Path
+import shutil
 import signal
 import sqlite3
 import sys
@@ -61,16 +62,31 @@ def _hold_reserve(bag, size):
         return None
     path = bag / '.disk_reserve'
     try:
-        with path.open('wb') as f:
+        with path.open('xb') as f:
             try:
                 os.posix_fallocate(f.fileno(), 0, size)
             except (AttributeError, OSError):
-                f.write(b'\0' * size)
+                block = b'\0' * (1 << 20)        # bounded memory, whatever the size
+                for start in range(0, size, len(block)):
+                    f.write(block[:min(len(block), size - start)])
     except OSError as err:
         path.unlink(missing_ok=True)
         raise ObserverError(f'recorder: cannot reserve {size} bytes in {bag}: '
                             f'{os.strerror(err.errno) if err.errno else err}') from None
     return path
+
+
+def _check_free_space(path, reserve):
+    """Refuse a negative reserve, or one the file system of the bag cannot hold."""
+    if reserve < 0:
+        raise ObserverError(f'recorder: disk_reserve must be >= 0 bytes; got {reserve}')
+    parent = Path(os.path.abspath(path)).parent
+    while not parent.exists():
+        parent = parent.parent
+    free = shutil.disk_usage(parent).free
+    if reserve >= free:
+        raise ObserverError(f'recorder: disk_reserve ({reserve} bytes) is not less than the '
+                            f'free space on {parent} ({free} bytes); nothing written')
 
 
 class RecordingError(ObserverError):
@@ -166,17 +182,20 @@ class RecorderNode(VehicleNode):
         if storage not in STORAGES:
             raise ObserverError(f'recorder: storage must be mcap or sqlite3; got {storage!r}')
         path = Path(output)
-        if path.exists():
+        if path.exists() or path.is_symlink():
             raise ObserverError(f'recorder: {path} exists; refusing to overwrite a bag')
-        topics = recorded_topics(self.vehicle)
-        for entry in self.param('extra_topics'):
-            if entry:
-                name, _, msgtype = entry.partition(':')
-                if not msgtype:
-                    raise ObserverError(f'recorder: extra_topics entry {entry!r} is not '
-                                        '"name:pkg/msg/Type"')
-                topics.append((name, msgtype, STATE_QOS))
         self.typestore = get_typestore(Stores.ROS2_JAZZY)
+        # every parameter is checked before the bag folder is made: a refusal leaves no trace
+        topics = recorded_topics(self.vehicle) + self._extra_topics()
+        classes = [message_class(msgtype) for _, msgtype, _ in topics]
+        period = self._number('flush_period', float)
+        if not period > 0.0 or period == float('inf'):
+            raise ObserverError(f'recorder: flush_period must be > 0 s; got {period}')
+        depth = self._number('queue_depth', int)
+        if depth < 1:
+            raise ObserverError(f'recorder: queue_depth must be >= 1; got {depth}')
+        reserve = self._number('disk_reserve', int)
+        _check_free_space(path, reserve)
         self.writer = Writer(path, version=9, storage_plugin=STORAGES[storage])
         try:
             self.writer.open()
@@ -184,34 +203,75 @@ class RecorderNode(VehicleNode):
             raise ObserverError(f'recorder: cannot create the bag {path}: {err}') from None
         self.path = path
         self.failed = None
-        self._reserve = _hold_reserve(path, int(self.param('disk_reserve')))
+        self._reserve = None
         self.counts = {}
         self.flushes = 0
         self._subs = []
-        depth = int(self.param('queue_depth'))
-        for name, msgtype, qos in topics:
-            resolved = self.resolve_topic_name(name)
-            conn = self.writer.add_connection(resolved, msgtype, typestore=self.typestore,
-                                              offered_qos_profiles=[_bag_qos(qos)])
-            self.counts[resolved] = 0
-            self._subs.append(self.create_subscription(
-                message_class(msgtype), name,
-                lambda data, c=conn: self._on_message(c, data), _deeper(qos, depth),
-                raw=True))
+        try:
+            self._reserve = _hold_reserve(path, reserve)
+            for (name, msgtype, qos), cls in zip(topics, classes):
+                resolved = self.resolve_topic_name(name)
+                conn = self.writer.add_connection(resolved, msgtype,
+                                                  typestore=self.typestore,
+                                                  offered_qos_profiles=[_bag_qos(qos)])
+                self.counts[resolved] = 0
+                self._subs.append(self.create_subscription(
+                    cls, name, lambda data, c=conn: self._on_message(c, data),
+                    _deeper(qos, depth), raw=True))
+        except BaseException:
+            self._discard_bag()        # made a moment ago by this node: nothing else in it
+            raise
         self.get_logger().info(f'recording {len(topics)} topics to {path} ({storage})')
         # the topic definitions go to disk at once: a bag killed before its first periodic
         # flush still recovers (with its topics, no messages)
         if not flush_storage(self.writer):
             self.get_logger().warning('this rosbags version cannot flush while writing: a '
                                       'SIGKILL loses the whole bag')
-        period = float(self.param('flush_period'))
-        if not period > 0.0:
-            raise ObserverError(f'recorder: flush_period must be > 0 s; got {period}')
         self._flush_timer = self.wall_timer(period, self._flush)
         # 'recorder/ready' (latched) once every recorded topic has a matched publisher, so a
         # simulator started with wait_for_recorder loses nothing to DDS matching
         self._ready_pub = self.create_publisher(Bool, 'recorder/ready', LATCHED_QOS)
         self._ready_timer = self.wall_timer(0.05, self._check_ready)
+
+    def _number(self, name, kind):
+        """Return a numeric own parameter as ``kind``; refuse another type by name."""
+        value = self.param(name)
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ObserverError(f'recorder: {name} must be a number; got {value!r}')
+        if kind is int and value != int(value):
+            raise ObserverError(f'recorder: {name} must be a whole number; got {value!r}')
+        return kind(value)
+
+    def _extra_topics(self):
+        """Return the (name, type, QoS) of ``extra_topics``; refuse an entry by its text."""
+        topics = []
+        for entry in self.param('extra_topics'):
+            if not entry:
+                continue
+            name, _, msgtype = entry.partition(':')
+            if not name or not msgtype:
+                raise ObserverError(f'recorder: extra_topics entry {entry!r} is not '
+                                    '"name:pkg/msg/Type"')
+            if msgtype not in self.typestore.types:
+                raise ObserverError(f'recorder: extra_topics entry {entry!r}: unknown message '
+                                    f'type {msgtype}')
+            topics.append((name, msgtype, STATE_QOS))
+        return topics
+
+    def _discard_bag(self):
+        """Remove the bag this node has just made (a start-up that failed leaves no trace)."""
+        writer, self.writer = self.writer, None
+        try:
+            writer.abort()
+        except Exception:   # noqa: BLE001 - the files go either way
+            pass
+        for child in self.path.iterdir():
+            if child.is_file() and not child.is_symlink():
+                child.unlink()
+        try:
+            self.path.rmdir()
+        except OSError:
+            pass
 
     def _check_ready(self):
         waiting = [sub.topic_name for sub in self._subs if sub.get_publisher_count() < 1]
@@ -265,7 +325,7 @@ class RecorderNode(VehicleNode):
             writer.abort()
         except Exception:   # noqa: BLE001 - the file is closed either way
             pass
-        from ..bagrecover import BagRecoveryError, recover_bag
+        from ..bag.recover import BagRecoveryError, recover_bag
         try:
             report = recover_bag(self.path)
             log.error(f'bag {self.path} recovered up to its last flush: '

@@ -28,8 +28,8 @@ from ..core.errors import ObserverError
 from ..vehicle import (apply_overrides, load_parameters, load_vehicle, parameters_to_yaml,
                        vehicle_from_parameters)
 
-__all__ = ['main', 'run_closed_loop', 'node_command', 'stop_process', 'summarize_bag',
-           'comparison_variants', 'lessons']
+__all__ = ['main', 'run_closed_loop', 'run_limit', 'check_outputs', 'node_command',
+           'stop_process', 'summarize_bag', 'comparison_variants', 'lessons']
 
 NODES = ('plant_simulator', 'observer_node', 'compensator', 'container', 'recorder')
 
@@ -87,13 +87,10 @@ def run_closed_loop(params_file, bag_path, storage='mcap', namespace=None, overr
     Path
 
     """
-    vehicle = load_vehicle(params_file)
-    steps = int(round(vehicle.simulator.duration / vehicle.sample_time))
-    timeout = timeout if timeout is not None else 60.0 + 0.02 * steps
+    timeout = timeout if timeout is not None else run_limit(params_file, overrides)
     bag_path = Path(bag_path)
-    if bag_path.exists():
-        raise ObserverError(f'{bag_path} exists; refusing to overwrite (choose --out)')
     log_dir = Path(log_dir) if log_dir else bag_path.parent / (bag_path.name + '_logs')
+    check_outputs([bag_path] + [log_dir / f'{name}.log' for name in NODES])
     log_dir.mkdir(parents=True, exist_ok=True)
     common = ['use_sim_time:=true', *overrides]
     procs = {}
@@ -101,7 +98,7 @@ def run_closed_loop(params_file, bag_path, storage='mcap', namespace=None, overr
     env.setdefault('PYTHONUNBUFFERED', '1')
 
     def start(name, *args, nodes=()):
-        out = open(log_dir / f'{name}.log', 'w')
+        out = open(log_dir / f'{name}.log', 'x')     # checked above: never overwritten
         procs[name] = (subprocess.Popen(node_command(name, params_file, *args,
                                                      namespace=namespace, nodes=nodes),
                                         stdout=out, stderr=subprocess.STDOUT, env=env), out)
@@ -135,6 +132,40 @@ def run_closed_loop(params_file, bag_path, storage='mcap', namespace=None, overr
     if not quiet:
         print(f'bag: {bag_path}  (logs: {log_dir})')
     return bag_path
+
+
+def run_limit(params_file, overrides=()):
+    """
+    Return the wall-time limit of a run: 60 s plus 20 ms per simulated step.
+
+    The steps are those of the vehicle file with the ``-p`` overrides applied
+    (``simulator.duration:=5000.0`` gets the limit of a 5000 s run), and never fewer than
+    the file's own (a shortened run keeps the file's margin on a loaded machine).
+
+    """
+    steps = 0
+    for vehicle in (load_vehicle(params_file), load_vehicle(params_file,
+                                                            overrides=list(overrides))):
+        steps = max(steps, int(round(vehicle.simulator.duration / vehicle.sample_time)))
+    return 60.0 + 0.02 * steps
+
+
+def check_outputs(paths):
+    """Refuse, before anything is made, when one of the paths a run writes exists."""
+    for path in map(Path, paths):
+        if path.exists() or path.is_symlink():
+            raise ObserverError(f'{path} exists; refusing to overwrite it (choose --out or '
+                                'move it away)')
+
+
+def _planned_outputs(bag, evaluate):
+    """Return every path ``observer-run`` (with ``--evaluate``) will create."""
+    paths = [bag] + [bag.parent / (bag.name + '_logs') / f'{n}.log' for n in NODES]
+    if evaluate:
+        slow = bag.parent / (bag.name + '_slow_poles')
+        paths += [bag.parent / (bag.name + '_eval'), slow, slow.with_name(slow.name + '.yaml')]
+        paths += [slow.parent / (slow.name + '_logs') / f'{n}.log' for n in NODES]
+    return paths
 
 
 def _stop_all(procs):
@@ -252,10 +283,12 @@ def main(argv=None):
     args = parser.parse_args(argv)
     vehicle_path = Path(args.vehicle) if args.vehicle else _default_vehicle()
     try:
-        vehicle = load_vehicle(vehicle_path)
-        design = design_vehicle(vehicle)   # refuse an unusable file before starting anything
+        # the file with every -p override, and every output, checked before anything starts
+        vehicle = load_vehicle(vehicle_path, overrides=args.param)
+        design = design_vehicle(vehicle)
         stamp = datetime.datetime.now().strftime('%Y%m%d_%H%M%S')
         bag = Path(args.out) if args.out else Path('bags/runs') / f'{vehicle.name}_{stamp}'
+        check_outputs(_planned_outputs(bag, args.evaluate))
         bag.parent.mkdir(parents=True, exist_ok=True)
         t0 = time.monotonic()
         run_closed_loop(vehicle_path, bag, storage=args.storage, namespace=args.namespace,
@@ -286,7 +319,8 @@ def _evaluate(vehicle_path, vehicle, design, bag, summary, args):
     slow_file = bag.parent / (bag.name + '_slow_poles.yaml')
     flat = apply_overrides(load_parameters(vehicle_path), variants['slow'])
     vehicle_from_parameters(flat, source=str(slow_file))     # the variant is valid
-    slow_file.write_text(parameters_to_yaml(flat))
+    with open(slow_file, 'x') as f:        # checked up front: never overwritten
+        f.write(parameters_to_yaml(flat))
     print(f'\nclosed loop again with the slow observer poles ({slow_file}) ...')
     run_closed_loop(slow_file, slow_bag, storage=args.storage, namespace=args.namespace,
                     overrides=args.param, quiet=True, container=args.container)

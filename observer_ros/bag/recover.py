@@ -1,4 +1,4 @@
-# observer_ros.bagrecover: make a bag that was not closed (SIGKILL, disk full) readable again.
+# observer_ros.bag.recover: make a bag that was not closed (SIGKILL, disk full) readable again.
 """
 Recover a rosbag2 bag whose writer died before closing it: ``observer-bag-recover BAG``.
 
@@ -34,7 +34,7 @@ import sys
 
 import yaml
 
-from .core.errors import ObserverError
+from ..core.errors import ObserverError
 
 __all__ = ['BagRecoveryError', 'recover_bag', 'main']
 
@@ -487,6 +487,39 @@ def _check_opens(bag):
         raise BagRecoveryError(f'{bag}: still does not open after recovery: {err}') from None
 
 
+def _check_inside(bag, paths):
+    """Refuse, before touching anything, a file of the bag that is a link (never followed)."""
+    for path in paths:
+        if path.is_symlink():
+            raise BagRecoveryError(f'{path} is a link (to {os.readlink(path)}); refusing to '
+                                   'write through it: copy the file into the bag first')
+        if path.exists() and path.resolve().parent != bag.resolve():
+            raise BagRecoveryError(f'{path} lies outside the bag folder; refusing it')
+
+
+def _is_intact(bag, file):
+    """Return True for a bag its writer closed: metadata.yaml there, storage complete."""
+    if not (bag / 'metadata.yaml').is_file() or (bag / '.disk_reserve').exists():
+        return False
+    if file.suffix == '.mcap':
+        try:
+            return _scan_mcap(file)['intact']
+        except BagRecoveryError:
+            return False
+    # sqlite3: a writer that died leaves its journal (or write-ahead log) next to the file
+    return not any(file.with_name(file.name + tail).exists() for tail in ('-journal', '-wal'))
+
+
+def _read_counts(bag):
+    """Return the message count per topic of a readable bag (empty when unreadable)."""
+    from rosbags.rosbag2 import Reader
+    try:
+        with Reader(bag) as reader:
+            return {c.topic: c.msgcount for c in reader.connections}
+    except Exception:   # noqa: BLE001 - _check_opens reports an unreadable bag
+        return {}
+
+
 def recover_bag(path):
     """
     Make a bag left open by a dead writer readable; return what was found.
@@ -500,13 +533,15 @@ def recover_bag(path):
     -------
     dict
         ``storage``, ``file``, ``repaired`` (the mcap file was cut and completed),
-        ``dropped_bytes`` (of an incomplete last record), ``messages`` per topic and
-        ``total`` (read back through AnyReader).
+        ``dropped_bytes`` (of an incomplete last record), ``messages`` per topic,
+        ``total`` (read back through AnyReader) and ``untouched`` (a bag closed cleanly:
+        nothing was written).
 
     Raises
     ------
     BagRecoveryError
-        The path is not a bag directory, or its storage file cannot be made readable.
+        The path is not a bag directory, one of its files is a link (refused before
+        anything is touched), or its storage file cannot be made readable.
 
     """
     bag = Path(path)
@@ -517,12 +552,20 @@ def recover_bag(path):
         raise BagRecoveryError(f'{bag}: expected one .mcap or .db3 file; found '
                                f'{[f.name for f in files] or "none"}')
     file = files[0]
+    _check_inside(bag, [file, bag / 'metadata.yaml', bag / 'metadata.yaml.tmp',
+                        bag / '.disk_reserve'])
+    if _is_intact(bag, file):
+        # a bag closed cleanly: nothing is rewritten, not even its metadata.yaml
+        return {'storage': file.suffix[1:].replace('db3', 'sqlite3'), 'file': str(file),
+                'repaired': False, 'dropped_bytes': 0, 'untouched': True,
+                'messages': _read_counts(bag), 'total': _check_opens(bag)}
     # the space the recorder kept free for this moment (nodes.recorder, disk_reserve)
     (bag / '.disk_reserve').unlink(missing_ok=True)
     if file.suffix == '.mcap':
         report = _recover_mcap(bag, file)
     else:
         report = _recover_sqlite3(bag, file)
+    report['untouched'] = False
     report['total'] = _check_opens(bag)
     return report
 
@@ -546,7 +589,8 @@ def main(argv=None):
             continue
         what = (f'cut after chunk {rep["chunks"]} ({rep["dropped_bytes"]} bytes dropped) '
                 'and completed' if rep['repaired'] else 'storage intact')
-        print(f'{bag}: {rep["storage"]}, {what}; metadata.yaml written; '
+        meta = 'nothing changed' if rep['untouched'] else 'metadata.yaml written'
+        print(f'{bag}: {rep["storage"]}, {what}; {meta}; '
               f'{rep["total"]} messages read back')
         for topic, n in rep['messages'].items():
             print(f'  {topic}: {n}')
