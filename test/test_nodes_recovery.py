@@ -169,7 +169,7 @@ def test_observer_reports_a_diverging_estimate(observer_setup):  # noqa: F811
     pub.publish(_imu(t, 0.0))
     listener.estimate_at(t)
     # measurements far beyond anything the file makes plausible (q = 1e6 rad/s)
-    for k in range(1, 6):
+    for k in range(1, 16):
         pub.publish(_imu(t + 0.05 * k, 1e6 * k))
     probe.spin_until(lambda: (s := listener.latest_status('observer')) is not None
                      and s.level == DiagnosticStatus.ERROR and 'diverging' in s.message,

@@ -9,7 +9,8 @@ publish what they find on /diagnostics.
 
 import numpy as np
 
-__all__ = ['ENVELOPE_FACTOR', 'ENVELOPE_LEARN_CAP', 'ENVELOPE_LEARN_S', 'Envelope',
+__all__ = ['ENVELOPE_FACTOR', 'ENVELOPE_LEARN_CAP', 'ENVELOPE_LEARN_S', 'ENVELOPE_PERSIST',
+           'Envelope',
            'LoadMeter', 'max_prediction_gap', 'SettleCheck', 'pole_margin_problem',
            'settling_time', 'POLE_SLOWEST', 'POLE_FASTEST']
 
@@ -17,6 +18,9 @@ __all__ = ['ENVELOPE_FACTOR', 'ENVELOPE_LEARN_CAP', 'ENVELOPE_LEARN_S', 'Envelop
 ENVELOPE_FACTOR = 100.0
 # Seconds (on the values' own time base) during which the envelope learns the run's scale.
 ENVELOPE_LEARN_S = 3.0
+# Consecutive values beyond the bound, none smaller than the one before, that make a
+# divergence: a single outlier is not one (the command gate or the limits handle it).
+ENVELOPE_PERSIST = 5
 # What it learns is capped at this many times the file's scale (a divergence that starts
 # at once cannot teach it that a growing value is plausible).
 ENVELOPE_LEARN_CAP = 10.0
@@ -34,7 +38,9 @@ class Envelope:
     comes from the vehicle file (initial state, reference, input limits) and ``seen_i`` is
     the largest magnitude of the first ``learn`` seconds, capped at
     :data:`ENVELOPE_LEARN_CAP` times ``scale_i`` (so a divergence that starts at once is not
-    learned). A value beyond ``factor`` times it is divergence.
+    learned). Divergence is ``persist`` consecutive values beyond ``factor`` times it, each
+    at least as far beyond as the one before (growing); a value that is not finite is
+    divergence at once.
 
     Parameters
     ----------
@@ -46,10 +52,13 @@ class Envelope:
         What the vector is (``x_hat``, ``u``), for the report.
     factor, learn : float
         See :data:`ENVELOPE_FACTOR` and :data:`ENVELOPE_LEARN_S`.
+    persist : int
+        See :data:`ENVELOPE_PERSIST`.
 
     """
 
-    def __init__(self, names, scale, what, factor=ENVELOPE_FACTOR, learn=ENVELOPE_LEARN_S):
+    def __init__(self, names, scale, what, factor=ENVELOPE_FACTOR, learn=ENVELOPE_LEARN_S,
+                 persist=ENVELOPE_PERSIST):
         scale = np.abs(np.asarray(scale, dtype=float))
         scale = np.where(np.isfinite(scale), scale, 0.0)
         top = scale.max() if scale.size and scale.max() > 0.0 else 1.0
@@ -58,6 +67,7 @@ class Envelope:
         self.what = what
         self.factor = float(factor)
         self.learn = float(learn)
+        self.persist = int(persist)
         self.reset()
 
     def reset(self):
@@ -75,6 +85,8 @@ class Envelope:
             self.file_scale, np.where(np.isfinite(value), np.abs(value), 0.0))
         self._t0 = None
         self._seen = np.zeros_like(self.scale)
+        self._beyond = 0            # consecutive growing values beyond the bound
+        self._last_ratio = 0.0
 
     @property
     def bound(self):
@@ -103,9 +115,15 @@ class Envelope:
         ratio = np.where(np.isfinite(mag), mag / bound, np.inf)
         i = int(np.argmax(ratio))
         if ratio[i] > 1.0:
+            if ratio[i] >= self._last_ratio:
+                self._beyond += 1
+            self._last_ratio = ratio[i]
+            if self._beyond < self.persist and np.isfinite(ratio[i]):
+                return None
             return (f'{self.what} {self.names[i]} = {float(value[i]):.3g} beyond the '
                     f'plausible +-{bound[i]:.3g} ({self.factor:g} x what the file and '
                     f'the first {self.learn:g} s make plausible)')
+        self._beyond, self._last_ratio = 0, 0.0
         if self._t0 is None:
             self._t0 = t
         if t - self._t0 <= self.learn:
