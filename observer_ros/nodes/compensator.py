@@ -187,7 +187,9 @@ class CompensatorNode(VehicleNode):
         with np.errstate(all='ignore'):     # an overflow gives inf/NaN: caught below
             u_law = control_law(self.K, x_hat, self.x_d, self.Kd)    # before the limits
             u = control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
-        problem = self.x_envelope.check(t, x_hat) or self.u_envelope.check(t, u_law)
+        # an overflowing law is the command gate's (refused, or saturated by the limits)
+        problem = None if not np.isfinite(u_law).all() else (
+            self.x_envelope.check(t, x_hat) or self.u_envelope.check(t, u_law))
         if problem is not None:
             if self._diverging is None:
                 self.get_logger().error(f'diverging: {problem}; safe command')
