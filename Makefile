@@ -6,6 +6,9 @@
 PY := .venv/bin/python
 STAMP := .venv/.observer_ros-installed
 VEHICLE ?= config/submarine.yaml
+TOOLS := observer_design observer_eval observer_eval_batch observer_tune observer_play observer_run \
+	observer_bag_recover
+ROS2CLI := ../shared/ros2cli
 
 .PHONY: setup demo test bench clean-venv
 
@@ -15,6 +18,11 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml
 	test -x $(PY) || python3 -m venv .venv
 	$(PY) -m pip install --disable-pip-version-check -q -r requirements.txt
 	$(PY) -m pip install --disable-pip-version-check -q --no-deps --use-pep517 -e . --config-settings editable_mode=compat
+	# the tools' dash names (observer-run, ...): aliases in the venv only; lib/observer_ros
+	# of a colcon install has the underscore names alone (`ros2 pkg executables`)
+	for exe in $(TOOLS); do ln -sf $$exe .venv/bin/$$(echo $$exe | tr _ -); done
+	# the real ros2 client and ros2 launch (test/test_ros2cli.py), when the kit is there
+	if [ -d $(ROS2CLI) ]; then $(ROS2CLI)/install.sh .venv; fi
 	touch $(STAMP)
 
 demo: $(STAMP)

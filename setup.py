@@ -15,6 +15,7 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         (os.path.join('share', package_name), ['package.xml']),
         (os.path.join('share', package_name, 'config'), sorted(glob('config/*.yaml'))),
+        (os.path.join('share', package_name, 'launch'), sorted(glob('launch/*.launch.py'))),
     ],
     install_requires=['setuptools'],
     zip_safe=True,
@@ -24,6 +25,9 @@ setup(
     license='Apache-2.0',
     tests_require=['pytest'],
     entry_points={
+        # One name each, installed to lib/observer_ros (what `ros2 run` lists). The dash
+        # names of the tools (observer-run, ...) are aliases that `make setup` adds to the
+        # virtual environment's bin/ only.
         'console_scripts': [
             'plant_simulator = observer_ros.nodes.plant_simulator:main',
             'observer = observer_ros.nodes.observer_node:main',
@@ -31,16 +35,12 @@ setup(
             'recorder = observer_ros.nodes.recorder:main',
             'container = observer_ros.nodes.container:main',
             'observer_design = observer_ros.tools.design_report:main',
-            'observer-design = observer_ros.tools.design_report:main',
             'observer_eval = observer_ros.bag.evaluate:main',
-            'observer-eval = observer_ros.bag.evaluate:main',
+            'observer_eval_batch = observer_ros.bag.batch:main',
             'observer_tune = observer_ros.bag.tune:main',
-            'observer-tune = observer_ros.bag.tune:main',
             'observer_play = observer_ros.bag.play:main',
-            'observer-play = observer_ros.bag.play:main',
             'observer_run = observer_ros.tools.run_closed_loop:main',
-            'observer-run = observer_ros.tools.run_closed_loop:main',
-            'observer-bag-recover = observer_ros.bag.recover:main',
+            'observer_bag_recover = observer_ros.bag.recover:main',
         ],
     },
 )

@@ -21,7 +21,10 @@ Figures (target in brackets):
   place's [0]; also how often ``method='acker'`` would have lost digits there and
   whether it warned each time;
 - design time, ours / place (information: ``auto`` also tries acker and measures
-  both errors).
+  both errors);
+- verification (information): the share of our gains that ``core/verify.py`` refuses
+  (an achieved pole not stable, or off by more than the conditioning allows), and the
+  worst placement error among the accepted ones, with place's error on that system.
 
 """
 
@@ -64,6 +67,20 @@ def random_system(rng, n, p):
     return A, C, np.array(poles)
 
 
+def _refused(A, C, L, poles):
+    """Return the verification's refusal (observer_ros.core.verify) of a gain, or None."""
+    from observer_ros.core.errors import DesignVerificationError
+    from observer_ros.core.verify import verify_placement
+    if L is None:
+        return 'no gain'
+    pert = np.linalg.norm(A, 2) + np.linalg.norm(L, 2) * np.linalg.norm(C, 2)
+    try:
+        verify_placement(A - L @ C, poles, 'observer.poles', pert)
+    except DesignVerificationError as err:
+        return str(err)[:120]
+    return None
+
+
 def run(smoke=False, seeds=None):
     import control
     from observer_ros.core.design import observer_gain
@@ -97,6 +114,8 @@ def run(smoke=False, seeds=None):
                             rec[f'{who}_failure'] = str(exc)[:80]
                     rec[f'{who}_s'] = time.perf_counter() - t0
                     rec[f'{who}_err'] = err
+                    if who == 'ours':
+                        rec['refused'] = _refused(A, C, L, poles)
                 if p == 1:
                     try:
                         La = np.asarray(control.acker(A.T, C.T, poles)).reshape(1, n).T
@@ -153,6 +172,20 @@ def run(smoke=False, seeds=None):
              f"method='acker' loses >2 digits on {len(lossy)} (n >= "
              f"{min((r['n'] for r in lossy), default=0)}), warned on "
              f'{len(lossy) - unwarned} of them'))
+    refused = [r for r in rows if r['refused']]
+    accepted = [r for r in rows if not r['refused']]
+    worst = max(accepted, key=lambda r: r['ours_err'], default=None)
+    figures.append(ratio_line(
+        'P4', 'verification_refusal_rate', [len(refused) / max(1, len(rows))], '<=', None,
+        unit='', smoke=smoke,
+        note=f'information: {len(refused)} of {len(rows)} designs refused by '
+             f"core/verify.py (smallest n refused: {min((r['n'] for r in refused), default=0)})"))
+    if worst is not None:
+        figures.append(ratio_line(
+            'P4', 'worst_accepted_placement_error', [worst['ours_err']], '<=', None, unit='',
+            smoke=smoke,
+            note=f"information: n={worst['n']} p={worst['p']}; place's error on that system "
+                 f"{worst['place_err']:.2e}"))
     times = [r['ours_s'] / r['place_s'] for r in rows if r['place_s'] > 0]
     figures.append(ratio_line('P4', 'design_time_ours/place', times, '<=', None, smoke=smoke,
                               note='information: auto computes place and acker and both '

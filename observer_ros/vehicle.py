@@ -27,6 +27,7 @@ from .core.errors import ObserverError, VehicleFileError
 from .core.model import as_poles, Plant
 from .core.spec import (ControllerSpec, OBSERVER_TYPES, ObserverSpec, SENSOR_TYPES,
                         SensorSpec, SimulatorSpec, Vehicle)
+from .params_file import _yaml_load, flatten_parameters, load_parameters
 from .sensors import (extract_measurement, fill_measurement, MeasurementError,
                       parse_field)
 
@@ -63,6 +64,7 @@ class KeySpec:
     required: bool = False
     default: object = None
     choices: Tuple[str, ...] = ()
+    minimum: object = None      # scalars: the least value (a node declares it as a range)
 
 
 class ParameterInfo(NamedTuple):
@@ -86,7 +88,8 @@ KNOWN_KEYS = _keys(
             default=''),
     KeySpec('model.time_domain', STRING, 'continuous or discrete', default='continuous',
             choices=('continuous', 'discrete')),
-    KeySpec('model.sample_time', DOUBLE, 's; required (> 0) for a discrete model'),
+    KeySpec('model.sample_time', DOUBLE, 's; required (> 0) for a discrete model',
+            minimum=0.0),
     KeySpec('model.states', STRING_ARRAY, 'state names (n)', required=True),
     KeySpec('model.inputs', STRING_ARRAY, 'input names (m)', required=True),
     KeySpec('model.outputs', STRING_ARRAY, 'output names (p)', required=True),
@@ -112,7 +115,7 @@ KNOWN_KEYS = _keys(
             'default identity'),
     KeySpec('observer.initial_estimate', DOUBLE_ARRAY, 'x_hat(0) (n); default zeros'),
     KeySpec('observer.rate_hz', DOUBLE, 'Hz, prediction-only publish rate; default the '
-            'simulator rate'),
+            'simulator rate', minimum=0.0),
     KeySpec('controller.poles', DOUBLE_ARRAY, 'real parts of eig(A - B K) (n)'),
     KeySpec('controller.poles_imag', DOUBLE_ARRAY, 'imaginary parts; default all 0'),
     KeySpec('controller.K', DOUBLE_ARRAY, 'm x n, row-major'),
@@ -124,20 +127,23 @@ KNOWN_KEYS = _keys(
     KeySpec('controller.u_max', DOUBLE_ARRAY, 'input upper limits (m); default none'),
     KeySpec('controller.safe_command', STRING, 'zero or hold', default='zero',
             choices=('zero', 'hold')),
-    KeySpec('controller.stale_timeout', DOUBLE, 's, > 0', default=0.5),
+    KeySpec('controller.stale_timeout', DOUBLE, 's, > 0', default=0.5, minimum=0.0),
     KeySpec('controller.predict_timeout', DOUBLE, 's, >= 0: predict-and-hold before the '
-            'safe_command fallback', default=0.0),
+            'safe_command fallback', default=0.0, minimum=0.0),
     KeySpec('simulator.rate_hz', DOUBLE, 'Hz, > 0; a discrete model runs at '
-            '1/sample_time', default=100.0),
+            '1/sample_time', default=100.0, minimum=0.0),
     KeySpec('simulator.initial_state', DOUBLE_ARRAY, 'x(0) (n); default zeros'),
-    KeySpec('simulator.duration', DOUBLE, 's, > 0', default=10.0),
-    KeySpec('simulator.seed', INTEGER, 'noise seed, >= 0', default=0),
+    KeySpec('simulator.duration', DOUBLE, 's, >= 0; 0: the simulator node runs until '
+            'stopped', default=10.0, minimum=0.0),
+    KeySpec('simulator.seed', INTEGER, 'noise seed, >= 0', default=0, minimum=0),
     KeySpec('simulator.noise', BOOL, 'add the sensors noise_std', default=True),
     KeySpec('simulator.process_noise_std', DOUBLE_ARRAY, 'per state (n); default none'),
     KeySpec('simulator.mode', STRING, 'lockstep or realtime', default='lockstep',
             choices=('lockstep', 'realtime')),
-    KeySpec('simulator.realtime_factor', DOUBLE, '> 0', default=1.0),
-    KeySpec('simulator.command_timeout', DOUBLE, 's, > 0', default=2.0),
+    KeySpec('simulator.realtime_factor', DOUBLE, '> 0', default=1.0, minimum=0.0),
+    KeySpec('simulator.command_timeout', DOUBLE, 's, > 0', default=2.0, minimum=0.0),
+    KeySpec('simulator.publish_clock', BOOL, 'publish /clock (one vehicle per ROS graph)',
+            default=True),
 )
 
 # Per-sensor keys: sensors.<s>.<key> for each <s> in sensors.names.
@@ -148,9 +154,9 @@ SENSOR_KEYS = _keys(
     KeySpec('outputs', STRING_ARRAY, 'the model outputs they are', required=True),
     KeySpec('noise_std', DOUBLE_ARRAY, 'noise standard deviation per field, >= 0',
             required=True),
-    KeySpec('timeout', DOUBLE, 's, > 0', default=0.5),
+    KeySpec('timeout', DOUBLE, 's, > 0', default=0.5, minimum=0.0),
     KeySpec('rate_divider', INTEGER, 'published every k-th simulator step, >= 1',
-            default=1),
+            default=1, minimum=1),
     KeySpec('frame_id', STRING, 'header.frame_id', default='base_link'),
 )
 
@@ -179,7 +185,7 @@ def known_keys(sensor_names=()):
         for sub, spec in SENSOR_KEYS.items():
             name = f'sensors.{sensor}.{sub}'
             keys[name] = KeySpec(name, spec.param_type, spec.description, spec.required,
-                                 spec.default, spec.choices)
+                                 spec.default, spec.choices, spec.minimum)
     return keys
 
 
@@ -205,155 +211,6 @@ def parameter_schema(sensor_names=()):
         text = spec.description + ('; required' if spec.required else '')
         out.append(ParameterInfo(spec.name, spec.param_type, spec.default, text))
     return out
-
-
-# -- reading the file ----------------------------------------------------------------------
-
-_FLOAT_RE = re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
-                            |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
-                            |[-+]?\.[0-9_]+(?:[eE][-+]?[0-9]+)?
-                            |[-+]?\.(?:inf|Inf|INF)
-                            |\.(?:nan|NaN|NAN))$""", re.X)
-
-
-class _Loader(yaml.SafeLoader):
-    """SafeLoader that reads 1e-3 as a float (as ROS does) and refuses duplicate keys."""
-
-
-_Loader.yaml_implicit_resolvers = {
-    key: [(tag, regexp) for tag, regexp in resolvers if tag != 'tag:yaml.org,2002:float']
-    for key, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()}
-_Loader.add_implicit_resolver('tag:yaml.org,2002:float', _FLOAT_RE,
-                              list('-+0123456789.'))
-
-
-def _construct_mapping(loader, node, deep=False):
-    seen = {}
-    for key_node, _ in node.value:
-        key = loader.construct_object(key_node, deep=deep)
-        try:
-            if key in seen:
-                raise yaml.constructor.ConstructorError(
-                    'while reading a mapping', node.start_mark,
-                    f'duplicate key {key!r} (first at line {seen[key] + 1})',
-                    key_node.start_mark)
-            seen[key] = key_node.start_mark.line
-        except TypeError:   # unhashable key: SafeLoader reports it
-            pass
-    return yaml.SafeLoader.construct_mapping(loader, node, deep=deep)
-
-
-_Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
-
-
-def _yaml_load(text, where):
-    try:
-        return yaml.load(text, Loader=_Loader)   # noqa: S506 - a SafeLoader subclass
-    except yaml.YAMLError as err:
-        raise VehicleFileError(f'{where}: not valid YAML: {err}') from None
-
-
-def flatten_parameters(tree, prefix='', where='parameters'):
-    """
-    Flatten nested dicts to dotted parameter names.
-
-    Parameters
-    ----------
-    tree : dict
-        For example ``{'model': {'A': [...]}}``.
-    prefix : str
-        Prepended to every name (with a dot).
-    where : str
-        Used in error messages.
-
-    Returns
-    -------
-    flat : dict
-        ``{'model.A': [...]}``; values other than dicts are kept as they are.
-
-    """
-    flat = {}
-    for key, value in tree.items():
-        if not isinstance(key, str) or not key:
-            raise VehicleFileError(f'{where}: key {key!r} under {prefix or "the top"} is not '
-                                   'a parameter name')
-        name = f'{prefix}.{key}' if prefix else key
-        if isinstance(value, dict):
-            if not value:
-                raise VehicleFileError(f'{where}: {name} is an empty mapping')
-            flat.update(flatten_parameters(value, name, where))
-        else:
-            flat[name] = value
-    return flat
-
-
-def _node_key_regex(key):
-    """Regex matching fully qualified node names for a parameters-file node key."""
-    key = key if key.startswith('/') else '/' + key
-    parts = []
-    for token in key.strip('/').split('/'):
-        if token == '**':
-            parts.append('(?:/[^/]+)*')
-        else:
-            parts.append('/' + '[^/]+'.join(re.escape(t) for t in token.split('*')))
-    return re.compile(''.join(parts) + '$')
-
-
-def load_parameters(path, node_name=None):
-    """
-    Read a ROS 2 parameters file into a flat dict of dotted names.
-
-    Parameters
-    ----------
-    path : str or path-like
-        The file (``/**:`` then ``ros__parameters:``).
-    node_name : str, optional
-        A node name (``observer``) or fully qualified name (``/sub1/observer``). The
-        sections that apply to it are merged in the order ``/**`` and other wildcard
-        keys first, then keys naming the node, each in file order. Without a node name
-        only ``/**`` is read.
-
-    Returns
-    -------
-    flat : dict
-        Dotted parameter name to value.
-
-    """
-    where = str(path)
-    try:
-        with open(path, encoding='utf-8') as stream:
-            text = stream.read()
-    except OSError as err:
-        raise VehicleFileError(f'{where}: cannot read: {err.strerror or err}') from None
-    doc = _yaml_load(text, where)
-    if not isinstance(doc, dict) or not doc:
-        raise VehicleFileError(f"{where}: not a ROS 2 parameters file (expected '/**:' "
-                               "then 'ros__parameters:')")
-    fq = None
-    if node_name:
-        fq = node_name if node_name.startswith('/') else '/' + node_name
-    wildcard, exact = [], []
-    for key, section in doc.items():
-        if not isinstance(key, str):
-            raise VehicleFileError(f'{where}: top-level key {key!r} is not a node name')
-        if not isinstance(section, dict) or set(section) != {'ros__parameters'}:
-            raise VehicleFileError(
-                f"{where}: section {key!r} must hold exactly one key, 'ros__parameters'")
-        if not isinstance(section['ros__parameters'], dict):
-            raise VehicleFileError(f'{where}: {key}.ros__parameters is not a mapping')
-        if fq is None:
-            if key.strip('/') == '**':
-                wildcard.append(section['ros__parameters'])
-        elif _node_key_regex(key).match(fq):
-            (wildcard if '*' in key else exact).append(section['ros__parameters'])
-    if not wildcard and not exact:
-        what = f'node {fq}' if fq else "'/**'"
-        raise VehicleFileError(f'{where}: no section applies to {what}; sections are '
-                               f'{list(doc)}')
-    flat = {}
-    for params in wildcard + exact:
-        flat.update(flatten_parameters(params, where=where))
-    return flat
 
 
 def load_vehicle(path, node_name=None, overrides=None, extra_keys=()):
@@ -680,7 +537,13 @@ class _Checker:
         return np.array(values, dtype=float)
 
     def symmetric(self, key, M, definite):
-        """Refuse a matrix that is not symmetric positive (semi)definite."""
+        """
+        Return M symmetrised, refusing one that is not symmetric positive (semi)definite.
+
+        Symmetric to round-off (``|M - M^T| <= 1e-9 max(1, |M|)``) is made exactly
+        symmetric, ``(M + M^T) / 2``: the Riccati solvers demand symmetry to the last bit.
+
+        """
         if not np.all(np.isfinite(M)):
             self.fail(key, 'has values that are not finite (too large to square?)')
         scale = max(1.0, float(np.max(np.abs(M))))
@@ -696,6 +559,7 @@ class _Checker:
         if not definite and np.min(eig) < -1e-9:
             self.fail(key, f'must be positive semidefinite (smallest eigenvalue '
                       f'{np.min(eig) * scale:.3g})')
+        return (M + M.T) / 2.0
 
     def poles(self, prefix, count, exact, count_label, discrete):
         """Complex poles from <prefix>.poles and <prefix>.poles_imag, or None."""
@@ -722,6 +586,31 @@ class _Checker:
             text = str(err)
             text = text[len(key):].lstrip(': ') if text.startswith(key) else text
             self.fail(key, text)
+
+
+def _warn_unloadable_strings(flat, warnings):
+    """
+    Warn about strings that `ros2 param load` of a dump would not give back.
+
+    rclpy's parameter-file reader (parameter_dict_from_yaml_file, Jazzy) reads each value
+    again as YAML: ``'a: b'`` becomes a mapping and the load ends in a TypeError, ``'1.0'``
+    a double.
+    """
+    for name, value in sorted(flat.items()):
+        for text in value if isinstance(value, (list, tuple)) else [value]:
+            if not isinstance(text, str):
+                continue
+            try:
+                same = yaml.safe_load(text) == text
+            except yaml.parser.ParserError:     # rclpy keeps the text as it is
+                same = True
+            except yaml.YAMLError:
+                same = False
+            if not same:
+                warnings.append(f'{name}: {_short(text)!r} would not survive `ros2 param '
+                                'dump` then `ros2 param load` (rclpy reads it again as YAML: '
+                                'avoid ": ", " #", and strings that look like numbers)')
+                break
 
 
 def _warn_unknown(flat, sensor_names, extra_keys, warnings):
@@ -801,6 +690,7 @@ def vehicle_from_parameters(flat, source='', extra_keys=()):
             check.fail('sensors.names', f'sensor name {name!r} must be letters, digits and _, '
                        "and not 'names' (it is part of parameter names)")
     _warn_unknown(flat, sensor_names, set(extra_keys), warnings)
+    _warn_unloadable_strings(flat, warnings)
 
     # vehicle
     name = check.string('vehicle.name')
@@ -925,8 +815,8 @@ def _read_simulator(check, plant, discrete):
     else:
         rate = check.double('simulator.rate_hz', positive=True)
     initial = check.vector('simulator.initial_state', n, 'states')
-    duration = check.double('simulator.duration', positive=True)
-    if duration * rate < 1.0:
+    duration = check.double('simulator.duration', minimum=0.0)
+    if 0.0 < duration * rate < 1.0:
         check.fail('simulator.duration', f'{duration} s is shorter than one step '
                    f'(1/{rate:g} Hz)')
     seed = check.integer('simulator.seed', minimum=0)
@@ -937,10 +827,11 @@ def _read_simulator(check, plant, discrete):
     mode = check.string('simulator.mode')
     factor = check.double('simulator.realtime_factor', positive=True)
     timeout = check.double('simulator.command_timeout', positive=True)
+    publish_clock = check.boolean('simulator.publish_clock')
     return SimulatorSpec(rate_hz=rate, initial_state=np.zeros(n) if initial is None else
                          initial, duration=duration, seed=seed, noise=noise,
                          process_noise_std=process, mode=mode, realtime_factor=factor,
-                         command_timeout=timeout)
+                         command_timeout=timeout, publish_clock=publish_clock)
 
 
 def _read_controller(check, plant, discrete):
@@ -956,14 +847,16 @@ def _read_controller(check, plant, discrete):
     if len(options) > 1:
         check.fail(options[1], f'give only one of controller.poles, controller.K and '
                    f'controller.lqr_Q/lqr_R (got {" and ".join(options)})')
-    poles = check.poles('controller', n, True, 'one per state', discrete)
+    # the observer's rule: at most n here; the design asks for exactly one per
+    # controllable mode (n for a controllable plant) and names the count
+    poles = check.poles('controller', n, False, 'one per controllable mode', discrete)
     K = check.matrix('controller.K', m, n, ('inputs', 'states'))
     Q = R = None
     if options[0] == 'controller.lqr_Q':
         Q = check.matrix('controller.lqr_Q', n, n, ('states', 'states'))
         R = check.matrix('controller.lqr_R', m, m, ('inputs', 'inputs'), required=True)
-        check.symmetric('controller.lqr_Q', Q, definite=False)
-        check.symmetric('controller.lqr_R', R, definite=True)
+        Q = check.symmetric('controller.lqr_Q', Q, definite=False)
+        R = check.symmetric('controller.lqr_R', R, definite=True)
     reference = check.vector('controller.reference', n, 'states')
     Kd = check.matrix('controller.Kd', m, n, ('inputs', 'states'))
     u_min = check.vector('controller.u_min', m, 'inputs', allow_inf=True)
@@ -1034,7 +927,7 @@ def _read_observer(check, plant, discrete, sensors, simulator, warnings):
             check.fail('observer.Qd', 'missing: a kalman observer needs observer.Qd (the '
                        'default, diag(simulator.process_noise_std**2), needs all of them > 0 '
                        'and no observer.Bd)')
-        check.symmetric('observer.Qd', Qd, definite=False)
+        Qd = check.symmetric('observer.Qd', Qd, definite=False)
         if check.double_array('observer.Rd') is not None:
             Rd = check.matrix('observer.Rd', p, p, ('outputs', 'outputs'))
         else:
@@ -1046,7 +939,7 @@ def _read_observer(check, plant, discrete, sensors, simulator, warnings):
                            '(the default, diag(noise_std**2) of the sensors, needs every '
                            'noise_std > 0)')
             Rd = np.diag(std ** 2)
-        check.symmetric('observer.Rd', Rd, definite=True)
+        Rd = check.symmetric('observer.Rd', Rd, definite=True)
     else:   # open_loop
         _warn_unused(check, design_keys + kalman_keys, 'by an open_loop observer', warnings)
     initial = check.vector('observer.initial_estimate', n, 'states')
@@ -1144,4 +1037,5 @@ def vehicle_to_parameters(vehicle):
     flat['simulator.mode'] = sim.mode
     flat['simulator.realtime_factor'] = float(sim.realtime_factor)
     flat['simulator.command_timeout'] = float(sim.command_timeout)
+    flat['simulator.publish_clock'] = bool(sim.publish_clock)
     return flat

@@ -167,7 +167,7 @@ def simulate(vehicle, steps=None, noise=False, seed=0, t0=1.0, closed_loop=True,
 
 
 def write_bag(path, messages, namespace='', storage='mcap', skip=(), retype=None,
-              log_ns=None, version=9):
+              log_ns=None, version=9, writer_class=Writer):
     """
     Write messages (relative topic, msgtype, receive ns, msg) to a new bag.
 
@@ -189,13 +189,15 @@ def write_bag(path, messages, namespace='', storage='mcap', skip=(), retype=None
         Receive times to use instead of the recorded ones (one per message).
     version : {8, 9}
         The metadata version (8: Humble/Iron, no type hashes; 9: Jazzy).
+    writer_class : type
+        rosbags' Writer (no chunk CRCs), or observer_ros.bag.integrity.CrcWriter.
 
     """
     path = Path(path)
     plugin = StoragePlugin.MCAP if storage == 'mcap' else StoragePlugin.SQLITE3
     retype = retype or {}
     conns = {}
-    with Writer(path, version=version, storage_plugin=plugin) as writer:
+    with writer_class(path, version=version, storage_plugin=plugin) as writer:
         for i, (topic, msgtype, ns, msg) in enumerate(messages):
             if topic in skip:
                 continue

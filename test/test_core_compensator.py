@@ -13,8 +13,8 @@ from observer_ros.core.compensator import (
     reduced_closed_loop_matrix, separation_check, spectrum_match, to_json_dict, tracking_ok,
     tracking_residual)
 from observer_ros.core.design import controller_gain, observer_gain, reduced_order_observer
-from observer_ros.core.errors import (DesignError, DimensionError, NotControllableError,
-                                      NotDetectableError, ObserverDesignWarning)
+from observer_ros.core.errors import (DesignError, DimensionError, NotDetectableError,
+                                      ObserverDesignWarning)
 from observer_ros.core.model import Plant, zoh_matrices
 from observer_ros.core.spec import (ControllerSpec, ObserverSpec, SensorSpec, SimulatorSpec,
                                     Vehicle)
@@ -390,7 +390,7 @@ def test_design_vehicle_bad_specs():
     with pytest.raises(DesignError, match='needs observer.Qd and observer.Rd'):
         design_vehicle(make_vehicle(observer=ObserverSpec('kalman')))
     uncontrollable = make_vehicle(B=np.array([[0.0], [0.0], [0.0]]))
-    with pytest.raises(NotControllableError):
+    with pytest.raises(DimensionError, match='controller.poles: poles has 3 poles; expected 0'):
         design_vehicle(uncontrollable)
 
 

@@ -13,8 +13,9 @@ import pytest
 
 from ros_helpers import Probe, REPO, ros_env
 
-EXECUTABLES = ('plant_simulator', 'observer', 'compensator', 'recorder', 'observer_design',
-               'observer_eval', 'observer_tune', 'observer_play', 'observer_run')
+EXECUTABLES = ('plant_simulator', 'observer', 'compensator', 'recorder', 'container',
+               'observer_design', 'observer_eval', 'observer_eval_batch', 'observer_tune',
+               'observer_play', 'observer_run', 'observer_bag_recover')
 
 # import name -> the package.xml key that provides it
 DEPENDENCY_KEYS = {
@@ -23,10 +24,27 @@ DEPENDENCY_KEYS = {
     'builtin_interfaces': 'builtin_interfaces', 'rcl_interfaces': 'rcl_interfaces',
     'ament_index_python': 'ament_index_python', 'numpy': 'python3-numpy',
     'scipy': 'python3-scipy', 'yaml': 'python3-yaml', 'matplotlib': 'python3-matplotlib',
-    'control': 'python3-control-pip', 'rosbags': 'python3-rosbags-pip',
+    'control': 'python-control-pip', 'rosbags': 'python3-rosbags-pip',
+    'launch': 'launch', 'launch_ros': 'launch_ros',
+}
+# Keys rosdep resolves, as read from ros/rosdistro (master, 2026-11; see
+# ../shared/ros2cli/README.md): ROS packages of the Jazzy distribution (jazzy/distribution.yaml)
+# and system keys of rosdep/base.yaml and rosdep/python.yaml. A key not here is a typo or a
+# key that does not exist (python3-control-pip did not: `rosdep install` failed on it).
+KNOWN_ROSDEP_KEYS = {
+    # jazzy/distribution.yaml (ROS packages)
+    'rclpy', 'std_msgs', 'sensor_msgs', 'diagnostic_msgs', 'rosgraph_msgs',
+    'builtin_interfaces', 'rcl_interfaces', 'ament_index_python', 'launch', 'launch_ros',
+    'ament_flake8', 'ament_pep257',
+    # rosdep/python.yaml
+    'python3-numpy', 'python3-scipy', 'python3-yaml', 'python3-matplotlib', 'python3-pytest',
+    'python3-hypothesis', 'python-control-pip', 'python3-rosbags-pip',
 }
 # optional imports guarded by ImportError (zstd and lz4 codecs for compressed chunks)
 OPTIONAL_IMPORTS = {'backports', 'compression', 'lz4'}
+# tool dependencies with no rosdep key, installed with pip (README's install notes);
+# observer-eval-batch says so when they are missing
+OPTIONAL_IMPORTS |= {'distributed'}
 
 
 @pytest.fixture(scope='module')
@@ -52,6 +70,12 @@ def _installed_env(prefix):
 def test_colcon_installs_executables_where_ros2_run_looks(colcon_install):
     for exe in EXECUTABLES:
         assert (colcon_install / 'lib' / 'observer_ros' / exe).is_file(), exe
+    # each executable once (no dash aliases: those are the venv's only)
+    assert sorted(p.name for p in (colcon_install / 'lib' / 'observer_ros').iterdir()) == \
+        sorted(EXECUTABLES)
+    assert sorted(p.name for p in (colcon_install / 'share' / 'observer_ros' /
+                                   'launch').iterdir()) == \
+        ['closed_loop.launch.py', 'observer.launch.py']
     share = colcon_install / 'share' / 'observer_ros'
     assert (share / 'package.xml').is_file()
     assert sorted(p.name for p in (share / 'config').glob('*.yaml')) == \
@@ -147,3 +171,11 @@ def test_package_xml_declares_every_runtime_dependency():
     assert not unknown, f'imports with no known package.xml key: {unknown}'
     missing = {DEPENDENCY_KEYS[name] for name in imports} - declared
     assert not missing, f'package.xml lacks exec_depend {missing}'
+
+
+def test_package_xml_uses_only_rosdep_keys_that_exist():
+    root = ET.parse(REPO / 'package.xml').getroot()
+    keys = {e.text.strip() for e in root if e.tag.endswith('depend')}
+    assert {'launch', 'launch_ros', 'python-control-pip'} <= keys
+    unknown = keys - KNOWN_ROSDEP_KEYS
+    assert not unknown, f'package.xml names keys rosdep does not know: {sorted(unknown)}'

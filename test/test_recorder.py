@@ -9,6 +9,7 @@ import subprocess
 import sys
 
 from diagnostic_msgs.msg import DiagnosticArray
+from observer_ros.bag.reader import BagReader
 from observer_ros.bag.recover import BagRecoveryError, recover_bag
 from observer_ros.nodes.common import STATE_PUB_QOS, STATE_QOS
 import pytest
@@ -128,6 +129,9 @@ def test_a_signal_closes_the_bag_with_every_message(tmp_path, feeder, storage, s
     assert not (bag / '.disk_reserve').exists()
     # closed cleanly: readable as it is, exactly the n messages, in order
     assert _numbers(bag) == list(range(n))
+    if storage == 'mcap':     # every chunk carries its CRC32 (bag/integrity.py)
+        with BagReader(bag) as opened:
+            assert opened.info.chunk_crcs and all(opened.info.chunk_crcs)
 
 
 @pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])

@@ -208,7 +208,8 @@ ERRORS = [
      r'observer\.gain: has 2 values; expected 3 \(states x outputs = 3x1\)'),
     (['observer.poles:=null', 'observer.poles_imag:=[0.0]', 'observer.gain:=[1.0, 2.0, 3.0]'],
      r'observer\.poles_imag: given without observer\.poles'),
-    (['controller.poles:=[-1.0, -2.0]'], r'controller\.poles: has 2 poles; expected 3'),
+    (['controller.poles:=[-1.0, -2.0, -3.0, -4.0]'], r'controller\.poles: has 4 poles; '
+     r'expected at most 3'),
     (['controller.poles_imag:=[0.5, 0.0, 0.0]'], r'controller\.poles: pole .*conjugate'),
     (['controller.K:=[1.0, 2.0, 3.0]'], r'controller\.K: give only one of'),
     (['controller.poles:=null', 'controller.K:=[1.0, 2.0]'], r'controller\.K: has 2 values; '

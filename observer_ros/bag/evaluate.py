@@ -45,6 +45,7 @@ from .reader import read_recording
 from .replay import CLOCK_JUMP_TOLERANCE, epochs_of, live_replay, replay
 from .report import BAG_MAX_MESSAGES, format_table, write_results
 from .results import EvalResult, jsonable, VariantResult
+from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 
 __all__ = ['DEFAULT_TOLERANCE', 'STEADY_FRACTION', 'WHITENESS_LAGS', 'VariantResult',
@@ -110,6 +111,23 @@ def parse_variant(text):
         raise BagToolError(f'--variant {text!r}: expected KEY:=VALUE after the name; got '
                            f'{bad[0] if bad else "nothing"!r}')
     return name, overrides
+
+
+def parse_options(variant_texts, tolerance):
+    """
+    Check the ``--variant`` and ``--tolerance`` options of a command line.
+
+    Returns ``{name: [overrides]}`` (the same name repeated merges its overrides); raises
+    BagToolError on a bad one (:func:`parse_variant`, :func:`parse_tolerance`).
+
+    """
+    variants = {}
+    for text in variant_texts:
+        name, overrides = parse_variant(text)
+        variants.setdefault(name, []).extend(overrides)
+    if tolerance is not None:
+        parse_tolerance(tolerance)
+    return variants
 
 
 def parse_compare(text):
@@ -256,6 +274,12 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
         if tuple(v.plant.state_names) != tuple(base.plant.state_names):
             raise BagToolError(f'variant {name!r} has states {list(v.plant.state_names)}; '
                                f'the vehicle has {list(base.plant.state_names)}')
+        try:   # every configuration's gains pass the design verification first
+            with warnings.catch_warnings():
+                warnings.simplefilter('ignore')
+                design_vehicle(v)
+        except ObserverError as err:
+            raise type(err)(f'variant {name!r}: {err}') from None
 
     def stage(label):
         if progress is None:
@@ -517,13 +541,8 @@ def main(argv=None):
     started = time.perf_counter()
     progress = _Progress(args.progress or sys.stderr.isatty())
     try:
-        variants = {}
-        for text in args.variant:
-            name, overrides = parse_variant(text)
-            variants.setdefault(name, []).extend(overrides)
+        variants = parse_options(args.variant, args.tolerance)
         compare = dict(parse_compare(text) for text in args.compare)
-        if args.tolerance is not None:
-            parse_tolerance(args.tolerance)
         if not Path(args.bag).exists():
             raise BagToolError(f'{args.bag}: no such file or directory')
         out = Path(args.out) if args.out else _default_out(args.bag)

@@ -127,7 +127,10 @@ def _chunk_buffers(storage, chunks, channels, decompress, start):
         data = bio.read(chunk.compressed_size)
         if len(data) != chunk.compressed_size:
             raise ValueError(f'truncated chunk at offset {chunk.chunk_start_offset}')
-        buf = decompress(data, chunk.compression, chunk.uncompressed_size, crc)
+        try:
+            buf = decompress(data, chunk.compression, chunk.uncompressed_size, crc)
+        except Exception as err:   # noqa: BLE001 - rosbags' ReaderError
+            raise ValueError(f'chunk at byte {chunk.chunk_start_offset}: {err}') from None
         yield buf, _indexed_offsets(bio, chunk, present)
 
 

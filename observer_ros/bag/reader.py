@@ -34,6 +34,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
 
 from .errors import BagToolError
+from .integrity import checksum_note, chunk_crcs
 from .mcap_fast import fast_chunks, fast_messages
 from ..timeutil import stamp_to_ns
 
@@ -111,6 +112,7 @@ class BagInfo:
     end_ns: int
     ros_distro: Optional[str] = None
     warnings: List[str] = field(default_factory=list)
+    chunk_crcs: Optional[List[int]] = None  # MCAP: each chunk's CRC32 (0: none)
 
     def describe_topics(self, limit=12):
         """Return the bag's topics as one line: ``/a (Imu, 10 msgs), ...``."""
@@ -134,6 +136,9 @@ def _reason(path, err):
         hint = 'not an MCAP file'
     elif 'malformed' in low or 'not a database' in low:
         hint = 'the sqlite3 database is truncated or corrupted'
+    elif 'checksum mismatch' in low:
+        hint = ('the data changed on disk after it was written: its CRC32 does not match; '
+                'do not trust this bag')
     elif 'hash mismatch' in low:
         hint = ("the bag's message definitions do not match their hashes (another ROS "
                 'release or a modified message?)')
@@ -251,12 +256,16 @@ class BagReader:
         inner = (getattr(inner, 'storages', None) or [inner])[0]
         storage = 'mcap' if 'mcap' in type(inner).__name__.lower() else 'sqlite3'
         count = int(reader.message_count)
+        crcs = chunk_crcs(inner) if storage == 'mcap' and getattr(inner, 'bio', None) \
+            else None
+        note = checksum_note(_storage_file(storage_path), storage, crcs)
         return BagInfo(path=self.path, storage_path=storage_path, storage=storage,
                        topics=topics, message_count=count,
                        start_ns=int(reader.start_time) if count else 0,
                        end_ns=int(reader.end_time) if count else 0,
                        ros_distro=getattr(sub, 'ros_distro', None),
-                       warnings=list(self.warnings))
+                       warnings=list(self.warnings) + ([note] if note else []),
+                       chunk_crcs=crcs)
 
     def close(self):
         """Close the bag (idempotent)."""

@@ -63,6 +63,7 @@ __all__ = ['Replay', 'replay', 'live_replay', 'epochs_of', 'affine_scan',
 CLOCK_JUMP_TOLERANCE = 0.5     # s, as the observer node's clock_jump_tolerance
 FUTURE_TOLERANCE = 10.0        # s, as the observer node's future_tolerance
 MIN_RUN = 64                   # steps: shorter stretches are replayed call by call
+MAX_RUN = 1 << 17              # steps: longer stretches are replayed in pieces this long
 CHECK_STEPS = 16               # steps of each checked window of a bulk stretch
 CHECK_WINDOWS = 8              # windows spread over a stretch (first and last included)
 CHECK_IRREGULAR = 16           # most windows at irregular places of a stretch
@@ -275,6 +276,29 @@ class _Events:
         return int(self.kind.size)
 
 
+class _Rows:
+    """
+    Rows of integer columns as tuples of Python ints, converted a block at a time.
+
+    The main loop reads every event it does not skip in bulk; lists of the whole columns
+    would hold three Python ints per event of the bag at once (about 100 bytes each).
+
+    """
+
+    def __init__(self, *columns, block=1 << 16):
+        self.columns = columns
+        self.size = int(columns[0].size)
+        self.block = block
+        self.lo = self.hi = 0
+        self.rows = []
+
+    def __call__(self, i):
+        if not self.lo <= i < self.hi:
+            self.lo, self.hi = i, min(self.size, i + self.block)
+            self.rows = list(zip(*(c[self.lo:self.hi].tolist() for c in self.columns)))
+        return self.rows[i - self.lo]
+
+
 def _variant_sensors(vehicle, recording):
     sensors = []
     for s in vehicle.sensors:
@@ -371,15 +395,15 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
     epoch = 0
     m = 0
     bulk_steps = 0
-    kinds, idxs, seqs = events.kind.tolist(), events.idx.tolist(), events.seq.tolist()
-    total = len(kinds)
+    event = _Rows(events.kind, events.idx, events.seq)
+    total = len(events)
     next_report = _PROGRESS_EVERY
     i = 0
     while i < total:
         if progress is not None and i >= next_report:
             next_report = i + _PROGRESS_EVERY
             progress(i, total)
-        k, j = kinds[i], idxs[i]
+        k, j, sq = event(i)
         if k < 0:
             t = float(cmd_t[j])
             u = cmd_u[j]
@@ -439,7 +463,7 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
         if res is not None:
             out_r[m, rows_idx[k]] = res
         out_epoch[m] = epoch
-        out_seq[m] = seqs[i]
+        out_seq[m] = sq
         out_sensor[m] = k
         m += 1
         run = runs.get(i)
@@ -548,17 +572,36 @@ def _find_runs(events, streams, cmd, est, jump, future_tolerance):
             b -= 1                              # the next one fuses with b: b by call
         if b - a < MIN_RUN:
             continue
-        run = dict(shared)
-        run.update(a=a, b=b, commands=int(gap_cmds[a:b].sum()), last_event=int(mev[b]))
-        runs[int(mev[a])] = run
+        # pieces of at most MAX_RUN steps, replayed one after the other: the memory of
+        # a bulk stretch (a dozen arrays of its steps) stays bounded on a long bag
+        cuts = list(range(a, b, MAX_RUN)) + [b]
+        if len(cuts) > 2 and cuts[-1] - cuts[-2] < MIN_RUN:
+            del cuts[-2]                        # no short last piece
+        for p0, p1 in zip(cuts, cuts[1:]):
+            run = dict(shared)
+            run.update(a=p0, b=p1, commands=int(gap_cmds[p0:p1].sum()),
+                       last_event=int(mev[p1]))
+            runs[int(mev[p0])] = run
     return runs
 
 
-def _probe(est, t0, t1, rows):
-    """Measure the affine map of one step t0 -> t1 (correction with rows)."""
-    plant = est.plant
+def _twin(est):
+    """
+    Return a copy of an estimator with its own state and the same caches.
+
+    The step and gain caches hold values that depend on the step length only
+    (``StepCache``), so sharing them changes no result; it saves designing the gains of
+    every new step again in each copy (jittered stamps: a new step each message).
+
+    """
+    memo = {id(est.cache): est.cache, id(est.gain_cache): est.gain_cache}
+    return copy.deepcopy(est, memo)
+
+
+def _probe(probe, t0, t1, rows):
+    """Measure the affine map of one step t0 -> t1 (correction with rows) on a twin."""
+    plant = probe.plant
     n, m, q = plant.n, plant.m, len(rows)
-    probe = copy.deepcopy(est)
 
     def run(x0, u, y):
         probe.reset(x0, t0)
@@ -674,7 +717,7 @@ def _check_windows(est, run, streams, cmd, rows, X, U, scale):
     a, K = run['a'], X.shape[0]
     mev, tm = run['mev'], run['tm']
     for s0, s1 in _windows(run, K):
-        check = copy.deepcopy(est)
+        check = _twin(est)
         if s0:
             t0 = float(tm[a + s0])
             check.reset(X[s0 - 1], t0)
@@ -782,9 +825,10 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
     W = np.zeros((K, n))
     Y = [None] * len(streams)
     maps = []
+    probe = _twin(est)
     for c, f in enumerate(first):
         k = int(sens[f])
-        mp = _probe(est, float(tm[a + f]), float(tm[a + f + 1]), rows[k])
+        mp = _probe(probe, float(tm[a + f]), float(tm[a + f + 1]), rows[k])
         if mp is None:
             warnings.append('bulk replay disabled: an estimator step is not linear')
             return None
@@ -831,7 +875,7 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
     problem = _check_steps(run, cmd, maps, cls, sens, Y, X, x0, est.u, scale)
     if problem is None:
         problem = _check_windows(est, run, streams, cmd, rows, X, U, scale)
-    check = copy.deepcopy(est)
+    check = _twin(est)
     for f in first if problem is None else ():
         k = int(sens[f])
         check.reset(Xprev[f], float(tm[a + f]))

@@ -216,7 +216,9 @@ def _joint_state_bytes(names, stamp_ns, values):
 
 def write_results_bag(result, path, limit):
     """Write the truth, estimates and errors as JointState topics to a new mcap bag."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.rosbag2 import StoragePlugin
+
+    from .integrity import CrcWriter
     store = jazzy_typestore()
     js = 'sensor_msgs/msg/JointState'
     topics = []
@@ -231,7 +233,7 @@ def write_results_bag(result, path, limit):
             ok = np.all(np.isfinite(vr.error), axis=1)
             topics.append((f'/eval/{name}/state/error', rep.stamp_ns[ok], vr.error[ok],
                            names))
-    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+    with CrcWriter(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         for topic, ns, values, comp in topics:
             conn = writer.add_connection(topic, js, typestore=store)
             d = decimate(ns.size, limit)

@@ -20,6 +20,7 @@ import scipy.linalg
 from ._lazy import control
 from .errors import DimensionError, ObserverError
 from .model import as_matrix
+from .verify import EIG_BOUND_FACTOR, eigenvalue_bounds, stability_status, unstable_eigenvalues
 
 __all__ = ['obsv', 'ctrb', 'numerical_rank', 'rank_tolerance', 'PBHResult', 'pbh_test',
            'pbh_test_controllability', 'observability_gramian', 'controllability_gramian',
@@ -141,11 +142,12 @@ def numerical_rank(M, tol=None):
 
 def stability_margin(A):
     """
-    Return the margin used to call an eigenvalue of A stable, ``1e-9 max(1, ||A||_2)``.
+    Return the rounding bound of a perfectly conditioned eigenvalue of A.
 
-    An eigenvalue within the margin of the imaginary axis (or of the unit circle)
-    counts as marginally stable, so an integrator computed as +-1e-17 is never
-    taken for a stable mode.
+    ``EIG_BOUND_FACTOR n eps ||A||_2``: the stability rule of
+    :mod:`observer_ros.core.verify` with kappa = 1. Verdicts on the eigenvalues of a
+    matrix use :func:`~observer_ros.core.verify.eigenvalue_bounds` (each eigenvalue's
+    own condition number); this scalar is for an eigenvalue known without its matrix.
 
     Parameters
     ----------
@@ -158,7 +160,9 @@ def stability_margin(A):
 
     """
     A = np.asarray(A, dtype=float)
-    return 1e-9 * max(1.0, float(np.linalg.norm(A, 2)) if A.size else 1.0)
+    if not A.size:
+        return EIG_BOUND_FACTOR * _EPS
+    return EIG_BOUND_FACTOR * A.shape[0] * _EPS * max(float(np.linalg.norm(A, 2)), _EPS)
 
 
 def is_stable_eigenvalue(lam, discrete=False, margin=1e-9):
@@ -185,13 +189,17 @@ def is_stable_eigenvalue(lam, discrete=False, margin=1e-9):
     return lam.real < -margin
 
 
-def _status(lam, discrete, margin):
-    if is_stable_eigenvalue(lam, discrete, margin):
-        return 'stable'
-    lam = complex(lam)
-    if discrete:
-        return 'unstable' if abs(lam) > 1.0 + margin else 'marginally stable'
-    return 'unstable' if lam.real > margin else 'marginally stable'
+def _block_eigenvalues(Au, A):
+    """
+    Eigenvalues of a trailing staircase block Au of A and their stability bounds.
+
+    The staircase drops couplings below its structural tolerance (about
+    ``STRUCTURAL_TOL_FACTOR n eps ||A||``), so the block's eigenvalues are known to that
+    perturbation times their condition number: the bound is the stability rule's with
+    ``||A||`` widened by that factor. It scales with ||A|| only through eps.
+
+    """
+    return eigenvalue_bounds(Au, STRUCTURAL_TOL_FACTOR * float(np.linalg.norm(A, 1)))
 
 
 def format_complex(z, digits=6):
@@ -439,7 +447,6 @@ def _pbh(A, X, stack, discrete, tol):
     lam, vl, vr = scipy.linalg.eig(A, left=True, right=True)
     scale = max(float(np.linalg.norm(A, 2)), float(np.linalg.norm(X, 2)) if X.size else 0.0,
                 _EPS)
-    margin = stability_margin(A)
     results = []
     for g in _clusters(lam):
         centre = complex(np.mean(lam[g]))   # the mean of a cluster is well conditioned
@@ -454,8 +461,9 @@ def _pbh(A, X, stack, discrete, tol):
         s = scipy.linalg.svd(M, compute_uv=False)
         t = tol if tol is not None else 10.0 * max(M.shape) * _EPS * scale * kappa
         rank = int(np.sum(s > t))
+        bound = EIG_BOUND_FACTOR * n * _EPS * float(np.linalg.norm(A, 2)) * kappa
         results.append(PBHResult(centre, len(g), rank, n, rank == n,
-                                 is_stable_eigenvalue(centre, discrete, margin),
+                                 stability_status(centre, bound, discrete) == 'stable',
                                  float(s[min(n, len(s)) - 1]), float(t)))
     return results
 
@@ -550,14 +558,11 @@ def observability_gramian(A, C, horizon=None, discrete=False):
     C = as_matrix(C, 'C', cols=n)
     Q = C.T @ C
     if horizon is None:
-        eigs = np.linalg.eigvals(A)
-        margin = stability_margin(A)
-        bad = [lam for lam in eigs if not is_stable_eigenvalue(lam, discrete, margin)]
+        bad = unstable_eigenvalues(A, discrete)
         if bad:
             raise ObserverError(
                 f'the infinite-horizon Gramian needs a stable A; A has the eigenvalue '
-                f'{format_complex(bad[0])} ({_status(bad[0], discrete, margin)}); '
-                'give a finite horizon')
+                f'{format_complex(bad[0][0])} ({bad[0][1]}); give a finite horizon')
         if discrete:
             W = scipy.linalg.solve_discrete_lyapunov(A.T, Q)
         else:
@@ -667,14 +672,14 @@ def _names(state_names, n):
     return names
 
 
-def _modes(Abar, T, m, names, discrete, margin):
+def _modes(Abar, T, m, names, discrete, A):
     """Describe the eigenvalues of the trailing block Abar[m:, m:] (basis T[:, m:])."""
     n = Abar.shape[0]
     if m >= n:
         return []
     Au = Abar[m:, m:]
     T2 = T[:, m:]
-    lam = np.linalg.eigvals(Au)
+    lam, bound = _block_eigenvalues(Au, A)
     modes = []
     for g in _clusters(lam):
         centre = complex(np.mean(lam[g]))
@@ -691,8 +696,8 @@ def _modes(Abar, T, m, names, discrete, margin):
         w = np.sqrt(np.sum(np.abs(V) ** 2, axis=1))
         w = w / max(float(np.max(w)), _EPS)
         states = tuple(nm for nm, wi in zip(names, w) if wi >= MODE_WEIGHT_THRESHOLD)
-        modes.append(Mode(centre, len(g), _status(centre, discrete, margin), states,
-                          tuple(float(x) for x in w)))
+        status = stability_status(centre, float(np.max(bound[g])), discrete)
+        modes.append(Mode(centre, len(g), status, states, tuple(float(x) for x in w)))
     return modes
 
 
@@ -748,8 +753,9 @@ def observability_report(A, C, state_names=None, discrete=False, tol=None):
     Returns
     -------
     ObservabilityReport
-        Detectable means every unobservable eigenvalue is strictly stable (by
-        more than :func:`stability_margin`).
+        Detectable means every unobservable eigenvalue is stable by the stability
+        rule of :mod:`observer_ros.core.verify` (its bound widened to the staircase's
+        structural tolerance).
 
     """
     A = as_matrix(A, 'A', square=True)
@@ -757,10 +763,11 @@ def observability_report(A, C, state_names=None, discrete=False, tol=None):
     C = as_matrix(C, 'C', cols=n)
     names = _names(state_names, n)
     Abar, _, _, T, m = observable_decomposition(A, None, C, tol)
-    margin = stability_margin(A)
-    modes = _modes(Abar, T, m, names, discrete, margin)
-    ueigs = np.linalg.eigvals(Abar[m:, m:]) if m < n else np.zeros(0, complex)
-    detectable = all(is_stable_eigenvalue(lam, discrete, margin) for lam in ueigs)
+    modes = _modes(Abar, T, m, names, discrete, A)
+    ueigs, ubound = _block_eigenvalues(Abar[m:, m:], A) if m < n else \
+        (np.zeros(0, complex), np.zeros(0))
+    detectable = all(stability_status(lam, b, discrete) == 'stable'
+                     for lam, b in zip(ueigs, ubound))
     return ObservabilityReport(n, m, m == n, detectable, bool(discrete), names, ueigs,
                                tuple(pbh_test(A, C, discrete)), tuple(modes),
                                tuple(md.describe() for md in modes))
@@ -843,13 +850,11 @@ def is_controllable(A, B):
 
 def is_detectable(A, C, discrete=False):
     """Return True when every unobservable eigenvalue of (A, C) is strictly stable."""
-    margin = stability_margin(as_matrix(A, 'A', square=True))
-    return all(is_stable_eigenvalue(lam, discrete, margin)
-               for lam in unobservable_eigenvalues(A, C))
+    return observability_report(A, C, discrete=discrete).detectable
 
 
 def is_stabilizable(A, B, discrete=False):
     """Return True when every uncontrollable eigenvalue of (A, B) is strictly stable."""
-    margin = stability_margin(as_matrix(A, 'A', square=True))
-    return all(is_stable_eigenvalue(lam, discrete, margin)
-               for lam in uncontrollable_eigenvalues(A, B))
+    A = as_matrix(A, 'A', square=True)
+    B = as_matrix(B, 'B', rows=A.shape[0])
+    return observability_report(A.T, B.T, discrete=discrete).detectable

@@ -19,13 +19,15 @@ import scipy.optimize
 
 from ._lazy import control
 from .analysis import (controllability_report, ControllabilityReport, format_complex,
-                       is_stable_eigenvalue, observability_report, ObservabilityReport,
-                       stability_margin)
+                       observability_report, ObservabilityReport, stability_margin,
+                       unobservable_eigenvalues)
 from .design import (controller_gain, kalman_gain, lqr_gain, observer_gain,
                      pole_placement_error, reduced_order_observer, ReducedOrderDesign)
 from .errors import (DesignError, DimensionError, NotDetectableError, ObserverDesignWarning,
                      ObserverError)
 from .model import as_matrix, as_poles, as_vector
+from .verify import (PlacementCheck, stability_status, unstable_eigenvalues, verify_placement,
+                     verify_stable)
 
 __all__ = ['closed_loop_matrix', 'closed_loop_matrices', 'error_dynamics_matrix',
            'reduced_closed_loop_matrix', 'reduced_closed_loop_matrices',
@@ -310,13 +312,19 @@ def spectrum_match(M, expected, tol=SEPARATION_TOL, expected_bounds=None):
         eig(M), matched to ``expected`` (same order).
 
     """
+    ok, matched, _, _ = _spectrum_compare(M, expected, tol, expected_bounds)
+    return ok, matched
+
+
+def _spectrum_compare(M, expected, tol, expected_bounds):
+    """spectrum_match, also returning ``|matched - expected|`` and what is allowed of it."""
     M = as_matrix(M, 'M', square=True)
     want = np.asarray(expected, dtype=complex).reshape(-1)
     if want.size != M.shape[0]:
         raise DimensionError(f'expected has {want.size} eigenvalues; expected {M.shape[0]}')
     lam, bound = _eig_bounds(M)
     if want.size == 0:
-        return True, lam
+        return True, lam, np.zeros(0), np.zeros(0)
     eb = np.zeros(want.size) if expected_bounds is None else \
         np.asarray(expected_bounds, dtype=float).reshape(-1)
     scale = np.maximum(1.0, np.abs(want))
@@ -327,10 +335,11 @@ def spectrum_match(M, expected, tol=SEPARATION_TOL, expected_bounds=None):
     allowed = np.empty(want.size)
     allowed[cols] = bound[rows]
     allowed = np.maximum(tol * scale, allowed + eb)
-    ok = bool(np.all(np.abs(matched - want) <= allowed))
+    off = np.abs(matched - want)
+    ok = bool(np.all(off <= allowed))
     if not ok:
         ok = pole_placement_error(M, want) <= tol
-    return ok, matched
+    return ok, matched, off, allowed
 
 
 def separation_check(A, B, C, K, L, tol=SEPARATION_TOL, D=None):
@@ -366,6 +375,12 @@ def separation_check(A, B, C, K, L, tol=SEPARATION_TOL, D=None):
         ``eig(A - B K)`` followed by the observer poles.
 
     """
+    ok, cl, expected, _, _ = _separation(A, B, C, K, L, tol, D)
+    return ok, cl, expected
+
+
+def _separation(A, B, C, K, L, tol=SEPARATION_TOL, D=None):
+    """separation_check, also returning the largest ``|eig - expected|`` and its allowance."""
     A, B, C, D = _plant(A, B, C, D)
     n, m = A.shape[0], B.shape[1]
     K = _gain_K(K, m, n)
@@ -378,8 +393,12 @@ def separation_check(A, B, C, K, L, tol=SEPARATION_TOL, D=None):
         obs, obs_b = _eig_bounds(A - L @ C)
     ctrl, ctrl_b = _eig_bounds(A - B @ K)
     expected = np.concatenate([ctrl, obs])
-    ok, cl = spectrum_match(Acl, expected, tol, np.concatenate([ctrl_b, obs_b]))
-    return ok, cl, expected
+    ok, cl, off, allowed = _spectrum_compare(Acl, expected, tol,
+                                             np.concatenate([ctrl_b, obs_b]))
+    if not off.size:
+        return ok, cl, expected, 0.0, 0.0
+    i = int(np.argmax(off / np.maximum(allowed, 1e-300)))
+    return ok, cl, expected, float(off[i]), float(allowed[i])
 
 
 # ---------------------------------------------------------------- compensator D(s)
@@ -614,8 +633,7 @@ def observer_noise_gain(A, C, L, noise_std, sample_time=None, discrete=False):
         dt = np.broadcast_to(np.asarray(sample_time, dtype=float), (p,))
         R = np.diag(sigma ** 2 * dt)
     Phi = A - L @ C
-    margin = stability_margin(Phi)
-    if not all(is_stable_eigenvalue(lam, discrete, margin) for lam in np.linalg.eigvals(Phi)):
+    if unstable_eigenvalues(Phi, discrete):
         return np.full(p, np.inf), np.full((n, n), np.inf)
     Q = L @ R @ L.T
     if discrete:
@@ -687,8 +705,8 @@ def design_warnings(A, B, C, K, L, D=None, discrete=False, noise_std=None,
         L = _gain_L(observer, n, p)
         obs_poles = np.linalg.eigvals(A - L @ C)
     out = []
-    margin = stability_margin(A)
-    unstable_obs = [lam for lam in obs_poles if not is_stable_eigenvalue(lam, discrete, margin)]
+    unstable_obs = [lam for lam, _ in unstable_eigenvalues(
+        observer.F if reduced else A - L @ C, discrete)]
     if unstable_obs:
         what = 'the open-loop observer drifts (L = 0 and A is not stable)' \
             if L is not None and not np.any(L) else 'the estimation error does not decay'
@@ -710,8 +728,7 @@ def design_warnings(A, B, C, K, L, D=None, discrete=False, noise_std=None,
                 'like the observer (seed 000: make observer poles twice as negative)')
         comp = compensator_poles(A, B, C, K, observer, D)
         cm = stability_margin(A - B @ K)
-        bad = [lam for lam in comp
-               if (abs(lam) > 1.0 + cm if discrete else complex(lam).real > cm)]
+        bad = [lam for lam in comp if stability_status(lam, cm, discrete) == 'unstable']
         if bad:
             out.append(
                 f'unstable compensator: D(s) has the pole(s) '
@@ -769,6 +786,10 @@ class VehicleDesign:
     tracking_residual: Optional[np.ndarray] = None
     noise_gain: Optional[np.ndarray] = None
     warnings: Tuple[str, ...] = field(default=())
+    observer_placement: Optional[PlacementCheck] = None
+    controller_placement: Optional[PlacementCheck] = None
+    separation_error: Optional[float] = None
+    separation_allowed: Optional[float] = None
 
     @property
     def observer(self):
@@ -849,8 +870,8 @@ def design_vehicle(vehicle):
     obs_spec = vehicle.observer
     ctrl_spec = vehicle.controller
     kind = obs_spec.kind
-    margin = stability_margin(A)
     messages = []
+    obs_check = None
 
     obs_report = observability_report(A, C, names, discrete)
     ctrb_report = controllability_report(A, B, names, discrete)
@@ -875,6 +896,9 @@ def design_vehicle(vehicle):
                 poles = _poles_from_spec(obs_spec.poles, 'observer.poles', discrete)
                 L = _prefixed('observer.poles', observer_gain, A, C, poles, obs_spec.method,
                               discrete, names)
+                obs_check = verify_placement(
+                    A - L @ C, np.concatenate([poles, obs_report.unobservable_eigenvalues]),
+                    'observer.poles', _norm(A) + _norm(L) * _norm(C), discrete)
             observer_poles = np.linalg.eigvals(A - L @ C)
         elif kind == 'reduced':
             if (obs_spec.poles is None) == (obs_spec.gain is None):
@@ -888,6 +912,12 @@ def design_vehicle(vehicle):
                                 discrete=discrete, state_names=names)
             L = reduced.L
             observer_poles = reduced.poles
+            if poles is not None:
+                obs_check = verify_placement(
+                    reduced.F, np.concatenate([poles, unobservable_eigenvalues(reduced.A22,
+                                                                               reduced.A12)]),
+                    'observer.poles', _norm(reduced.A22) + _norm(L) * _norm(reduced.A12),
+                    discrete)
         elif kind == 'open_loop':
             L = np.zeros((n, p))
             observer_poles = np.linalg.eigvals(A)
@@ -897,16 +927,17 @@ def design_vehicle(vehicle):
                                   'observer.Rd')
             L, P, observer_poles = kalman_gain(A, C, obs_spec.Qd, obs_spec.Rd, obs_spec.Bd,
                                                discrete, names)
+            verify_stable(A - L @ C, 'the Kalman gain of observer.Qd and observer.Rd',
+                          'eig(A - L C)', discrete)
         else:
             raise DesignError(f'observer.type is {kind!r}; expected full, reduced, '
                               'open_loop or kalman')
         if kind in ('full', 'reduced') and obs_spec.gain is not None:
-            bad = [x for x in observer_poles if not is_stable_eigenvalue(x, discrete, margin)]
-            if bad:
-                raise DesignError(f'observer.gain does not stabilize the observer: pole '
-                                  f'{format_complex(bad[0])}')
+            verify_stable(A - L @ C if reduced is None else reduced.F, 'observer.gain',
+                          'eig(A - L C)' if reduced is None else 'eig(F)', discrete)
 
-        K = _controller(ctrl_spec, A, B, n, m, discrete, names, margin)
+        K, ctrl_check = _controller(ctrl_spec, A, B, n, m, discrete, names,
+                                    ctrb_report.uncontrollable_eigenvalues)
     messages.extend(str(w.message) for w in caught
                     if issubclass(w.category, ObserverDesignWarning))
     for w in caught:   # re-emit anything that is not ours
@@ -937,7 +968,11 @@ def design_vehicle(vehicle):
     controller_poles = np.linalg.eigvals(A - B @ K) if K is not None else np.zeros(0, complex)
     Kd = reference = residual = None
     if K is not None:
-        ok, cl, expected = separation_check(A, B, C, K, observer, D=D)
+        # the closed-loop poles are the union of the verified blocks (exact in error
+        # coordinates, where the matrix is block triangular); the full 2n matrix's
+        # eigenvalues are only compared with them
+        ok, _, expected, sep_err, sep_allowed = _separation(A, B, C, K, observer, D=D)
+        cl = expected
         comp = compensator_ss(A, B, C, K, observer, D, plant.dt)
         comp_poles = compensator_poles(A, B, C, K, observer, D)
         Kd = np.zeros((m, n)) if ctrl_spec.Kd is None else \
@@ -951,10 +986,12 @@ def design_vehicle(vehicle):
                 f'(A_d - A + B Kd) x_d = {np.array2string(residual, precision=4)} is not '
                 'zero (seed 002 Eq. 5.117); choose Kd or a reachable x_d')
         if not ok:
-            messages.append('separation check failed: the closed-loop poles differ from '
-                            'eig(A - BK) and the observer poles')
+            messages.append(f'separation check failed: the eigenvalues of the closed-loop '
+                            f'matrix differ from eig(A - BK) and the observer poles by '
+                            f'{sep_err:.2g}, more than rounding explains ({sep_allowed:.2g})')
     else:
         ok = None
+        sep_err = sep_allowed = None
         cl = expected = comp_poles = np.zeros(0, complex)
         comp = None
     return VehicleDesign(
@@ -964,34 +1001,43 @@ def design_vehicle(vehicle):
         observer_poles=observer_poles, controller_poles=controller_poles,
         closed_loop_poles=cl, expected_poles=expected, separation_ok=ok, compensator=comp,
         compensator_poles=comp_poles, reduced=reduced, P=P, Kd=Kd, reference=reference,
-        tracking_residual=residual, noise_gain=noise_gain, warnings=tuple(messages))
+        tracking_residual=residual, noise_gain=noise_gain, warnings=tuple(messages),
+        observer_placement=obs_check, controller_placement=ctrl_check,
+        separation_error=sep_err, separation_allowed=sep_allowed)
 
 
-def _controller(spec, A, B, n, m, discrete, names, margin):
+def _norm(M):
+    return float(np.linalg.norm(M, 2)) if np.size(M) else 0.0
+
+
+def _controller(spec, A, B, n, m, discrete, names, kept):
+    """Return (K or None, PlacementCheck or None); every K returned is verified stable."""
     given = [k for k, v in (('controller.poles', spec.poles), ('controller.K', spec.K),
                             ('controller.lqr_Q', spec.lqr_Q)) if v is not None]
     if len(given) > 1:
         raise DesignError(f'controller: give only one of {", ".join(given)}')
     if spec.poles is not None:
         poles = _poles_from_spec(spec.poles, 'controller.poles', discrete)
-        return _prefixed('controller.poles', controller_gain, A, B, poles, 'auto', discrete,
-                         names)
+        K = _prefixed('controller.poles', controller_gain, A, B, poles, 'auto', discrete,
+                      names)
+        return K, verify_placement(A - B @ K, np.concatenate([poles, kept]),
+                                   'controller.poles', _norm(A) + _norm(B) * _norm(K),
+                                   discrete)
     if spec.K is not None:
         K = as_matrix(spec.K, 'controller.K', rows=m, cols=n)
-        bad = [x for x in np.linalg.eigvals(A - B @ K)
-               if not is_stable_eigenvalue(x, discrete, margin)]
-        if bad:
-            raise DesignError(f'controller.K does not stabilize the plant: eig(A - B K) has '
-                              f'{format_complex(bad[0])}')
-        return K
+        verify_stable(A - B @ K, 'controller.K', 'eig(A - B K)', discrete)
+        return K, None
     if spec.lqr_Q is not None or spec.lqr_R is not None:
         if spec.lqr_Q is None or spec.lqr_R is None:
             raise DesignError('controller: an LQR design needs both controller.lqr_Q and '
                               'controller.lqr_R')
         Q = as_matrix(spec.lqr_Q, 'controller.lqr_Q', rows=n, cols=n)
         R = as_matrix(spec.lqr_R, 'controller.lqr_R', rows=m, cols=m)
-        return lqr_gain(A, B, Q, R, discrete)[0]
-    return None
+        K = lqr_gain(A, B, Q, R, discrete)[0]
+        verify_stable(A - B @ K, 'the LQR gain of controller.lqr_Q and controller.lqr_R',
+                      'eig(A - B K)', discrete)
+        return K, None
+    return None, None
 
 
 # ---------------------------------------------------------------- output
@@ -1021,9 +1067,14 @@ def to_json_dict(design):
         Keys: kind, discrete, sample_time, state_names, input_names, output_names,
         observable, detectable, observability_rank, unobservable_modes,
         controllable, stabilizable, uncontrollable_modes, L, K, observer_poles,
-        controller_poles, closed_loop_poles, separation_ok, compensator_poles,
-        warnings, and when they apply reduced {F, G, H, L, rest}, P, Kd,
-        reference, tracking_residual, noise_gain.
+        controller_poles, closed_loop_poles (the union of eig(A - B K) and the observer
+        poles), separation_ok, separation_error (largest distance of an eigenvalue of the
+        full closed-loop matrix from that union) and separation_allowed (what rounding
+        allows there), compensator_poles,
+        placement {observer, controller} (each None, or the achieved-versus-requested
+        summary of :class:`~observer_ros.core.verify.PlacementCheck`), warnings, and
+        when they apply reduced {F, G, H, L, rest}, P, Kd, reference,
+        tracking_residual, noise_gain.
 
     """
     d = {
@@ -1046,7 +1097,14 @@ def to_json_dict(design):
         'controller_poles': _cvec(design.controller_poles),
         'closed_loop_poles': _cvec(design.closed_loop_poles),
         'separation_ok': design.separation_ok,
+        'separation_error': design.separation_error,
+        'separation_allowed': design.separation_allowed,
         'compensator_poles': _cvec(design.compensator_poles),
+        'placement': {
+            'observer': None if design.observer_placement is None else
+            design.observer_placement.to_json(),
+            'controller': None if design.controller_placement is None else
+            design.controller_placement.to_json()},
         'warnings': list(design.warnings),
     }
     if design.reduced is not None:
@@ -1080,6 +1138,16 @@ def _poles_line(poles):
         return 'none'
     order = sorted(np.asarray(poles).reshape(-1), key=lambda z: (z.real, -abs(z.imag)))
     return ', '.join(format_complex(z, 6) for z in order)
+
+
+def _placement_lines(check):
+    if check is None or not check.requested.size:
+        return []
+    w = check.worst
+    return [f' placement ({check.field}): achieved poles within {check.max_error:.2g} of '
+            f'those asked (relative {check.relative_error:.2g}); at the worst pole '
+            f'{format_complex(check.requested[w])} the conditioning allows '
+            f'{check.bound[w]:.2g}']
 
 
 def format_report(design, vehicle=None):
@@ -1118,6 +1186,7 @@ def format_report(design, vehicle=None):
     lines.append('')
     lines.append(f'Observer ({design.kind}), poles ({plane}): '
                  f'{_poles_line(design.observer_poles)}')
+    lines.extend(_placement_lines(design.observer_placement))
     if design.reduced is not None:
         r = design.reduced
         est = [design.state_names[i] for i in r.rest]
@@ -1144,6 +1213,7 @@ def format_report(design, vehicle=None):
     else:
         lines.append(f'Controller u = K (x_d - x_hat) - Kd x_d, poles ({plane}): '
                      f'{_poles_line(design.controller_poles)}')
+        lines.extend(_placement_lines(design.controller_placement))
         lines.append(' K:')
         lines.extend(_table(design.K, list(design.input_names), list(design.state_names)))
         if design.reference is not None and np.any(design.reference):
@@ -1151,7 +1221,9 @@ def format_report(design, vehicle=None):
         lines.append('')
         lines.append(f'Closed loop poles: {_poles_line(design.closed_loop_poles)}')
         lines.append('Separation principle (eig = eig(A - BK) + observer poles): '
-                     + ('ok' if design.separation_ok else 'FAILED'))
+                     + ('ok' if design.separation_ok else 'FAILED')
+                     + f' (closed-loop matrix off by {design.separation_error:.2g}; '
+                     f'rounding allows {design.separation_allowed:.2g})')
         lines.append(f'Compensator poles: {_poles_line(design.compensator_poles)}')
         lines.append('Compensator D(s), u = -D(s) y:' if not design.discrete else
                      'Compensator D(z), u = -D(z) y:')

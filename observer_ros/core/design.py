@@ -193,8 +193,6 @@ def _design(A, B, poles, method, discrete, state_names, role):
                f'of {n} and its {lost} modes are kept as they are ({kept}); give poles '
                f'only for the {r} {"observable" if role == "observer" else "controllable"} '
                'modes')
-        if role == 'controller' and p.size == n:
-            raise NotControllableError(msg)
         raise DimensionError(msg)
     Kc = _place(Abar[:r, :r], Bbar[:r], p, method, role)
     Kbar = np.zeros((B.shape[1], n))
@@ -281,9 +279,10 @@ def controller_gain(A, B, poles, method='auto', discrete=False, state_names=None
     Raises
     ------
     NotControllableError
-        (A, B) is not stabilizable, or n poles are asked of an uncontrollable plant.
+        (A, B) is not stabilizable.
     DimensionError
-        Wrong shapes or number of poles.
+        Wrong shapes or number of poles (the message gives n, or the controllable
+        rank: the same rule as observer_gain's).
 
     """
     A = as_matrix(A, 'A', square=True)
@@ -295,6 +294,7 @@ def controller_gain(A, B, poles, method='auto', discrete=False, state_names=None
 
 
 def _check_cov(M, name, definite):
+    """Return M symmetrised when it is symmetric to round-off; refuse it otherwise."""
     if not np.allclose(M, M.T, rtol=1e-10, atol=1e-12 * max(1.0, float(np.max(np.abs(M))))):
         raise DesignError(f'{name} is not symmetric')
     w = np.linalg.eigvalsh((M + M.T) / 2.0)
@@ -305,6 +305,7 @@ def _check_cov(M, name, definite):
     if not definite and (w.size and w[0] < -tol):
         raise DesignError(f'{name} must be positive semi-definite; its smallest eigenvalue '
                           f'is {w[0]:.3g}')
+    return (M + M.T) / 2.0
 
 
 def lqr_gain(A, B, Q, R, discrete=False):
@@ -339,8 +340,8 @@ def lqr_gain(A, B, Q, R, discrete=False):
     B = as_matrix(B, 'B', rows=n)
     Q = as_matrix(Q, 'Q', rows=n, cols=n)
     R = as_matrix(R, 'R', rows=B.shape[1], cols=B.shape[1])
-    _check_cov(Q, 'Q', definite=False)
-    _check_cov(R, 'R', definite=True)
+    Q = _check_cov(Q, 'Q', definite=False)
+    R = _check_cov(R, 'R', definite=True)
     try:
         K, S, E = (control.dlqr if discrete else control.lqr)(A, B, Q, R)
     except (ValueError, np.linalg.LinAlgError) as err:
@@ -398,15 +399,19 @@ def kalman_gain(A, C, Qd, Rd, Bd=None, discrete=False, state_names=None):
     k = Bd.shape[1]
     Qd = as_matrix(Qd, 'Qd', rows=k, cols=k)
     Rd = as_matrix(Rd, 'Rd', rows=p, cols=p)
-    _check_cov(Qd, 'Qd', definite=False)
-    _check_cov(Rd, 'Rd', definite=True)
+    Qd = _check_cov(Qd, 'Qd', definite=False)
+    Rd = _check_cov(Rd, 'Rd', definite=True)
+    # python-control demands Bd Qd Bd^T symmetric to the last bit: form it here,
+    # symmetrised, and give the Riccati solver the noise input I (same L, P, E)
+    Qn = Bd @ Qd @ Bd.T
+    Qn = (Qn + Qn.T) / 2.0
     report = observability_report(A, C, state_names, discrete)
     if not report.detectable:
         raise NotDetectableError(
             '(A, C) is not detectable, no Kalman filter converges: '
             + '; '.join(md.describe() for md in report.modes if not md.stable))
     try:
-        L, P, E = (control.dlqe if discrete else control.lqe)(A, Bd, C, Qd, Rd)
+        L, P, E = (control.dlqe if discrete else control.lqe)(A, np.eye(n), C, Qn, Rd)
     except (ValueError, np.linalg.LinAlgError) as err:
         raise DesignError(f'Kalman design failed (no stabilizing Riccati solution; is every '
                           f'marginal mode excited by Bd Qd?): {err}') from None

@@ -3,7 +3,7 @@
 
 __all__ = ['ObserverError', 'DimensionError', 'NotObservableError',
            'NotDetectableError', 'NotControllableError', 'DesignError',
-           'VehicleFileError', 'ObserverDesignWarning']
+           'VehicleFileError', 'ObserverDesignWarning', 'DesignVerificationError']
 
 
 class ObserverError(Exception):
@@ -36,3 +36,7 @@ class VehicleFileError(ObserverError, ValueError):
 
 class ObserverDesignWarning(UserWarning):
     """A design went through but is doubtful (inaccurate pole placement, slow observer, ...)."""
+
+
+class DesignVerificationError(DesignError):
+    """A designed or given gain fails verification: an achieved pole is unstable or misplaced."""

@@ -82,6 +82,7 @@ class SimulatorSpec:
     mode: str = 'lockstep'                   # lockstep | realtime
     realtime_factor: float = 1.0
     command_timeout: float = 2.0
+    publish_clock: bool = True               # one /clock per ROS graph
 
 
 @dataclass(frozen=True)

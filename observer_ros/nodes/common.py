@@ -3,7 +3,9 @@
 
 import array
 import os
+import signal
 import sys
+import threading
 import time
 import traceback
 import warnings
@@ -11,24 +13,30 @@ import warnings
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
+from rcl_interfaces.msg import SetParametersResult
 import rclpy
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data, QoSProfile,
                        ReliabilityPolicy)
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64
 
+from .command_line import check_command_line, program_name
+from .parameters import declare_parameters
 from ..core.errors import ObserverError
 from ..timeutil import sec_to_stamp_parts, stamp_to_sec
 from ..vehicle import vehicle_from_parameters
 
-__all__ = ['VEHICLE_SECTIONS', 'SENSOR_QOS', 'SENSOR_SUB_QOS', 'STATE_QOS', 'STATE_PUB_QOS',
-           'LATCHED_QOS', 'MESSAGE_CLASSES', 'TOPICS', 'VehicleNode', 'joint_state',
-           'checked_stamp', 'vector_from_joint_state',
+__all__ = ['VEHICLE_SECTIONS', 'SAFE_COMMAND_FRAME', 'SENSOR_QOS', 'SENSOR_SUB_QOS',
+           'STATE_QOS', 'STATE_PUB_QOS', 'LATCHED_QOS', 'MESSAGE_CLASSES', 'TOPICS',
+           'VehicleNode', 'joint_state', 'checked_stamp', 'vector_from_joint_state',
            'stamp_to_sec', 'to_stamp', 'make_executor', 'spin_until', 'exit_status',
-           'run_node', 'run_nodes']
+           'init_ros', 'run_node', 'run_nodes']
+
+RCLError = _rclpy.RCLError
 
 # Which executor spins the nodes: OBSERVER_ROS_EXECUTOR=events (default) or single_threaded.
 EXECUTOR_ENV = 'OBSERVER_ROS_EXECUTOR'
@@ -82,6 +90,12 @@ def to_stamp(t):
     """Return a builtin_interfaces/Time for t seconds."""
     sec, nanosec = sec_to_stamp_parts(t)
     return Time(sec=sec, nanosec=nanosec)
+
+
+#: header.frame_id of the compensator's safe command for a stale estimate (no estimate
+#: behind it): a lock-step simulator does not take it for the answer while the observer
+#: is alive. A safe command that answers a refused estimate or command is not marked.
+SAFE_COMMAND_FRAME = 'safe_command'
 
 
 def joint_state(names, values, t, frame_id='', stamp=None):
@@ -181,15 +195,21 @@ class VehicleNode(Node):
 
     def __init__(self, node_name, own_parameters=()):
         try:
-            super().__init__(node_name, automatically_declare_parameters_from_overrides=True)
+            super().__init__(node_name, automatically_declare_parameters_from_overrides=False)
         except ValueError as err:   # rclpy refuses some parameter values before we see them
             raise ObserverError(
                 f'parameters: {err} (an empty list [] has no type in ROS 2: remove the key '
                 'or give it values; double arrays need floats, 1.0 not 1)') from None
-        for name, default in own_parameters:
-            if not self.has_parameter(name):
-                self.declare_parameter(name, default)
+        # each with a ParameterDescriptor: description, read_only, range (nodes/parameters.py)
+        declare_parameters(self, [(entry + ('',))[:3] for entry in own_parameters])
+        if not any(name.split('.', 1)[0] in VEHICLE_SECTIONS for name in self._parameters):
+            raise ObserverError('no vehicle parameters: start the node with --ros-args '
+                                '--params-file config/<vehicle>.yaml (see --help)')
         self.vehicle = self.load_vehicle()
+        self.add_on_set_parameters_callback(self._check_vehicle_change)
+        # set to an exit status by a node whose work is done (the simulator at the end of
+        # its run): run_nodes stops spinning and the process exits with it
+        self.exit_code = None
         self._counters = {}
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         # Watchdogs and diagnostics run on the steady clock: with use_sim_time the ROS clock
@@ -223,6 +243,21 @@ class VehicleNode(Node):
         for text in vehicle.warnings:
             self.get_logger().warning(text)
         return vehicle
+
+    def _check_vehicle_change(self, params):
+        """Refuse a run-time change that makes the vehicle invalid, as a whole, with why."""
+        changed = {p.name: p.value for p in params
+                   if p.name.split('.', 1)[0] in VEHICLE_SECTIONS}
+        if not changed:
+            return SetParametersResult(successful=True)
+        flat = self.vehicle_parameters()
+        flat.update(changed)
+        try:
+            vehicle_from_parameters(flat, source=f'node {self.get_fully_qualified_name()}')
+        except (ObserverError, ValueError) as err:
+            self.count('parameter_changes_refused')
+            return SetParametersResult(successful=False, reason=str(err))
+        return SetParametersResult(successful=True)
 
     def duplicate_publishers(self, topics):
         """
@@ -329,6 +364,39 @@ def exit_status(err, name):
     return 1
 
 
+def init_ros(node_class, args=None, **init_options):
+    """
+    Handle ``--help``, check the params files, then ``rclpy.init``; None when it went on.
+
+    Returns the exit status instead when the process should end now: 0 after ``--help``,
+    2 (one ``error:`` line) for a params file the package's loader or ROS's parser refuses.
+
+    Parameters
+    ----------
+    node_class : type
+        The node (its module's docstring is the help's description of its topics).
+    args : list of str, optional
+        The command line (``sys.argv`` by default), ROS arguments included.
+    **init_options
+        Passed to ``rclpy.init``.
+
+    """
+    argv = list(sys.argv if args is None else args)
+    module = node_class.__module__
+    if module == '__main__':    # python -m observer_ros.nodes.<node>
+        module = getattr(sys.modules['__main__'].__spec__, 'name', module)
+    code = check_command_line(argv[1:], program_name(module.rsplit('.', 1)[-1]), module,
+                              sys.modules[node_class.__module__].__doc__)
+    if code is not None:    # --help, or a params file the loader refuses
+        return code
+    try:
+        rclpy.init(args=args, **init_options)
+    except RCLError as err:     # e.g. a params file ROS's parser refuses: one line
+        print(f'error: {" ".join(str(err).split())}', file=sys.stderr)
+        return 2
+    return None
+
+
 def run_node(node_factory, args=None):
     """
     Run a node as ros2/demos do: init, spin, clean shutdown; exit 2 on an unusable file.
@@ -349,8 +417,10 @@ def run_nodes(node_factories, args=None, names=None):
     Run nodes in one process and one executor: :func:`run_node` for several.
 
     The nodes are built in order; a file one of them cannot use stops the process (exit 2,
-    one ``error:`` line) before the executor spins. A node's ``SystemExit`` (the simulator
-    when its run is done) ends the process with its code.
+    one ``error:`` line) before the executor spins. A node that sets its ``exit_code``
+    (the simulator when its run is done) ends the process with that code, after its
+    callback has returned (an exception raised in a callback would be logged by rclpy as
+    FATAL with a traceback).
 
     Parameters
     ----------
@@ -363,7 +433,9 @@ def run_nodes(node_factories, args=None, names=None):
 
     """
     warnings.filterwarnings('ignore', category=DeprecationWarning)
-    rclpy.init(args=args)
+    code = init_ros(node_factories[0], args)
+    if code is not None:
+        return code
     nodes = []
     executor = None
     code = 0
@@ -373,17 +445,28 @@ def run_nodes(node_factories, args=None, names=None):
         executor, _ = make_executor()
         for node in nodes:
             executor.add_node(node)
-        spin_until(executor)
-    except SystemExit as done:      # the simulator's exit_when_done
-        code = done.code if isinstance(done.code, int) else 0
+        spin_until(executor, stop=lambda: any(
+            getattr(node, 'exit_code', None) is not None for node in nodes))
+        code = next((node.exit_code for node in nodes
+                     if getattr(node, 'exit_code', None) is not None), 0)
     except (KeyboardInterrupt, Exception) as err:   # noqa: BLE001 - reported by exit_status
         failed = len(nodes) if len(nodes) < len(node_factories) else None
         code = exit_status(err, names[failed] if names and failed is not None else
                            'observer_ros')
     finally:
+        # Ctrl-C in a terminal signals the whole process group, and ros2 launch then sends
+        # SIGINT to each node again: a second SIGINT must not cut the clean-up short with a
+        # KeyboardInterrupt (a traceback and exit status -2 under ros2 launch)
+        _ignore_sigint()
         if executor is not None:
             executor.shutdown()
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown()
+        _ignore_sigint()    # rclpy's shutdown puts back the handler it replaced
     return code
+
+
+def _ignore_sigint():
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)

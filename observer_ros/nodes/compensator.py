@@ -21,8 +21,8 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from .checks import changed_pole_problem, divergence_envelopes, own_parameter_problem
-from .common import (checked_stamp, joint_state, LATCHED_QOS, run_node, STATE_PUB_QOS,
-                     STATE_QOS, TOPICS, vector_from_joint_state, VehicleNode)
+from .common import (checked_stamp, joint_state, LATCHED_QOS, run_node, SAFE_COMMAND_FRAME,
+                     STATE_PUB_QOS, STATE_QOS, TOPICS, vector_from_joint_state, VehicleNode)
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 from ..core.health import SettleCheck, settling_time
@@ -87,9 +87,11 @@ class CompensatorNode(VehicleNode):
 
     def __init__(self):
         super().__init__('compensator', own_parameters=(
-            ('publish_array', False),      # also publish Float64MultiArray (ros2_control)
-            ('diagnostics_period', 1.0),
-            ('clock_jump_tolerance', 0.5),     # s: an estimate this far back: clock restarted
+            ('publish_array', False, 'also publish control/u_array, a Float64MultiArray '
+             '(ros2_control)'),
+            ('diagnostics_period', 1.0, 's (wall) between /diagnostics reports'),
+            ('clock_jump_tolerance', 0.5, 's: an estimate this far back means the clock '
+             'restarted'),
         ))
         self._apply(self.vehicle, design_vehicle(self.vehicle))
         self._last_estimate_time = None      # node clock when the last good x_hat came
@@ -260,24 +262,26 @@ class CompensatorNode(VehicleNode):
         self._send(u, t, stamp)
         return True
 
-    def _send(self, u, t, stamp=None):
+    def _send(self, u, t, stamp=None, frame_id=''):
         self.safe.sent(u)
-        self._cmd_pub.publish(joint_state(self.vehicle.plant.input_names, u, t, stamp=stamp))
+        self._cmd_pub.publish(joint_state(self.vehicle.plant.input_names, u, t,
+                                          frame_id=frame_id, stamp=stamp))
         if self._array_pub is not None:
             self._array_pub.publish(Float64MultiArray(data=[float(v) for v in u]))
 
-    def _publish_safe(self, t, stamp=None):
+    def _publish_safe(self, t, stamp=None, frame_id=''):
         """
         Send the safe command for time t: the one place it is decided (SafeCommand).
 
         Predict-and-hold within ``controller.predict_timeout`` of the last trusted estimate,
         then ``controller.safe_command`` (zero or hold), clipped into the limits; sent
-        without the gate (every fallback comes here: #15's refused commands too).
+        without the gate (every fallback comes here: #15's refused commands too). ``frame_id``
+        SAFE_COMMAND_FRAME marks one that answers no estimate (a stale one).
         """
         u, self._safe_mode = self.safe.command(t)
         if self.u_min is not None or self.u_max is not None:
-            u = np.clip(u, self.u_min, self.u_max)     # (limits that exclude zero)
-        self._send(u, t, stamp)
+            u = np.clip(u, self.u_min, self.u_max)
+        self._send(u, t, stamp, frame_id)
         self.count('safe_commands')
         self.count(f'safe_commands_{self._safe_mode}')
 
@@ -311,7 +315,8 @@ class CompensatorNode(VehicleNode):
         if not self._stale:
             self._stop_safe_timer()
             return
-        self._publish_safe(self._estimate_clock())
+        # no estimate behind it: marked, so that lock-step does not take it for one
+        self._publish_safe(self._estimate_clock(), frame_id=SAFE_COMMAND_FRAME)
 
     def _on_set_parameters(self, params):
         problem = own_parameter_problem(params)
@@ -356,9 +361,11 @@ class CompensatorNode(VehicleNode):
             level, message = DiagnosticStatus.ERROR, f'diverging: {self._diverging}'
         elif self._stale:
             level = DiagnosticStatus.ERROR
-            message = f'estimate stale: safe command ({self._safe_mode})'
+            message = (f'estimate stale: safe command ({self._safe_mode}; '
+                       f'{self.resolve_topic_name(TOPICS["estimate"])})')
         elif self._last_estimate_time is None:
-            level, message = DiagnosticStatus.WARN, 'waiting for state/estimate'
+            level, message = DiagnosticStatus.WARN, \
+                f'waiting for {self.resolve_topic_name(TOPICS["estimate"])}'
         else:
             level, message = DiagnosticStatus.OK, 'closing the loop'
         self.publish_diagnostics(level, message, values)

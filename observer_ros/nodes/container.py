@@ -19,6 +19,7 @@ what DDS delivered, which needs a process of its own.
 import importlib
 import sys
 
+from .command_line import usage
 from .common import run_nodes
 
 __all__ = ['NODES', 'main']
@@ -49,8 +50,11 @@ def main(args=None):
     """Run the nodes named on the command line in one process; return the exit status."""
     argv = list(sys.argv[1:] if args is None else args)
     names, ros_argv = _node_names(argv)
-    if not names or names[0] in ('-h', '--help'):
-        print(USAGE, file=sys.stderr)
+    if names and names[0] in ('-h', '--help') or not names and set(argv) & {'-h', '--help'}:
+        print(f'{USAGE}\n\n{usage("container NODE [NODE ...]", __name__, __doc__)}')
+        return 0
+    if not names:
+        print(f'error: container: no node named\n{USAGE}', file=sys.stderr)
         return 2
     unknown = [n for n in names if n not in NODES]
     if unknown or len(set(names)) != len(names):

@@ -40,9 +40,9 @@ class ObserverNode(ObserverHealth, VehicleNode):
 
     def __init__(self):
         super().__init__('observer', own_parameters=(
-            ('clock_jump_tolerance', 0.5),     # s: a stamp this far back is a clock jump
-            ('future_tolerance', 10.0),        # s: a stamp this far ahead of the clock is bad
-            ('diagnostics_period', 1.0),
+            ('clock_jump_tolerance', 0.5, 's: a stamp this far back is a clock jump'),
+            ('future_tolerance', 10.0, 's: a stamp this far ahead of the clock is refused'),
+            ('diagnostics_period', 1.0, 's (wall) between /diagnostics reports'),
         ))
         self._design_and_build(self.vehicle)
         v = self.vehicle
@@ -62,6 +62,8 @@ class ObserverNode(ObserverHealth, VehicleNode):
         self._est_pub = self.create_publisher(JointState, TOPICS['estimate'], STATE_PUB_QOS)
         self._res_pub = self.create_publisher(JointState, TOPICS['residual'], STATE_PUB_QOS)
         self._subs = []
+        # diagnostics name the topics as remapped and namespaced (/sub1/imu/data)
+        self._resolved = {s.name: self.resolve_topic_name(s.topic) for s in v.sensors}
         for sensor in v.sensors:
             cls = MESSAGE_CLASSES[sensor.msg_type]
             self._subs.append(self.create_subscription(
@@ -358,7 +360,7 @@ class ObserverNode(ObserverHealth, VehicleNode):
         for sensor in self.vehicle.sensors:
             seen = self._last_seen.get(sensor.name)
             if seen is None or now - seen > sensor.timeout:
-                silent.append(sensor.topic)
+                silent.append(self._resolved[sensor.name])
         if silent:
             level = DiagnosticStatus.WARN
             message = f'predicting only: no data on {", ".join(silent)}'

@@ -7,9 +7,12 @@ start). Measurement noise comes from ``simulator.seed``. Two modes:
 
 - ``lockstep``: step k publishes its sensor messages one at a time and waits for the
   command that answers each (stamped t_k) before going on; step k+1 starts only when
-  step k is answered, so a closed-loop run is reproducible bit for bit. A command that
-  does not come within ``simulator.command_timeout`` (wall time) is reported on
-  /diagnostics and in the log, and the previous command is held.
+  step k is answered, so a closed-loop run is reproducible bit for bit, whatever the
+  size of the vehicle. A command that does not come within ``simulator.command_timeout``
+  (wall time) is reported on /diagnostics and in the log, and the simulator keeps
+  waiting (re-sending the measurement with back-off): it never advances without the
+  answer, which would make the run depend on the machine's speed (a 20-state observer
+  designs its gains for several seconds at its first measurements).
 - ``realtime``: a wall-clock timer at ``rate_hz * realtime_factor``; each step applies
   the latest command received. Late commands are counted.
 
@@ -27,8 +30,8 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool
 
 from .checks import own_parameter_problem
-from .common import (joint_state, LATCHED_QOS, MESSAGE_CLASSES, run_node, SENSOR_QOS,
-                     stamp_to_sec, STATE_PUB_QOS, STATE_QOS, to_stamp, TOPICS,
+from .common import (joint_state, LATCHED_QOS, MESSAGE_CLASSES, run_node, SAFE_COMMAND_FRAME,
+                     SENSOR_QOS, stamp_to_sec, STATE_PUB_QOS, STATE_QOS, to_stamp, TOPICS,
                      vector_from_joint_state, VehicleNode)
 from ..core.model import zoh_matrices
 from ..sensors import fill_measurement
@@ -46,12 +49,12 @@ class PlantSimulatorNode(VehicleNode):
 
     def __init__(self):
         super().__init__('plant_simulator', own_parameters=(
-            ('start_time', 1.0),
-            ('publish_clock', True),
-            ('wait_for_subscribers', 1),     # lockstep: matched readers of each sensor
-            ('wait_for_recorder', False),    # lockstep: start once recorder/ready is true
-            ('exit_when_done', True),
-            ('diagnostics_period', 1.0),
+            ('start_time', 1.0, 's: simulated time of step 0 (a zero stamp reads as unset)'),
+            ('wait_for_subscribers', 1, 'lockstep: matched readers of each sensor to wait '
+             'for'),
+            ('wait_for_recorder', False, 'lockstep: start once recorder/ready is true'),
+            ('exit_when_done', True, 'exit (status 0) when simulator.duration is over'),
+            ('diagnostics_period', 1.0, 's (wall) between /diagnostics reports'),
         ))
         v = self.vehicle
         plant = v.plant
@@ -65,7 +68,8 @@ class PlantSimulatorNode(VehicleNode):
         self.u = np.zeros(plant.m)
         self.k = 0
         self.t0 = float(self.param('start_time'))
-        self.steps = int(round(v.simulator.duration / self.dt))
+        # simulator.duration 0: no end, the run goes on until the node is stopped
+        self.steps = int(round(v.simulator.duration / self.dt)) or None
         self.rng = np.random.default_rng(v.simulator.seed)
         self.noise = v.simulator.noise
         self._lockstep = v.simulator.mode == 'lockstep'
@@ -74,7 +78,7 @@ class PlantSimulatorNode(VehicleNode):
              plant.output_rows(s.outputs)) for s in v.sensors]
         self._state_pub = self.create_publisher(JointState, TOPICS['true_state'], STATE_PUB_QOS)
         self._clock_pub = None
-        if self.param('publish_clock'):
+        if v.simulator.publish_clock:
             self._clock_pub = self.create_publisher(Clock, '/clock', 10)
         self._cmd_sub = self.create_subscription(
             JointState, TOPICS['command'], self._on_command, STATE_QOS)
@@ -96,6 +100,7 @@ class PlantSimulatorNode(VehicleNode):
         self._loop_us = []                  # realtime: measurement -> its command, us
         self._last_sent = None
         self._resends_this_wait = 0
+        self._timeout_reported = False
         self._resend_period = 0.2           # s of wall time before a measurement is re-sent
         self.count('command_timeouts', 0)
         if self._lockstep:
@@ -180,8 +185,8 @@ class PlantSimulatorNode(VehicleNode):
             return
         self._start_timer.cancel()
         self._started = True
-        self.get_logger().info(f'{self.vehicle.name}: lockstep run of {self.steps} steps '
-                               f'of {self.dt} s')
+        self.get_logger().info(f'{self.vehicle.name}: lockstep run of '
+                               f'{self.steps or "unlimited"} steps of {self.dt} s')
         self._begin_step()
         self._publish_next()
 
@@ -194,11 +199,12 @@ class PlantSimulatorNode(VehicleNode):
                 pub.publish(msg)
                 self._last_sent = (pub, msg)
                 self._resends_this_wait = 0
+                self._timeout_reported = False
                 self._published += 1
                 self._waiting_since = time.monotonic()
                 return
             # every sensor of step k answered (or none due): next step
-            if self.k >= self.steps:
+            if self.steps is not None and self.k >= self.steps:
                 self._finish()
                 return
             self._advance()
@@ -233,6 +239,12 @@ class PlantSimulatorNode(VehicleNode):
         if abs(stamp - self.t) > 0.25 * self.dt:
             self.count('stale_commands')     # an answer to an older step: ignored
             return
+        if msg.header.frame_id == SAFE_COMMAND_FRAME and \
+                self.count_publishers(TOPICS['estimate']) > 0:
+            # the compensator's safe command while the observer is alive (busy, e.g. a
+            # 20-state observer designing its gains): not the answer, keep waiting
+            self.count('safe_commands_waited_out')
+            return
         self.u = u
         self._answers += 1
         if self._answers >= self._published:
@@ -243,31 +255,30 @@ class PlantSimulatorNode(VehicleNode):
         if self._waiting_since is None or self._done:
             return
         waited = time.monotonic() - self._waiting_since
-        if waited > self._resend_period * (self._resends_this_wait + 1) and \
-                waited <= self.vehicle.simulator.command_timeout and self._last_sent:
+        if waited > self._resend_period * 2 ** self._resends_this_wait and self._last_sent:
             # DDS matching can lag the graph at start-up: send the same message again
-            # (same stamp; the observer answers a repeat with its current estimate)
+            # (same stamp; the observer answers a repeat with its current estimate), with
+            # back-off so that a busy observer is not flooded
             pub, msg = self._last_sent
             pub.publish(msg)
             self._resends_this_wait += 1
             self.count('resent_measurements')
-            return
-        if waited > self.vehicle.simulator.command_timeout:
+        if waited > self.vehicle.simulator.command_timeout and not self._timeout_reported:
+            self._timeout_reported = True
             self.count('command_timeouts')
             self.get_logger().error(
                 f'no command for step {self.k} (t={self.t:.3f}) after {waited:.1f} s; '
-                'holding the previous command')
-            self._answers = self._published
-            self._waiting_since = None
-            self._publish_next()
+                'still waiting (lockstep never advances without the answer)')
 
     def _finish(self):
         self._done = True
         self._waiting_since = None
+        if not self._lockstep:
+            self._step_timer.cancel()
         self.get_logger().info(f'run complete at t={self.t:.3f} s; x = {self.x.tolist()}')
         self.publish_diagnostics(DiagnosticStatus.OK, 'run complete')
         if self.param('exit_when_done'):
-            raise SystemExit(0)
+            self.exit_code = 0      # run_nodes stops spinning: a clean exit, no exception
 
     # -- realtime ---------------------------------------------------------------------------
     def _realtime_step(self):
@@ -302,7 +313,7 @@ class PlantSimulatorNode(VehicleNode):
         self._step_wall = time.monotonic() if due else None
         self._publish_step_state()
         self.count('steps')
-        if self.k >= self.steps:
+        if self.steps is not None and self.k >= self.steps:
             self._finish()
 
     def _realtime_ready(self):
@@ -345,7 +356,7 @@ class PlantSimulatorNode(VehicleNode):
         level = DiagnosticStatus.OK
         message = 'running' if self._started or not self._lockstep else 'waiting for peers'
         if self._counters.get('command_timeouts'):
-            level, message = DiagnosticStatus.WARN, 'commands timed out (held)'
+            level, message = DiagnosticStatus.WARN, 'commands came late (waited for)'
         values = {'t': f'{self.t:.6f}', 'step': self.k}
         if self._loop_us:
             # realtime: the loop measurement -> command since the last report (benchmarks P2)

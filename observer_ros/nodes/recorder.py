@@ -42,12 +42,13 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
                                 QosReliability, QosTime)
-from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2 import StoragePlugin
 from rosbags.typesys import get_typestore, Stores
 from std_msgs.msg import Bool
 
-from .common import (exit_status, LATCHED_QOS, make_executor, SENSOR_QOS, spin_until,
+from .common import (exit_status, init_ros, LATCHED_QOS, make_executor, SENSOR_QOS, spin_until,
                      STATE_PUB_QOS, STATE_QOS, TOPICS, VehicleNode)
+from ..bag.integrity import CrcWriter
 from ..bag.play import message_class
 from ..core.errors import ObserverError
 
@@ -168,12 +169,12 @@ class RecorderNode(VehicleNode):
 
     def __init__(self):
         super().__init__('recorder', own_parameters=(
-            ('output', ''),                 # bag directory to create (must not exist)
-            ('storage', 'mcap'),            # mcap | sqlite3
-            ('extra_topics', ['']),         # "name:pkg/msg/Type"
-            ('flush_period', 1.0),          # s (wall): flush to disk, report counts
-            ('disk_reserve', 1 << 20),      # bytes kept free for closing/recovering the bag
-            ('queue_depth', 1000),          # per-topic reader queue (rides out bursts)
+            ('output', '', 'bag directory to create (must not exist); required'),
+            ('storage', 'mcap', 'mcap or sqlite3'),
+            ('extra_topics', [''], 'more topics to record, each "name:pkg/msg/Type"'),
+            ('flush_period', 1.0, 's (wall): flush to disk, report counts'),
+            ('disk_reserve', 1 << 20, 'bytes kept free for closing/recovering the bag'),
+            ('queue_depth', 1000, 'per-topic reader queue (rides out bursts)'),
         ))
         output = self.param('output')
         if not output:
@@ -196,7 +197,7 @@ class RecorderNode(VehicleNode):
             raise ObserverError(f'recorder: queue_depth must be >= 1; got {depth}')
         reserve = self._number('disk_reserve', int)
         _check_free_space(path, reserve)
-        self.writer = Writer(path, version=9, storage_plugin=STORAGES[storage])
+        self.writer = CrcWriter(path, version=9, storage_plugin=STORAGES[storage])
         try:
             self.writer.open()
         except OSError as err:
@@ -399,7 +400,9 @@ def main(args=None):
     warnings.filterwarnings('ignore', category=DeprecationWarning)
     # Our own SIGINT/SIGTERM handling: a signal stops the spinning, then the messages DDS
     # already delivered (a recorder lags a fast lock-step run) are drained into the bag.
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    code = init_ros(RecorderNode, args, signal_handler_options=SignalHandlerOptions.NO)
+    if code is not None:    # --help, or an unusable params file
+        return code
     stop = []
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.append(True))

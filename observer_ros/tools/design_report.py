@@ -17,6 +17,7 @@ import warnings
 
 from ..core.compensator import design_vehicle, format_report, to_json_dict
 from ..core.errors import ObserverError
+from ..core.sensor_subsets import format_sensor_subsets, sensor_subsets
 from ..vehicle import apply_overrides, load_vehicle, vehicle_from_parameters, \
     vehicle_to_parameters
 
@@ -32,6 +33,10 @@ def main(argv=None):
     parser.add_argument('--json', action='store_true', help='print one JSON object')
     parser.add_argument('-p', '--param', action='append', default=[], metavar='NAME:=VALUE',
                         help='override a parameter, e.g. "observer.poles:=[-1.0,-2.0]"')
+    parser.add_argument('--sensors', action='store_true',
+                        help='instead of the design: for every subset of the outputs, '
+                             'observable/detectable, the unobservable modes, and the '
+                             'steady-state Kalman error variance per state')
     args = parser.parse_args(argv)
     try:
         with warnings.catch_warnings(record=True) as caught:
@@ -41,6 +46,8 @@ def main(argv=None):
                 vehicle = vehicle_from_parameters(
                     apply_overrides(vehicle_to_parameters(vehicle), args.param),
                     source=args.vehicle)
+            if args.sensors:
+                return _sensors(vehicle, args.json)
             design = design_vehicle(vehicle)
         extra = [str(w.message) for w in caught
                  if not issubclass(w.category, DeprecationWarning)]
@@ -56,6 +63,17 @@ def main(argv=None):
         print(format_report(design, vehicle))
         for text in list(vehicle.warnings) + extra:
             print(f'warning: {text}')
+    return 0
+
+
+def _sensors(vehicle, as_json):
+    names = vehicle.plant.state_names
+    subsets = sensor_subsets(vehicle)
+    if as_json:
+        print(json.dumps({'vehicle': vehicle.name,
+                          'sensor_subsets': [s.to_json(names) for s in subsets]}, indent=2))
+    else:
+        print(format_sensor_subsets(subsets, names))
     return 0
 
 

@@ -87,6 +87,10 @@ def run_closed_loop(params_file, bag_path, storage='mcap', namespace=None, overr
     Path
 
     """
+    vehicle = load_vehicle(params_file, overrides=list(overrides))
+    if vehicle.simulator.duration == 0.0:
+        raise ObserverError(f'{params_file}: simulator.duration: 0 (run until stopped) has no '
+                            'end for observer-run; give a duration in s')
     timeout = timeout if timeout is not None else run_limit(params_file, overrides)
     bag_path = Path(bag_path)
     log_dir = Path(log_dir) if log_dir else bag_path.parent / (bag_path.name + '_logs')
@@ -117,8 +121,10 @@ def run_closed_loop(params_file, bag_path, storage='mcap', namespace=None, overr
         deadline = time.monotonic() + timeout
         while sim.poll() is None:
             if time.monotonic() > deadline:
-                raise ObserverError(f'the run did not finish within {timeout:.0f} s; '
-                                    f'see the logs in {log_dir}')
+                raise ObserverError(f'the run did not finish within {timeout:.0f} s (lock-step '
+                                    'waits for every answer; a slow observer, e.g. one '
+                                    'designing many gains at its first steps, needs a '
+                                    f'longer --timeout); see the logs in {log_dir}')
             for name, (proc, _) in procs.items():
                 if proc.poll() is not None and name != 'plant_simulator':
                     raise ObserverError(f'{name} exited with code {proc.returncode}; '
@@ -215,8 +221,11 @@ def summarize_bag(bag_path, vehicle, namespace=None):
     -------
     dict
         ``final_time``, ``final_state``, ``final_estimate``, ``final_error_norm``,
-        ``messages`` per topic, and per state ``settling_time`` (2% band around its final
-        value, measured from the start of the run).
+        ``samples`` per topic, per state ``settling_time`` (2% band around its final
+        value, measured from the start of the run; None when the run diverges),
+        ``lost_steps`` (steps of the vehicle's run, at which a sensor was due, that have
+        no estimate or no command in the bag: lost, or timed out and held),
+        ``expected_steps`` and ``diverging`` (see :func:`diverging`).
 
     """
     from ..bag.vectors import read_vector_topic   # rosbags only when needed
@@ -230,8 +239,13 @@ def summarize_bag(bag_path, vehicle, namespace=None):
     i = int(np.searchsorted(t_true, t_est[-1]))
     i = min(i, len(t_true) - 1)
     err = x_true[i] - x_est[-1]
+    lost, expected = _lost_steps(bag_path, vehicle, prefix, t_true, t_est)
+    growing = diverging(x_true)
     settle = {}
     for j, name in enumerate(names):
+        if growing:
+            settle[name] = None   # a diverging state is not settling, whatever its band
+            continue
         x = x_true[:, j]
         band = 0.02 * max(np.max(np.abs(x)), 1e-12)
         outside = np.nonzero(np.abs(x - x[-1]) > band)[0]
@@ -244,18 +258,87 @@ def summarize_bag(bag_path, vehicle, namespace=None):
         'final_error_norm': float(np.linalg.norm(err)),
         'settling_time': settle,
         'samples': {'state/true': int(len(t_true)), 'state/estimate': int(len(t_est))},
+        'lost_steps': lost,
+        'expected_steps': expected,
+        'diverging': growing,
     }
 
 
+def diverging(x, growth=10.0, blow_up=1e6):
+    """
+    Return True when a trajectory grows or blows up instead of settling.
+
+    Parameters
+    ----------
+    x : (N, n) array_like
+        The true state, one row per step.
+    growth : float
+        Diverging when the largest ``|x|`` of the last tenth of the run exceeds the
+        largest of the first tenth by this factor,
+    blow_up : float
+        or when ``|x|`` anywhere exceeds ``|x(0)|`` by this factor (a loop that reached
+        1e57 in its first steps and "decays" from there), or is not finite.
+
+    Returns
+    -------
+    bool
+
+    """
+    x = np.asarray(x, dtype=float)
+    if not np.all(np.isfinite(x)):
+        return True
+    if not x.size:
+        return False
+    k = max(1, len(x) // 10)
+    first = float(np.max(np.abs(x[:k])))
+    last = float(np.max(np.abs(x[-k:])))
+    start = float(np.max(np.abs(x[0])))
+    return last > growth * max(first, 1e-300) or \
+        float(np.max(np.abs(x))) > blow_up * max(start, 1e-300)
+
+
+def _lost_steps(bag_path, vehicle, prefix, t_true, t_est):
+    """Count the steps with a sensor due that have no estimate or no command stamped at them."""
+    from ..bag.vectors import read_vector_topic
+    dt = vehicle.sample_time
+    steps = int(round(vehicle.simulator.duration / dt))
+    dividers = [max(1, int(s.rate_divider)) for s in vehicle.sensors]
+    due = [k for k in range(steps + 1) if any(k % d == 0 for d in dividers)]
+    if not len(t_true):
+        return len(due), len(due)
+    t_cmd, _ = read_vector_topic(bag_path, prefix + 'control/u', vehicle.plant.input_names)
+
+    def stamped(t):
+        idx = np.rint((np.asarray(t, dtype=float) - t_true[0]) / dt).astype(np.int64)
+        return set(idx.tolist())
+    have_est, have_cmd = stamped(t_est), stamped(t_cmd)
+    lost = sum(1 for k in due if k not in have_est or k not in have_cmd)
+    return lost, len(due)
+
+
 def _print_summary(vehicle, summary):
+    """Print the summary; return the problems of the run (lost steps, divergence)."""
     names = vehicle.plant.state_names
     print(f'\n{vehicle.name}: {summary["final_time"]:.2f} s simulated, '
           f'{summary["samples"]["state/estimate"]} estimates')
     print(f'  final |x - x_hat| = {summary["final_error_norm"]:.3e}')
     for j, name in enumerate(names):
+        settle = summary['settling_time'][name]
+        verdict = 'DIVERGING, not settled' if settle is None else \
+            f'settled (2%) after {settle:.2f} s'
         print(f'  {name:>10}: final {summary["final_state"][j]: .6f}  '
-              f'estimate {summary["final_estimate"][j]: .6f}  '
-              f'settled (2%) after {summary["settling_time"][name]:.2f} s')
+              f'estimate {summary["final_estimate"][j]: .6f}  {verdict}')
+    problems = []
+    if summary['lost_steps']:
+        problems.append(f'{summary["lost_steps"]} of {summary["expected_steps"]} steps have no '
+                        'estimate or no command in the bag (lost, or timed out and held): the '
+                        'run is not the lock-step closed loop of the design')
+    if summary['diverging']:
+        problems.append('the closed loop diverges: the true state grows more than 10x over '
+                        'the run, or to more than 1e6 times its initial size')
+    for text in problems:
+        print(f'  FAILED: {text}')
+    return problems
 
 
 def main(argv=None):
@@ -271,16 +354,25 @@ def main(argv=None):
                         '<time>)')
     parser.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
     parser.add_argument('--namespace', help='run the vehicle in this namespace')
+    parser.add_argument('--no-clock', action='store_true',
+                        help="another vehicle of this ROS graph owns /clock: this one's "
+                             'simulator does not publish it (simulator.publish_clock:=false)')
     parser.add_argument('-p', '--param', action='append', default=[], metavar='NAME:=VALUE',
                         help='parameter override for every node, e.g. '
                              '"observer.poles:=[-1.0,-1.1,-1.2]"')
     parser.add_argument('--container', action='store_true',
                         help='run the observer and the compensator in one process')
+    parser.add_argument('--timeout', type=float, default=None, metavar='S',
+                        help='wall-time limit of the run in seconds (default 60 s plus 20 ms '
+                             'per step; lock-step waits for every answer, and a large '
+                             "observer's first steps can take a minute)")
     parser.add_argument('--evaluate', action='store_true',
                         help='replay the bag through the design, slower and faster poles and '
                              'the open-loop observer; run the loop again with the slower '
                              'poles; print the comparison')
     args = parser.parse_args(argv)
+    if args.no_clock:       # one /clock per ROS graph
+        args.param = args.param + ['simulator.publish_clock:=false']
     vehicle_path = Path(args.vehicle) if args.vehicle else _default_vehicle()
     try:
         # the file with every -p override, and every output, checked before anything starts
@@ -291,17 +383,19 @@ def main(argv=None):
         check_outputs(_planned_outputs(bag, args.evaluate))
         bag.parent.mkdir(parents=True, exist_ok=True)
         t0 = time.monotonic()
+        if args.timeout is not None and not args.timeout > 0:
+            raise ObserverError(f'--timeout must be > 0 s; got {args.timeout}')
         run_closed_loop(vehicle_path, bag, storage=args.storage, namespace=args.namespace,
-                        overrides=args.param, container=args.container)
+                        overrides=args.param, container=args.container, timeout=args.timeout)
         print(f'closed loop ran in {time.monotonic() - t0:.1f} s wall time')
         summary = summarize_bag(bag, vehicle, args.namespace)
-        _print_summary(vehicle, summary)
+        problems = _print_summary(vehicle, summary)
         if args.evaluate:
             _evaluate(vehicle_path, vehicle, design, bag, summary, args)
     except ObserverError as err:
         print(f'error: {err}', file=sys.stderr)
         return 2
-    return 0
+    return 1 if problems else 0
 
 
 def _evaluate(vehicle_path, vehicle, design, bag, summary, args):
@@ -362,10 +456,9 @@ def lessons(vehicle, design, result, summary, slow_summary):
     names = vehicle.plant.state_names
     first = names[0]
     lines = ['', "what the seeds' lessons look like on this run:"]
-    a, b = summary['settling_time'][first], slow_summary['settling_time'][first]
+    a, b = (_secs(x['settling_time'][first]) for x in (summary, slow_summary))
     lines.append(f'- slow observer poles slow the whole loop (closed loop, live): {first} '
-                 f'settles (2%) in {a:.2f} s with the design, {b:.2f} s with the poles 6x '
-                 f'slower')
+                 f'settles (2%) in {a} with the design, {b} with the poles 6x slower')
     design_vr, fast_vr = result.variants['design'], result.variants['fast']
     ratios = []
     for name in names:
@@ -392,6 +485,10 @@ def lessons(vehicle, design, result, summary, slow_summary):
         lines.append(f'- the open-loop observer {verdict}: |x - x_hat| from {start:.3g} '
                      f'(first 10%) to {end:.3g} (last 10%)')
     return '\n'.join(lines)
+
+
+def _secs(t):
+    return 'never (diverging)' if t is None else f'{t:.2f} s'
 
 
 def _fmt(values):

@@ -1,0 +1,43 @@
+# The observer alone, at a real robot's sensors (or a bag being played).
+"""
+Launch the observer for a real robot.
+
+ros2 launch observer_ros observer.launch.py vehicle:=/path/robot.yaml \\
+    remaps:="imu/data:=/robot/imu control/u:=/robot/cmd"
+
+Arguments: vehicle (a name from the package's config/ or a file), namespace, remaps
+(FROM:=TO pairs, separated by spaces or commas: the vehicle's sensor topics, control/u,
+state/estimate, ...), use_sim_time (false on a robot; true when a bag is played with
+--clock). The observer runs free (simulator.mode realtime): it never waits for commands.
+"""
+
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
+from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
+from observer_ros.launch_support import as_bool, parse_remaps, vehicle_file
+
+ARGUMENTS = (
+    ('vehicle', 'submarine', "a vehicle of the package's config/ or the robot's vehicle file"),
+    ('namespace', '', 'namespace of the node and its relative topics'),
+    ('remaps', '', 'FROM:=TO topic remaps, e.g. "imu/data:=/robot/imu control/u:=/cmd"'),
+    ('use_sim_time', 'false', 'follow /clock (a played bag) instead of the system clock'),
+)
+
+
+def _nodes(context):
+    def arg(name):
+        return LaunchConfiguration(name).perform(context)
+
+    parameters = {'simulator.mode': 'realtime',
+                  'use_sim_time': as_bool(arg('use_sim_time'), 'use_sim_time')}
+    return [Node(package='observer_ros', executable='observer', namespace=arg('namespace'),
+                 parameters=[vehicle_file(arg('vehicle')), parameters],
+                 remappings=parse_remaps(arg('remaps')), output='screen')]
+
+
+def generate_launch_description():
+    """Return the observer node for a real robot."""
+    return LaunchDescription(
+        [DeclareLaunchArgument(name, default_value=default, description=text)
+         for name, default, text in ARGUMENTS] + [OpaqueFunction(function=_nodes)])

@@ -1,0 +1,110 @@
+# observer_ros.bag.integrity: chunk CRCs in the MCAP bags this project writes, and their check.
+"""
+Chunk checksums (CRC32) of MCAP bags: write them, and say whether a bag has them.
+
+rosbags' MCAP writer (0.11) leaves the ``uncompressed_crc`` field of every Chunk record
+at 0, which the MCAP specification reads as "no checksum", so a value changed on disk
+is read back silently. :class:`CrcWriter` is rosbags' ``Writer`` whose MCAP storage fills
+that field in: it computes the CRC32 of each chunk's records (the uncompressed bytes, as
+the specification defines it) and writes it into the chunk's header once rosbags has
+written the chunk. The file is otherwise byte for byte rosbags' own, so it opens with
+rosbags and any MCAP reader, and rosbags' reader (``decompress``) then checks it.
+
+:func:`chunk_crcs` reads the field of every chunk of a bag, for the evaluation's
+"this bag has no checksums" note.
+
+"""
+
+from binascii import crc32
+from pathlib import Path
+import struct
+
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2.storage_mcap import McapWriter
+
+__all__ = ['CrcWriter', 'CrcMcapWriter', 'chunk_crcs', 'checksum_note', 'CRC_OFFSET']
+
+# A Chunk record: opcode (1), length (8), message_start_time (8), message_end_time (8),
+# uncompressed_size (8), uncompressed_crc (4), compression, records.
+CRC_OFFSET = 1 + 8 + 8 + 8 + 8
+
+
+class CrcMcapWriter(McapWriter):
+    """rosbags' MCAP storage writer that writes the CRC32 of each chunk."""
+
+    def close_chunk(self):
+        """Close the pending chunk as rosbags does, then write its CRC into its header."""
+        crc = crc32(self.chunk.bio.getbuffer())
+        start = self.bio.tell()
+        super().close_chunk()
+        end = self.bio.tell()
+        self.bio.seek(start + CRC_OFFSET)
+        self.bio.write(struct.pack('<I', crc))
+        self.bio.seek(end)
+
+
+class CrcWriter(Writer):
+    """
+    rosbags' ``Writer`` whose MCAP files carry chunk CRCs (sqlite3 bags are unchanged).
+
+    Used exactly as ``rosbags.rosbag2.Writer``.
+
+    """
+
+    STORAGE_PLUGINS = {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: CrcMcapWriter}
+
+
+def chunk_crcs(storage):
+    """
+    Return the ``uncompressed_crc`` field of every chunk of an open MCAP storage.
+
+    Parameters
+    ----------
+    storage : rosbags.rosbag2.storage_mcap.McapReader
+        An open MCAP storage reader (it has ``bio`` and the chunk index ``chunks``).
+
+    Returns
+    -------
+    crcs : list of int
+        One per chunk, in file order; 0 means the chunk has no checksum.
+
+    """
+    out = []
+    bio = storage.bio
+    for chunk in storage.chunks:
+        bio.seek(chunk.chunk_start_offset + CRC_OFFSET)
+        raw = bio.read(4)
+        if len(raw) != 4:
+            raise ValueError(f'truncated chunk header at offset {chunk.chunk_start_offset}')
+        out.append(struct.unpack('<I', raw)[0])
+    return out
+
+
+def checksum_note(path, storage, crcs):
+    """
+    Return a note for the evaluation when a bag's data is not checksummed, else ''.
+
+    Parameters
+    ----------
+    path : str or Path
+        The bag (for the message).
+    storage : str
+        ``'mcap'`` or ``'sqlite3'``.
+    crcs : list of int or None
+        :func:`chunk_crcs` of an MCAP bag (None when they could not be read).
+
+    """
+    path = Path(path)
+    if storage != 'mcap':
+        return (f'{path}: a {storage} bag has no chunk checksums: a value changed on disk '
+                'would not be detected')
+    if crcs is None or not crcs:
+        return ''
+    missing = sum(1 for c in crcs if c == 0)
+    if missing == len(crcs):
+        return (f'{path}: the bag has no chunk CRCs (written by rosbags or a recorder that '
+                'leaves them 0): a value changed on disk would not be detected')
+    if missing:
+        return (f'{path}: {missing} of {len(crcs)} chunks have no CRC: a value changed in '
+                'them would not be detected')
+    return ''

@@ -1,0 +1,209 @@
+# observer_ros.bag.jobs: bag x variant evaluations as independent jobs, serially or on Dask.
+"""
+The job layer: one job is one bag replayed through one observer configuration.
+
+A :class:`Job` names a bag, a vehicle file, a variant (its overrides of the vehicle file)
+and the evaluation's options; :func:`run_job` evaluates it with the code of
+``observer-eval`` (:func:`observer_ros.bag.evaluate.evaluate_bag` on the vehicle with the
+variant's overrides applied) and returns one row of plain data (numbers, strings), so a
+job can run in any process: it reads the bag with rosbags and imports no ROS.
+
+:func:`run_jobs` runs a list of jobs and returns their rows in the jobs' order:
+
+- ``serial``: one after the other in this process;
+- Dask (``dask.distributed``): each job a task on a cluster, a local one of ``workers``
+  processes by default, or the existing cluster whose scheduler is at ``scheduler``
+  (``tcp://host:8786``; default ``$DASK_SCHEDULER_ADDRESS``). Its workers need
+  observer_ros and its Python dependencies (not ROS) and must see the bags and vehicle
+  files at the same paths.
+
+A job that fails (a bag that cannot be read, an invalid variant) gives a row with
+``error`` set; the other jobs still run. :func:`summarize` merges the rows of a variant
+across bags.
+
+"""
+
+from dataclasses import asdict, dataclass
+import math
+import os
+import time
+from typing import Optional, Tuple
+
+import numpy as np
+
+__all__ = ['Job', 'make_jobs', 'run_job', 'run_jobs', 'summarize', 'job_dict', 'SCHEDULER_ENV']
+
+SCHEDULER_ENV = 'DASK_SCHEDULER_ADDRESS'
+
+
+@dataclass(frozen=True)
+class Job:
+    """One bag through one configuration (all fields plain, so a job pickles anywhere)."""
+
+    bag: str
+    vehicle: str
+    variant: str = 'design'
+    overrides: Tuple[str, ...] = ()
+    namespace: Optional[str] = None
+    tolerance: Optional[str] = None
+    exact: bool = False
+
+
+def make_jobs(bags, vehicle, variants=None, namespace=None, tolerance=None, exact=False):
+    """
+    Return the jobs of every bag times the design and every variant.
+
+    Parameters
+    ----------
+    bags : iterable of str or Path
+        The bags (each a bag directory or a storage file).
+    vehicle : str or Path
+        The vehicle file, for every bag.
+    variants : dict, optional
+        ``{name: [override, ...]}`` as ``observer-eval --variant``; ``design`` (the file's
+        own observer) always comes first.
+    namespace, tolerance, exact
+        As :func:`~observer_ros.bag.evaluate.evaluate_bag`'s.
+
+    """
+    configs = [('design', ())] + [(name, tuple(ov)) for name, ov in (variants or {}).items()]
+    return [Job(str(bag), str(vehicle), name, ov, namespace, tolerance, bool(exact))
+            for bag in bags for name, ov in configs]
+
+
+def run_job(job):
+    """
+    Evaluate one job; return its row (plain data).
+
+    The row is :meth:`JobResult.to_dict() <observer_ros.bag.evaluate.JobResult>` of
+    :func:`~observer_ros.bag.evaluate.evaluate_job` (``bag``, ``variant``,
+    ``observer_type``, ``estimates``, ``summary`` with ``error_rms`` and
+    ``settling_time``, ``states`` and ``outputs`` with their metrics, ``warnings``,
+    ``seconds``; inf and NaN as None) with ``error``: None, or why the job failed, in
+    one line (then the metrics are empty).
+
+    """
+    import warnings
+    from .evaluate import evaluate_job
+    from ..core.errors import ObserverError
+    start = time.perf_counter()
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter('ignore')
+            result = evaluate_job(job.bag, job.vehicle, job.variant, job.overrides,
+                                  job.namespace, job.tolerance, job.exact)
+    except (ObserverError, OSError) as err:
+        text = str(err).splitlines()[0] if str(err) else type(err).__name__
+        return {'bag': job.bag, 'vehicle': job.vehicle, 'variant': job.variant,
+                'observer_type': None, 'overrides': list(job.overrides), 'estimates': 0,
+                'counts': {}, 'summary': {}, 'states': {}, 'outputs': {},
+                'ground_truth': False, 'warnings': [],
+                'seconds': time.perf_counter() - start, 'error': text}
+    row = result.to_dict()
+    row['error'] = None
+    return row
+
+
+def run_jobs(jobs, backend='dask', workers=None, scheduler=None, progress=None):
+    """
+    Run jobs; return their rows in the jobs' order.
+
+    Parameters
+    ----------
+    jobs : list of Job
+        The jobs (:func:`make_jobs`).
+    backend : {'dask', 'serial'}
+        Where they run.
+    workers : int, optional
+        Worker processes of the local Dask cluster (default: the CPU count, at most the
+        number of jobs). Ignored with a scheduler.
+    scheduler : str, optional
+        Address of an existing Dask scheduler; default ``$DASK_SCHEDULER_ADDRESS``; when
+        neither is set, a local cluster is started and stopped.
+    progress : callable, optional
+        ``progress(done, total)`` after each finished job.
+
+    """
+    jobs = list(jobs)
+    if backend == 'serial':
+        rows = []
+        for i, job in enumerate(jobs):
+            rows.append(run_job(job))
+            if progress is not None:
+                progress(i + 1, len(jobs))
+        return rows
+    if backend != 'dask':
+        raise ValueError(f'backend must be "dask" or "serial", not {backend!r}')
+    return _run_dask(jobs, workers, scheduler or os.environ.get(SCHEDULER_ENV) or None,
+                     progress)
+
+
+def _run_dask(jobs, workers, scheduler, progress):
+    try:
+        from distributed import as_completed, Client, LocalCluster
+    except ImportError:
+        from .errors import BagToolError
+        raise BagToolError('Dask is not installed (`pip install dask distributed`); or run '
+                           'the jobs serially (--serial)') from None
+    cluster = None
+    if scheduler is None:
+        n = workers or min(os.cpu_count() or 1, max(1, len(jobs)))
+        cluster = LocalCluster(n_workers=int(n), threads_per_worker=1, processes=True,
+                               dashboard_address=None)
+        client = Client(cluster)
+    else:
+        client = Client(scheduler, timeout='30s')
+    try:
+        futures = {client.submit(run_job, job, pure=False): i for i, job in enumerate(jobs)}
+        rows = [None] * len(jobs)
+        done = 0
+        for future in as_completed(futures):
+            rows[futures[future]] = future.result()
+            done += 1
+            if progress is not None:
+                progress(done, len(jobs))
+        return rows
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def _stats(values):
+    v = np.array([x for x in values if x is not None and math.isfinite(x)], dtype=float)
+    if not v.size:
+        return {'mean': None, 'median': None, 'min': None, 'max': None}
+    return {'mean': float(v.mean()), 'median': float(np.median(v)), 'min': float(v.min()),
+            'max': float(v.max())}
+
+
+def summarize(rows):
+    """
+    Return the rows merged per variant across bags (in the variants' first order).
+
+    Each summary has ``variant``, ``bags`` (evaluated), ``failed``, and the ``mean``,
+    ``median``, ``min`` and ``max`` across bags (None without a finite value) of
+    ``error_rms``, ``settling_time``, each state's ``rmse`` and each output's
+    ``residual_rms``.
+
+    """
+    by_variant = {}
+    for row in rows:
+        by_variant.setdefault(row['variant'], []).append(row)
+    out = []
+    for name, group in by_variant.items():
+        ok = [r for r in group if r['error'] is None]
+        summary = {'variant': name, 'bags': len(ok), 'failed': len(group) - len(ok)}
+        for key in ('error_rms', 'settling_time'):
+            summary[key] = _stats(r['summary'].get(key) for r in ok)
+        for key, part in (('rmse', 'states'), ('residual_rms', 'outputs')):
+            names = list(dict.fromkeys(k for r in ok for k in r[part]))
+            summary[key] = {k: _stats(r[part].get(k, {}).get(key) for r in ok)
+                            for k in names}
+        out.append(summary)
+    return out
+
+
+def job_dict(job):
+    """Return a job as a dict (for the JSON report)."""
+    return asdict(job)

@@ -1,0 +1,95 @@
+# observer_ros.launch_support: what the package's launch files share (no launch import).
+"""
+Helpers of launch/*.launch.py: find a vehicle file, read remaps, the nodes' parameters.
+
+Kept in the package (not in the launch files) so that they are tested like the rest and
+both launch files use the same rules. Imports neither ``launch`` nor ``rclpy``.
+
+"""
+
+import os
+from pathlib import Path
+
+from .core.errors import ObserverError
+
+__all__ = ['vehicle_file', 'parse_remaps', 'as_bool']
+
+PACKAGE = 'observer_ros'
+
+
+def vehicle_file(vehicle, share=None):
+    """
+    Return the vehicle file that ``vehicle`` names.
+
+    Parameters
+    ----------
+    vehicle : str
+        A file (``~/robots/sub.yaml``, anything with a ``/`` or ending in ``.yaml``) or
+        the name of one of the package's vehicles (``submarine``: ``config/submarine.yaml``
+        under the package's share directory).
+    share : str or Path, optional
+        The package's share directory (default: from ament_index).
+
+    Returns
+    -------
+    str
+        An absolute path to an existing file.
+
+    Raises
+    ------
+    ObserverError
+        The file does not exist; for a name, the package's vehicles are listed.
+
+    """
+    vehicle = vehicle.strip()
+    if not vehicle:
+        raise ObserverError('vehicle: empty; give a vehicle name (submarine) or a file')
+    if '/' in vehicle or vehicle.endswith(('.yaml', '.yml')):
+        path = Path(os.path.expanduser(vehicle)).resolve()
+        if not path.is_file():
+            raise ObserverError(f'vehicle: {vehicle}: no such file')
+        return str(path)
+    if share is None:
+        from ament_index_python.packages import get_package_share_directory
+        share = get_package_share_directory(PACKAGE)
+    config = Path(share) / 'config'
+    path = config / f'{vehicle}.yaml'
+    if not path.is_file():
+        known = sorted(p.stem for p in config.glob('*.yaml'))
+        raise ObserverError(f"vehicle: {vehicle!r} is not one of the package's vehicles "
+                            f'{known} nor a file')
+    return str(path)
+
+
+def parse_remaps(text):
+    """
+    Read ``from:=to`` remaps separated by commas or spaces.
+
+    Parameters
+    ----------
+    text : str
+        For example ``imu/data:=/robot/imu,control/u:=/robot/cmd``.
+
+    Returns
+    -------
+    list of tuple
+        ``[(from, to), ...]``, as launch_ros's ``remappings`` takes them.
+
+    """
+    remaps = []
+    for item in text.replace(',', ' ').split():
+        source, sep, target = item.partition(':=')
+        if not sep or not source or not target:
+            raise ObserverError(f'remaps: {item!r} is not FROM:=TO')
+        remaps.append((source, target))
+    return remaps
+
+
+def as_bool(text, name):
+    """Return a launch argument's ``true``/``false`` as a bool; refuse anything else."""
+    value = str(text).strip().lower()
+    if value in ('true', '1', 'yes'):
+        return True
+    if value in ('false', '0', 'no'):
+        return False
+    raise ObserverError(f'{name}: {text!r} is not true or false')

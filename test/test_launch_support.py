@@ -1,0 +1,31 @@
+# The rules the launch files share: which vehicle file, which remaps, which booleans.
+"""observer_ros.launch_support: vehicle names or files, remaps, true/false."""
+
+from observer_ros.core.errors import ObserverError
+from observer_ros.launch_support import as_bool, parse_remaps, vehicle_file
+import pytest
+from ros_helpers import CONFIG, REPO
+
+
+def test_vehicle_by_name_or_file():
+    assert vehicle_file('submarine', share=REPO) == str(CONFIG / 'submarine.yaml')
+    assert vehicle_file(str(CONFIG / 'pitch_imu.yaml')) == str(CONFIG / 'pitch_imu.yaml')
+    with pytest.raises(ObserverError, match=r"'sub' is not one of .*'submarine'"):
+        vehicle_file('sub', share=REPO)
+    with pytest.raises(ObserverError, match='no such file'):
+        vehicle_file('/nowhere/robot.yaml')
+
+
+def test_remaps():
+    assert parse_remaps('imu/data:=/robot/imu control/u:=/robot/cmd') == [
+        ('imu/data', '/robot/imu'), ('control/u', '/robot/cmd')]
+    assert parse_remaps('a:=b,c:=d') == [('a', 'b'), ('c', 'd')]
+    assert parse_remaps('') == []
+    with pytest.raises(ObserverError, match="'imu/data' is not FROM:=TO"):
+        parse_remaps('imu/data')
+
+
+def test_booleans():
+    assert as_bool('True', 'record') is True and as_bool('false', 'record') is False
+    with pytest.raises(ObserverError, match="record: 'maybe'"):
+        as_bool('maybe', 'record')

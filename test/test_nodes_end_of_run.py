@@ -1,0 +1,93 @@
+# How a simulated run ends, and who owns /clock when several vehicles share a graph.
+"""The simulator ends a realtime run cleanly; peers then report stale data; one /clock."""
+
+from diagnostic_msgs.msg import DiagnosticStatus
+from ros_helpers import CONFIG, Probe, Proc
+from rosgraph_msgs.msg import Clock
+from test_nodes_faults import Listener
+
+WAIT = 90.0     # s: discovery on a loaded 2-core machine can take long
+# long enough for the loop to close on a loaded machine (DDS matching can take seconds)
+REALTIME = ('simulator.mode:=realtime', 'simulator.duration:=5.0', 'diagnostics_period:=0.2')
+
+
+def test_realtime_run_ends_cleanly_and_peers_report_stale_data(tmp_path):
+    probe = Probe()
+    listener = Listener(probe)
+    peers = [Proc(node, CONFIG / 'submarine.yaml', *REALTIME, 'use_sim_time:=true',
+                  namespace='/end', log_dir=tmp_path)
+             for node in ('observer_node', 'compensator')]
+    sim = None
+    try:
+        probe.wait_subscribers('/end/imu/data', timeout=WAIT)
+        probe.wait_subscribers('/end/control/u', timeout=WAIT)
+        probe.wait_subscribers('/end/state/estimate', timeout=WAIT)
+        probe.wait_publishers('/end/state/estimate', timeout=WAIT)
+        sim = Proc('plant_simulator', CONFIG / 'submarine.yaml', *REALTIME, namespace='/end',
+                   log_dir=tmp_path)
+        probe.spin_until(
+            lambda: (s := listener.latest_status('/end/compensator')) is not None and
+            s.level == DiagnosticStatus.OK, WAIT, 'the compensator closing the loop')
+        # the run ends on its own: exit 0, a log line, no FATAL and no traceback
+        assert sim.popen.wait(timeout=WAIT) == 0, sim.output()
+        out = sim.output()
+        assert 'run complete at t=' in out, out
+        assert 'FATAL' not in out and 'Traceback' not in out, out
+        # the observer names the (resolved) silent topic; the compensator's estimate is stale
+        probe.spin_until(
+            lambda: (s := listener.latest_status('/end/observer')) is not None and
+            s.level == DiagnosticStatus.WARN and 'no data on /end/imu/data' in s.message,
+            WAIT, 'the observer reporting /end/imu/data silent')
+        probe.spin_until(
+            lambda: (s := listener.latest_status('/end/compensator')) is not None and
+            s.level == DiagnosticStatus.ERROR and 'estimate stale' in s.message and
+            '/end/state/estimate' in s.message,
+            WAIT, 'the compensator reporting a stale estimate')
+    finally:
+        probe.close()
+        codes = {p.log_path.name: p.stop() for p in peers}
+        if sim is not None:
+            sim.stop()
+    assert set(codes.values()) == {0}, codes
+
+
+def test_zero_duration_runs_until_stopped(tmp_path):
+    probe = Probe()
+    sim = Proc('plant_simulator', CONFIG / 'submarine.yaml', 'simulator.mode:=realtime',
+               'simulator.duration:=0.0', 'simulator.realtime_factor:=20.0',
+               namespace='/forever', log_dir=tmp_path)
+    clocks = []
+    probe.node.create_subscription(Clock, '/clock', clocks.append, 10)
+    try:
+        # 40 s of simulated time: longer than the file's 30 s duration, still running
+        probe.spin_until(lambda: clocks and clocks[-1].clock.sec >= 41, WAIT,
+                         '/clock past 41 s')
+        assert sim.alive(), sim.output()
+    finally:
+        probe.close()
+    assert sim.stop() == 0, sim.output()
+
+
+def test_two_vehicles_share_one_clock(tmp_path):
+    """The vehicle that owns time publishes /clock; the other (publish_clock false) not."""
+    probe = Probe()
+    clocks = []
+    sub = probe.node.create_subscription(Clock, '/clock', clocks.append, 100)
+    sims = [Proc('plant_simulator', CONFIG / 'submarine.yaml', 'simulator.mode:=realtime',
+                 'simulator.duration:=0.0', f'simulator.publish_clock:={owner}',
+                 namespace=ns, log_dir=tmp_path)
+            for ns, owner in (('/sub1', 'true'), ('/sub2', 'false'))]
+    try:
+        # both simulators are up (their sensors are in the graph) and stepping
+        probe.wait_publishers('/sub1/imu/data', timeout=WAIT)
+        probe.wait_publishers('/sub2/imu/data', timeout=WAIT)
+        probe.spin_until(lambda: sub.get_publisher_count() >= 1, WAIT, '/clock matched')
+        probe.spin_until(lambda: len(clocks) >= 200, WAIT, '200 /clock messages')
+        assert probe.node.count_publishers('/clock') == 1
+        times = [m.clock.sec + m.clock.nanosec * 1e-9 for m in clocks]
+        # one time source: it never goes back (two would interleave 52, 310, 52, ...)
+        assert all(b > a for a, b in zip(times, times[1:])), times[:20]
+    finally:
+        probe.close()
+        codes = [sim.stop() for sim in sims]
+    assert codes == [0, 0], [sim.output() for sim in sims]

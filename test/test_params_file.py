@@ -1,0 +1,100 @@
+# Reading parameters files: what ROS's parser accepts and nothing more, within limits.
+"""The loader refuses aliases, oversized files, over-long arrays and non-UTF-8 text."""
+
+import subprocess
+import sys
+import time
+
+from observer_ros.core.errors import VehicleFileError
+from observer_ros.params_file import MAX_ARRAY_LENGTH, MAX_FILE_BYTES
+from observer_ros.vehicle import load_parameters, load_vehicle
+import pytest
+from ros_helpers import CONFIG, ros_env
+
+HEAD = '/**:\n  ros__parameters:\n'
+
+
+def _alias_bomb(path):
+    lines = [HEAD + '    a: &a ["lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol"]']
+    for i in range(1, 10):
+        name, prev = chr(97 + i), chr(96 + i)
+        lines.append(f'    {name}: &{name} [' + ', '.join([f'*{prev}'] * 9) + ']')
+    path.write_text('\n'.join(lines) + '\n')
+    return path
+
+
+def _long_array(path, n):
+    path.write_text(HEAD + '    model:\n      A: [' + ', '.join(['1.0'] * n) + ']\n')
+    return path
+
+
+def test_aliases_are_refused_as_ros_does(tmp_path):
+    start = time.monotonic()
+    with pytest.raises(VehicleFileError, match=r'anchors and aliases .* not allowed'):
+        load_parameters(_alias_bomb(tmp_path / 'bomb.yaml'))
+    assert time.monotonic() - start < 5.0       # refused at the first anchor, not expanded
+    # a lone anchor too: ROS refuses the file
+    (tmp_path / 'anchor.yaml').write_text(HEAD + '    a: &x 1.0\n')
+    with pytest.raises(VehicleFileError, match='line 3'):
+        load_parameters(tmp_path / 'anchor.yaml')
+
+
+def test_file_size_is_checked_before_reading(tmp_path):
+    path = tmp_path / 'big.yaml'
+    with open(path, 'w') as f:
+        f.write(HEAD + '    # ' + 'x' * (50 * MAX_FILE_BYTES) + '\n')
+    with pytest.raises(VehicleFileError) as err:
+        load_parameters(path)
+    assert 'MAX_FILE_BYTES' in str(err.value) and str(MAX_FILE_BYTES) in str(err.value)
+    assert '\n' not in str(err.value)
+
+
+def test_array_length_is_limited(tmp_path):
+    with pytest.raises(VehicleFileError) as err:
+        load_parameters(_long_array(tmp_path / 'long.yaml', MAX_ARRAY_LENGTH + 1))
+    assert 'MAX_ARRAY_LENGTH' in str(err.value) and '\n' not in str(err.value)
+    # at the limit: read
+    flat = load_parameters(_long_array(tmp_path / 'ok.yaml', MAX_ARRAY_LENGTH))
+    assert len(flat['model.A']) == MAX_ARRAY_LENGTH
+
+
+def test_non_utf8_is_one_clear_error(tmp_path):
+    path = tmp_path / 'latin1.yaml'
+    path.write_bytes(HEAD.encode() + b'    vehicle:\n      name: caf\xe9\n')
+    with pytest.raises(VehicleFileError, match=r'not UTF-8 .*0xe9.*line 4'):
+        load_parameters(path)
+
+
+def test_every_shipped_vehicle_is_within_the_limits():
+    for path in CONFIG.glob('*.yaml'):
+        assert path.stat().st_size < MAX_FILE_BYTES / 10, path
+        load_vehicle(path)
+
+
+def _run(module, *args):
+    start = time.monotonic()
+    result = subprocess.run([sys.executable, '-W', 'ignore::DeprecationWarning', '-m', module,
+                             *args], capture_output=True, text=True, timeout=120,
+                            env=ros_env())
+    return result, time.monotonic() - start
+
+
+@pytest.mark.parametrize('make', ['bomb', 'big', 'long'])
+def test_node_refuses_a_file_as_the_tool_does(tmp_path, make):
+    path = tmp_path / f'{make}.yaml'
+    if make == 'bomb':
+        _alias_bomb(path)
+    elif make == 'long':
+        _long_array(path, MAX_ARRAY_LENGTH + 1)
+    else:
+        path.write_text(HEAD + '    # ' + 'x' * (2 * MAX_FILE_BYTES) + '\n')
+    tool, tool_s = _run('observer_ros.tools.design_report', str(path))
+    node, node_s = _run('observer_ros.nodes.observer_node', '--ros-args', '--params-file',
+                        str(path))
+    for result in (tool, node):
+        assert result.returncode == 2, result.stderr
+        errors = [line for line in result.stderr.splitlines() if line.startswith('error:')]
+        assert len(errors) == 1 and 'Traceback' not in result.stderr, result.stderr
+    # the same refusal, before rclpy parses the file
+    assert tool.stderr.strip().splitlines()[-1] == node.stderr.strip().splitlines()[-1]
+    assert node_s < 30.0, node_s

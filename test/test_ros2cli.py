@@ -1,0 +1,240 @@
+# The package as a ROS 2 user meets it: colcon build, then the real `ros2` client.
+"""The README's real-install commands, run with the real ros2 client and ros2 launch."""
+
+import os
+from pathlib import Path
+import re
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+from ros_helpers import DOMAIN_ID, REPO
+import yaml
+
+README = (REPO / 'README.md').read_text()
+EXECUTABLES = ['compensator', 'container', 'observer', 'observer_bag_recover',
+               'observer_design', 'observer_eval', 'observer_eval_batch', 'observer_play',
+               'observer_run',
+               'observer_tune', 'plant_simulator', 'recorder']
+BUILD = 'colcon build --packages-select observer_ros'
+LAUNCH = ('ros2 launch observer_ros closed_loop.launch.py vehicle:=submarine mode:=realtime '
+          'duration:=0')
+SECOND = LAUNCH + ' namespace:=sub2 publish_clock:=false'
+ROBOT = ('ros2 launch observer_ros observer.launch.py vehicle:=submarine '
+         'remaps:="imu/data:=/robot/imu control/u:=/robot/cmd"')
+RECORD = ('ros2 launch observer_ros closed_loop.launch.py vehicle:=pitch_imu mode:=lockstep '
+          'record:=true bag:=bags/runs/pitch_launch')
+WAIT = 180.0    # s: a loaded 2-core machine; every wait ends as soon as its condition holds
+
+
+def _kit():
+    """Return ../shared/ros2cli (the client's wheels) if it is there."""
+    for parent in REPO.parents:
+        kit = parent / 'shared' / 'ros2cli'
+        if (kit / 'install.sh').is_file():
+            return kit
+    return None
+
+
+def _client_setup():
+    """Return the shell lines that put `ros2` on PATH, or skip when there is no client."""
+    venv = Path(sys.prefix)
+    kit = _kit()
+    if kit is not None:
+        if not (venv / 'bin' / 'ros2').exists():    # what `make setup` does
+            subprocess.run([str(kit / 'install.sh'), str(venv)], check=True, timeout=600,
+                           capture_output=True)
+        return f'source {shlex.quote(str(kit / "env.sh"))} {shlex.quote(str(venv))}'
+    if shutil.which('ros2'):
+        return 'true'       # a real install: the user's sourced /opt/ros/jazzy
+    pytest.skip('no ros2 client: ../shared/ros2cli is absent and no system ros2 is on PATH')
+
+
+@pytest.fixture(scope='module')
+def ros2env(tmp_path_factory):
+    """Build the package as the README says, in a workspace; return that shell's env."""
+    ws = tmp_path_factory.mktemp('ws')
+    (ws / 'src').mkdir()
+    (ws / 'src' / 'observer_ros').symlink_to(REPO)
+    script = (f'{_client_setup()} && cd {shlex.quote(str(ws))} && {BUILD} >&2 && '
+              'source install/setup.bash && env -0')
+    env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONUNBUFFERED='1')
+    result = subprocess.run(['bash', '-c', script], env=env, capture_output=True,
+                            timeout=600)
+    assert result.returncode == 0, result.stderr.decode()[-3000:]
+    env = dict(item.split('=', 1) for item in result.stdout.decode().split('\0') if '=' in item)
+    env['ROS_DOMAIN_ID'] = str(DOMAIN_ID)
+    env['OBSERVER_ROS_WS'] = str(ws)
+    yield env
+    subprocess.run(['ros2', 'daemon', 'stop'], env=env, capture_output=True, timeout=60)
+
+
+def _ros2(env, command, timeout=WAIT):
+    """Run one ros2 command line (as typed in the README); return the CompletedProcess."""
+    return subprocess.run(['bash', '-c', command], env=env, capture_output=True, text=True,
+                          timeout=timeout, cwd=env['OBSERVER_ROS_WS'])
+
+
+class Launch:
+    """A `ros2 launch` in its own process group: stop() is Ctrl-C in its terminal."""
+
+    def __init__(self, env, command, log):
+        self.log = log
+        self._out = open(log, 'w')
+        self.proc = subprocess.Popen(['bash', '-c', 'exec ' + command], env=env,
+                                     stdout=self._out, stderr=subprocess.STDOUT,
+                                     start_new_session=True, cwd=env['OBSERVER_ROS_WS'])
+
+    def stop(self):
+        """SIGINT to the whole group (as a terminal does); return the exit status."""
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGINT)
+            try:
+                self.proc.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait()
+        self._out.close()
+        return self.proc.returncode
+
+    def output(self):
+        """Return what ros2 launch and its nodes printed."""
+        if not self._out.closed:
+            self._out.flush()
+        return Path(self.log).read_text()
+
+
+def _wait_nodes(env, *names):
+    """Wait until `ros2 node list` shows every node (all started: Ctrl-C is safe)."""
+    deadline = time.monotonic() + WAIT
+    while True:
+        listed = _ros2(env, 'ros2 node list').stdout.split()
+        if set(names) <= set(listed):
+            return
+        assert time.monotonic() < deadline, f'nodes {names} not all up: {listed}'
+
+
+def _assert_stopped_cleanly(launch, nodes):
+    code = launch.stop()
+    out = launch.output()
+    assert code == 0, out[-3000:]
+    assert 'process has died' not in out and 'Traceback' not in out, out[-3000:]
+    assert out.count('process has finished cleanly') == nodes, out[-3000:]
+
+
+def test_readme_commands_are_the_tested_ones():
+    block = README[README.index('## On a real ROS 2 Jazzy install'):]
+    block = block[:block.index('```', block.index('```') + 3)]
+    for command in (BUILD, 'ros2 pkg executables observer_ros', LAUNCH, SECOND, ROBOT, RECORD,
+                    'ros2 topic echo --once /state/estimate sensor_msgs/msg/JointState',
+                    'ros2 param describe /observer model.A',
+                    'ros2 param set /observer observer.poles "[-1.0, -1.1, -1.2]"',
+                    'ros2 param dump /observer > observer.yaml && '
+                    'ros2 param load /observer observer.yaml',
+                    'ros2 run observer_ros observer --help'):
+        assert command in block, command
+
+
+def test_each_executable_listed_once_and_runs(ros2env):
+    result = _ros2(ros2env, 'ros2 pkg executables observer_ros')
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == [w for exe in EXECUTABLES for w in ('observer_ros', exe)]
+    result = _ros2(ros2env, 'ros2 run observer_ros observer --help')
+    assert result.returncode == 0 and '--params-file' in result.stdout, result.stderr
+    result = _ros2(ros2env, 'ros2 run observer_ros observer')   # no params file
+    assert result.returncode == 2 and 'error: no vehicle parameters' in result.stderr
+
+
+def test_closed_loop_launch_params_and_one_clock(ros2env, tmp_path):
+    first = Launch(ros2env, LAUNCH, tmp_path / 'first.log')
+    second = None
+    try:
+        echo = _ros2(ros2env, 'ros2 topic echo --once /state/estimate sensor_msgs/msg/JointState')
+        assert echo.returncode == 0 and 'position:' in echo.stdout, first.output()[-3000:]
+        # a second vehicle that does not own time: still one /clock publisher
+        second = Launch(ros2env, SECOND, tmp_path / 'second.log')
+        echo = _ros2(ros2env,
+                     'ros2 topic echo --once /sub2/state/estimate sensor_msgs/msg/JointState')
+        assert echo.returncode == 0, second.output()[-3000:]
+        _wait_nodes(ros2env, '/observer', '/compensator', '/plant_simulator',
+                    '/sub2/observer', '/sub2/compensator', '/sub2/plant_simulator')
+        info = _ros2(ros2env, 'ros2 topic info /clock')
+        assert 'Publisher count: 1' in info.stdout, info.stdout + first.output()[-2000:]
+        _check_parameters(ros2env, tmp_path)
+    finally:
+        if second is not None:
+            _assert_stopped_cleanly(second, 3)
+        _assert_stopped_cleanly(first, 3)
+
+
+def _check_parameters(env, tmp_path):
+    describe = _ros2(env, 'ros2 param describe /observer model.A')
+    assert 'Description: n x n, row-major' in describe.stdout, describe.stdout
+    assert 'Read only: true' in describe.stdout, describe.stdout
+    refused = _ros2(env, 'ros2 param set /observer model.A "[0.0]"')
+    assert 'Trying to set a read-only parameter: model.A' in refused.stderr, refused
+    refused = _ros2(env, 'ros2 param set /observer observer.poles "[0.5, -1.0, -2.0]"')
+    said = refused.stdout + refused.stderr
+    assert 'Setting parameter failed' in said and 'would not be stable' in said, said
+    applied = _ros2(env, 'ros2 param set /observer observer.poles "[-1.0, -1.1, -1.2]"')
+    assert applied.stdout.strip() == 'Set parameter successful', applied
+    # dump, load, dump: the same values; only the read-only ones are reported as not set
+    result = _ros2(env, 'ros2 param dump /observer > observer.yaml && '
+                   'ros2 param load /observer observer.yaml')
+    assert result.returncode == 0, result.stderr
+    failed = [line for line in result.stderr.splitlines() if 'failed' in line]
+    assert failed and all('read-only' in line for line in failed), result.stderr
+    assert 'Set parameter observer.poles successful' in result.stdout, result.stdout
+    dumped = Path(env['OBSERVER_ROS_WS']) / 'observer.yaml'
+    again = _ros2(env, 'ros2 param dump /observer')
+    assert yaml.safe_load(again.stdout) == yaml.safe_load(dumped.read_text())
+    assert yaml.safe_load(again.stdout)['/observer']['ros__parameters']['observer'][
+        'poles'] == [-1.0, -1.1, -1.2]
+
+
+def test_observer_launch_follows_the_remaps(ros2env, tmp_path):
+    launch = Launch(ros2env, ROBOT, tmp_path / 'robot.log')
+    pub = None
+    try:
+        pub = subprocess.Popen(
+            ['ros2', 'topic', 'pub', '-r', '20', '/robot/imu', 'sensor_msgs/msg/Imu',
+             '{header: {stamp: now}}'], env=ros2env, stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL, start_new_session=True)
+        echo = _ros2(ros2env, 'ros2 topic echo --once /state/estimate sensor_msgs/msg/JointState')
+        assert echo.returncode == 0 and 'position:' in echo.stdout, launch.output()[-3000:]
+        _wait_nodes(ros2env, '/observer')
+        info = _ros2(ros2env, 'ros2 node info /observer')
+        subscribers = info.stdout[info.stdout.index('Subscribers:'):
+                                  info.stdout.index('Publishers:')]
+        assert re.search(r'/robot/imu: sensor_msgs/msg/Imu', subscribers), info.stdout
+        assert '/robot/cmd: sensor_msgs/msg/JointState' in subscribers, info.stdout
+    finally:
+        if pub is not None:
+            os.killpg(pub.pid, signal.SIGINT)
+            pub.wait(timeout=60)
+        _assert_stopped_cleanly(launch, 1)
+
+
+def test_recorded_lockstep_launch(ros2env, tmp_path):
+    """The lock-step loop with the recorder: the run ends by itself, Ctrl-C closes the bag."""
+    launch = Launch(ros2env, RECORD, tmp_path / 'record.log')
+    try:
+        deadline = time.monotonic() + WAIT
+        while 'run complete at t=' not in launch.output():
+            assert launch.proc.poll() is None and time.monotonic() < deadline, \
+                launch.output()[-3000:]
+            time.sleep(0.5)     # polling a log file, not timing anything
+    finally:
+        _assert_stopped_cleanly(launch, 4)
+    out = launch.output()
+    assert re.search(r'bag closed: bags/runs/pitch_launch \((\d+) messages\)', out), out
+    bag = Path(ros2env['OBSERVER_ROS_WS']) / 'bags' / 'runs' / 'pitch_launch'
+    meta = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    counts = {t['topic_metadata']['name']: t['message_count']
+              for t in meta['topics_with_message_count']}
+    # pitch_imu: 3 s at 500 Hz in lock-step, one true state per step (1501 with step 0)
+    assert counts['/state/true'] >= 1500, counts

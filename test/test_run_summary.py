@@ -1,0 +1,61 @@
+"""observer-run's summary: lost or timed-out steps and divergence are failures (issue #11)."""
+
+from bag_synth import CONFIG, simulate, write_bag
+import numpy as np
+from observer_ros.bag.evaluate import evaluate_bag
+from observer_ros.core.errors import DesignVerificationError
+from observer_ros.tools.run_closed_loop import _print_summary, diverging, summarize_bag
+from observer_ros.vehicle import load_vehicle
+import pytest
+
+
+def _run(tmp_path, drop_every=0, name='bag'):
+    vehicle = load_vehicle(str(CONFIG / 'submarine.yaml'), overrides=['simulator.duration:=5.0'])
+    run = simulate(vehicle)
+    messages = run['messages']
+    if drop_every:
+        est = [i for i, m in enumerate(messages) if m[0] == 'state/estimate']
+        gone = set(est[::drop_every])
+        messages = [m for i, m in enumerate(messages) if i not in gone]
+    path = tmp_path / name
+    write_bag(path, messages)
+    return vehicle, summarize_bag(path, vehicle)
+
+
+def test_complete_run_has_no_problems(tmp_path, capsys):
+    vehicle, summary = _run(tmp_path)
+    assert summary['lost_steps'] == 0 and summary['expected_steps'] == 101
+    assert not summary['diverging']
+    assert _print_summary(vehicle, summary) == []
+    assert 'FAILED' not in capsys.readouterr().out
+
+
+def test_lost_estimates_are_reported(tmp_path, capsys):
+    vehicle, summary = _run(tmp_path, drop_every=10)
+    assert summary['lost_steps'] == 11
+    problems = _print_summary(vehicle, summary)
+    assert len(problems) == 1 and problems[0].startswith('11 of 101 steps')
+    assert 'FAILED: 11 of 101 steps' in capsys.readouterr().out
+
+
+def test_diverging_trajectory_is_never_settled():
+    t = np.arange(300) * 0.05
+    grow = np.exp(0.8 * t)[:, None] * np.array([[1.0, -0.5]])
+    assert diverging(grow)
+    assert diverging(np.array([[1.0], [np.inf]]))
+    decay = np.exp(-0.8 * t)[:, None] * np.array([[1.0, -0.5]])
+    assert not diverging(decay)
+    # the n = 20 run of issue #11: 1e57 within the first steps, then "decaying"
+    blew = np.concatenate([[[0.45]], [[3e7]], [[1e57]], 1e57 * decay[:, :1]])
+    assert diverging(blew)
+
+
+def test_eval_variant_gains_are_verified_before_replay(tmp_path):
+    """observer-eval's variants pass the same design verification (issue #11)."""
+    vehicle = load_vehicle(str(CONFIG / 'submarine.yaml'), overrides=['simulator.duration:=1.0'])
+    path = tmp_path / 'bag'
+    write_bag(path, simulate(vehicle)['messages'])
+    bad = ['observer.poles:=null', 'observer.gain:=[0.0, 0.0, -5.0]']
+    with pytest.raises(DesignVerificationError, match=r"variant 'bad': observer\.gain does "
+                       r'not stabilize the loop: eig\(A - L C\) has the eigenvalue'):
+        evaluate_bag(path, vehicle, {'bad': bad})
