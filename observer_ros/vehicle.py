@@ -25,8 +25,8 @@ import yaml
 
 from .core.errors import ObserverError, VehicleFileError
 from .core.model import as_poles, Plant
-from .core.spec import (ControllerSpec, OBSERVER_TYPES, ObserverSpec, SENSOR_TYPES,
-                        SensorSpec, SimulatorSpec, Vehicle)
+from .core.spec import (ControllerSpec, HISTORY_LENGTH, OBSERVER_TYPES, ObserverSpec,
+                        SENSOR_TYPES, SensorSpec, SimulatorSpec, Vehicle)
 from .params_file import _yaml_load, flatten_parameters, load_parameters
 from .sensors import (extract_measurement, fill_measurement, MeasurementError,
                       parse_field)
@@ -116,6 +116,11 @@ KNOWN_KEYS = _keys(
     KeySpec('observer.initial_estimate', DOUBLE_ARRAY, 'x_hat(0) (n); default zeros'),
     KeySpec('observer.rate_hz', DOUBLE, 'Hz, prediction-only publish rate; default the '
             'simulator rate', minimum=0.0),
+    KeySpec('observer.history_length', DOUBLE, 's, >= 0: late messages this much older '
+            'than the estimate are used at their stamps (0: refused)', default=HISTORY_LENGTH,
+            minimum=0.0),
+    KeySpec('observer.publish_rate_hz', DOUBLE, 'Hz, > 0: also publish the estimate '
+            'predicted to now at this rate (free-running); default off', minimum=0.0),
     KeySpec('controller.poles', DOUBLE_ARRAY, 'real parts of eig(A - B K) (n)'),
     KeySpec('controller.poles_imag', DOUBLE_ARRAY, 'imaginary parts; default all 0'),
     KeySpec('controller.K', DOUBLE_ARRAY, 'm x n, row-major'),
@@ -944,8 +949,11 @@ def _read_observer(check, plant, discrete, sensors, simulator, warnings):
         _warn_unused(check, design_keys + kalman_keys, 'by an open_loop observer', warnings)
     initial = check.vector('observer.initial_estimate', n, 'states')
     rate = check.double('observer.rate_hz', positive=True)
+    history = check.double('observer.history_length', minimum=0.0)
+    publish_rate = check.double('observer.publish_rate_hz', positive=True)
     return ObserverSpec(kind=kind, poles=poles, gain=gain, method=method, Qd=Qd, Rd=Rd,
-                        Bd=Bd, initial_estimate=initial, rate_hz=rate)
+                        Bd=Bd, initial_estimate=initial, rate_hz=rate,
+                        history_length=history, publish_rate_hz=publish_rate)
 
 
 # -- writing ------------------------------------------------------------------------------
@@ -1016,6 +1024,9 @@ def vehicle_to_parameters(vehicle):
         flat['observer.method'] = o.method
     if o.rate_hz is not None:
         flat['observer.rate_hz'] = float(o.rate_hz)
+    flat['observer.history_length'] = float(o.history_length)
+    if o.publish_rate_hz is not None:
+        flat['observer.publish_rate_hz'] = float(o.publish_rate_hz)
     c = vehicle.controller
     if c.poles is not None:
         _put_poles(flat, 'controller', c.poles)

@@ -28,6 +28,7 @@ def test_run_all_smoke_prints_every_ratio():
         'P4': ['placement_error_ours/place_worst_single_output',
                'placement_error_ours/place_worst_multi_output',
                'acker_chosen_where_it_loses_digits'],
+        'P5': [f'rewind_100ms_at_1kHz/in_order[{kind}]' for kind in ('kalman', 'full')],
     }.items():
         for name in names:
             assert re.search(rf'^RATIO {bench} {re.escape(name)} = \S+', out, re.M), \

@@ -832,7 +832,7 @@ def jittered_times(n, dt, jitter, seed=0):
 
 def count_designs(monkeypatch):
     """Count the pole placements the estimators run (the list grows by one per design)."""
-    import observer_ros.core.estimators as estimators
+    import observer_ros.core.estimators.placement as estimators
     designs = []
     real = estimators._place
 
@@ -935,7 +935,7 @@ def test_jittered_stamps_kalman_close_to_exact_design():
 def test_quick_gain_matches_the_full_design():
     # The quick placement (Ackermann, or scipy's place_poles when Ackermann loses digits)
     # is used only when it places the poles to 1e-10; it agrees with design.observer_gain.
-    import observer_ros.core.estimators as estimators
+    import observer_ros.core.estimators.placement as estimators
     from observer_ros.core.design import observer_gain
     for plant, poles, h in ((submarine(), SUB_POLES, 0.004), (cart(), CART_POLES, 0.01),
                             (imu_pitch(), [-5.0, -6.0], 0.01)):

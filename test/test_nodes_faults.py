@@ -137,8 +137,9 @@ def test_observer_survives_every_bad_message(observer_setup):
     pub.publish(_imu(0.0, 0.0))
     listener.wait_counter('observer', 'bad_stamps', 1)
     good()
-    # an older stamp (out of order, less than the clock-jump tolerance back)
-    pub.publish(_imu(t - 0.2, 0.0))
+    # an older stamp (out of order: older than the history, 0.25 s, and less than the
+    # clock-jump tolerance back)
+    pub.publish(_imu(t - 0.4, 0.0))
     listener.wait_counter('observer', 'out_of_order', 1)
     # a duplicate stamp: not corrected twice, the estimate is re-published
     n_before = len(listener.estimates)

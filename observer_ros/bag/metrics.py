@@ -10,6 +10,8 @@ import math
 
 import numpy as np
 
+from .replay import innovation_health
+
 __all__ = ['DEFAULT_TOLERANCE', 'STEADY_FRACTION', 'WHITENESS_LAGS', 'truth_at',
            'state_metrics', 'whiteness', 'tolerances', 'score_variant']
 
@@ -188,3 +190,4 @@ def score_variant(result, vr):
         vr.summary['settling_time'] = float(max(settles)) if settles else math.nan
     for j, name in enumerate(plant.output_names):
         vr.outputs[name] = whiteness(rep.residual[:, j]) if len(rep) else whiteness([])
+    vr.sensors = innovation_health(rep)

@@ -19,6 +19,13 @@ as ``observer_ros.nodes.observer_node`` handles it:
   a non-finite estimate resets the estimator at t.
 - a command at stamp t: ``est.set_input(t, u)``; a stamp before the estimate's time is
   held from the estimate's time on, or resets the estimator if it is a clock jump.
+- a measurement or command stamped before the estimate's time but inside the vehicle's
+  ``observer.history_length`` is used at its own stamp, through the same
+  :class:`~observer_ros.core.estimators.History` as the node (``out_of_order`` counts
+  only those older than the history). The estimates it revises are recorded as revised
+  (each row is the estimate at its stamp once every message of the history is in), and
+  the rows are then in stamp order within each epoch: a bag in receive order gives the
+  estimates of the same bag in stamp order.
 
 So replaying a noise-free recorded run through the vehicle's own design reproduces the
 live estimate to round-off.
@@ -49,15 +56,16 @@ bulk's different round-off as much. ``exact=True`` turns bulk replay off.
 
 import copy
 from dataclasses import dataclass, field
-from typing import Dict, Tuple
+from typing import Dict, Optional, Tuple
 
 import numpy as np
 
 from .errors import BagToolError
 from ..core.errors import ObserverError
-from ..core.estimators import make_estimator
+from ..core.estimators import History, make_estimator
+from ..core.innovation import sequence_health, whiten
 
-__all__ = ['Replay', 'replay', 'live_replay', 'epochs_of', 'affine_scan',
+__all__ = ['Replay', 'replay', 'live_replay', 'epochs_of', 'affine_scan', 'innovation_health',
            'CLOCK_JUMP_TOLERANCE', 'FUTURE_TOLERANCE']
 
 CLOCK_JUMP_TOLERANCE = 0.5     # s, as the observer node's clock_jump_tolerance
@@ -97,6 +105,10 @@ class Replay:
     overrides: Tuple[str, ...] = ()
     bulk_steps: int = 0
     warnings: list = field(default_factory=list)
+    # residuals whitened by their covariance (Kalman: C P C^T + R; else noise_std), as
+    # residual; None for the live estimate (core.innovation)
+    whitened: Optional[np.ndarray] = None
+    kalman: bool = False
 
     @property
     def t(self):
@@ -363,11 +375,13 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
     sensors = _variant_sensors(vehicle, recording)
     counts = dict.fromkeys(('measurements', 'commands', 'bad_messages', 'bad_commands',
                             'zero_stamps', 'out_of_order', 'duplicates', 'future_stamps',
-                            'rejected_updates', 'numerical_resets', 'clock_jumps'), 0)
+                            'rejected_updates', 'numerical_resets', 'clock_jumps',
+                            'late_measurements'), 0)
     events = _Events(recording, sensors, plant, counts,
                      lockstep=vehicle.simulator.mode == 'lockstep',
                      clock_jump_tolerance=clock_jump_tolerance)
     est = make_estimator(plant, vehicle.observer)
+    history = History(est, vehicle.observer.history_length)
     rows = [tuple(plant.output_rows(s.outputs)) for s in sensors]
     rows_idx = [np.array(r, dtype=np.intp) for r in rows]
     streams = events.streams
@@ -382,12 +396,14 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
     out_ns = np.zeros(n_meas, dtype=np.int64)
     out_x = np.zeros((n_meas, plant.n))
     out_r = np.full((n_meas, plant.p), np.nan)
+    kalman = est.kind == 'kalman'
+    out_e = np.full((n_meas, plant.p), np.nan) if kalman else None
     out_epoch = np.zeros(n_meas, dtype=np.int64)
     out_seq = np.zeros(n_meas, dtype=np.int64)
     out_sensor = np.zeros(n_meas, dtype=np.int64)
     runs = {}
     warnings = []
-    if not exact and _bulk_capable(est):
+    if not exact and _bulk_capable(est) and not _has_late(events, streams, cmd, history.length):
         runs = _find_runs(events, streams, cmd, est, clock_jump_tolerance, future_tolerance)
     stamps = [s.stamp_ns for s in streams]
     jump = clock_jump_tolerance
@@ -409,16 +425,11 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
             u = cmd_u[j]
             last = est.t
             try:
-                if last is not None and t < last:
-                    if last - t > jump:
-                        est.reset(None, None)
-                        counts['clock_jumps'] += 1
-                        epoch += 1
-                        est.set_input(t, u)
-                    else:
-                        est.set_input(last, u)
-                else:
-                    est.set_input(t, u)
+                if last is not None and last - t > jump:
+                    history.reset(None, None)
+                    counts['clock_jumps'] += 1
+                    epoch += 1
+                history.set_input(t, u)     # older than the history: from the estimate's t
                 counts['commands'] += 1
             except (ObserverError, ValueError):
                 counts['bad_commands'] += 1
@@ -428,11 +439,11 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
         last = est.t
         if last is not None and t < last:
             if last - t > jump:
-                est.reset(None, None)
+                history.reset(None, None)
                 last_stamp.clear()
                 counts['clock_jumps'] += 1
                 epoch += 1
-            else:
+            elif not history.accepts(t):
                 counts['out_of_order'] += 1
                 i += 1
                 continue
@@ -445,23 +456,32 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
             i += 1
             continue
         try:
-            x = est.correct(t, values[k][j], rows[k])
+            head = history.correct(t, values[k][j], rows[k], tag=m)
         except (ObserverError, ValueError):
             counts['rejected_updates'] += 1
             i += 1
             continue
-        if not np.all(np.isfinite(x)):
-            est.reset(None, t)
+        if not np.all(np.isfinite(head)):
+            history.reset(None, t)
             counts['numerical_resets'] += 1
             i += 1
             continue
-        last_stamp[k] = t
+        if last is not None and t < last:
+            counts['late_measurements'] += 1
+            for r, x_r, res_r, S_r in history.revised:     # estimates the late one changed
+                out_x[r] = x_r
+                out_r[r, rows_idx[out_sensor[r]]] = res_r
+                if kalman:
+                    _put_whitened(out_e, r, rows_idx[out_sensor[r]], res_r, S_r)
+        last_stamp[k] = max(t, last_stamp.get(k, t))
         counts['measurements'] += 1
         out_ns[m] = stamps[k][j]
-        out_x[m] = x
-        res = est.residual
+        out_x[m] = history.x_at_stamp
+        res = history.residual
         if res is not None:
             out_r[m, rows_idx[k]] = res
+            if kalman:
+                _put_whitened(out_e, m, rows_idx[k], res, history.innovation_covariance)
         out_epoch[m] = epoch
         out_seq[m] = sq
         out_sensor[m] = k
@@ -480,14 +500,76 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
             counts['measurements'] += steps
             counts['commands'] += run['commands']
             last_stamp.update(last)
+            history.forget()             # the bulk stretch drove the estimator itself
             run = runs.get(i)
         i += 1
     if progress is not None:
         progress(total, total)
-    return Replay(name=name, vehicle=vehicle, stamp_ns=out_ns[:m], x_hat=out_x[:m],
-                  residual=out_r[:m], epoch=out_epoch[:m], seq=out_seq[:m],
-                  sensor=out_sensor[:m], counts=counts, overrides=tuple(overrides),
-                  bulk_steps=bulk_steps, warnings=warnings)
+    # late measurements were used at their stamps: the rows in stamp order (per epoch)
+    order = np.lexsort((out_ns[:m], out_epoch[:m])) if counts['late_measurements'] else \
+        slice(None)
+    if not kalman:      # whitened by the sensors' noise_std (NaN where it is 0)
+        std = np.full(plant.p, np.nan)
+        for s, r in zip(sensors, rows_idx):
+            std[r] = np.where(np.asarray(s.noise_std) > 0.0, s.noise_std, np.nan)
+        out_e = out_r / std
+    return Replay(name=name, vehicle=vehicle, stamp_ns=out_ns[:m][order],
+                  x_hat=out_x[:m][order], residual=out_r[:m][order],
+                  epoch=out_epoch[:m][order], seq=out_seq[:m][order],
+                  sensor=out_sensor[:m][order], counts=counts, overrides=tuple(overrides),
+                  bulk_steps=bulk_steps, warnings=warnings, whitened=out_e[:m][order],
+                  kalman=kalman)
+
+
+def _put_whitened(out_e, m, cols, residual, S):
+    if S is None:           # a Kalman filter before its first covariance: not counted
+        return
+    try:
+        out_e[m, cols] = whiten(residual, S)
+    except (ValueError, np.linalg.LinAlgError):
+        pass
+
+
+def innovation_health(rep):
+    """
+    Return the innovation health of each sensor of a replay, as the node judges it.
+
+    Parameters
+    ----------
+    rep : Replay
+        From :func:`replay` (None figures for the live estimate).
+
+    Returns
+    -------
+    health : dict
+        Sensor name -> :func:`observer_ros.core.innovation.sequence_health` figures.
+
+    """
+    if rep.whitened is None:
+        return {}
+    plant = rep.vehicle.plant
+    out = {}
+    for k, s in enumerate(rep.vehicle.sensors):
+        cols = list(plant.output_rows(s.outputs))
+        out[s.name] = sequence_health(s.name, rep.whitened[rep.sensor == k][:, cols],
+                                      rep.kalman)
+    return out
+
+
+def _has_late(events, streams, cmd, length):
+    """Tell whether a message comes, in replay order, up to ``length`` s after a newer one."""
+    if length <= 0.0 or not len(events):
+        return False
+    kind, idx = events.kind, events.idx
+    t = np.empty(kind.size)
+    for k, stream in enumerate(streams):
+        sel = kind == k
+        t[sel] = stream.t[idx[sel]]
+    if cmd is not None:
+        sel = kind < 0
+        t[sel] = cmd.t[idx[sel]]
+    back = np.maximum.accumulate(t) - t
+    return bool(np.any((back > 0.0) & (back <= length)))
 
 
 # ---------------------------------------------------------------------------------------

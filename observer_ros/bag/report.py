@@ -16,6 +16,7 @@ from .metrics import WHITENESS_LAGS
 from .outputs import prepare_output, seal_output
 from .plots import decimate, write_plots
 from .reader import jazzy_typestore
+from ..core.innovation import WINDOW as INNOVATION_WINDOW
 
 __all__ = ['BAG_MAX_MESSAGES', 'fmt', 'text_table', 'format_table',
            'write_results', 'write_results_bag', 'csv_cell']
@@ -102,6 +103,15 @@ def format_table(result):
                       f'{WHITENESS_LAGS}; p small = not white; acf_out ~0.05 if white)',
                   '', text_table(['variant', 'output', 'N', 'rms', 'LB_Q', 'LB_p',
                                   'acf_out'], rows)]
+    rows = [[name, sensor, h['samples'], fmt(h['nis_mean']), f"{h['windows_inconsistent']}/"
+             f"{h['windows']}", fmt(h['whiteness_p'], 3), 'ok' if h['consistent'] else 'WARN']
+            for name, vr in result.variants.items()
+            for sensor, h in getattr(vr, 'sensors', {}).items()]
+    if rows:
+        lines += ['', 'innovation health per sensor (NIS and whiteness over windows of '
+                      f'{INNOVATION_WINDOW}, as the node judges them)',
+                  '', text_table(['variant', 'sensor', 'N', 'NIS', 'bad_windows', 'white_p',
+                                  'health'], rows)]
     return '\n'.join(lines)
 
 

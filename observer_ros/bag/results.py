@@ -27,7 +27,9 @@ class VariantResult:
     and ``samples`` (matched with the truth); empty without ground truth. ``outputs`` maps
     an output name to ``samples``, ``residual_rms``, ``ljung_box_q``, ``ljung_box_p``,
     ``lags`` and ``acf_outside``. ``summary`` has ``error_rms`` (RMS of the error norm)
-    and ``settling_time`` (the largest over the states).
+    and ``settling_time`` (the largest over the states). ``sensors`` maps a sensor name to
+    its innovation health, judged by windows as the node does
+    (:func:`~observer_ros.bag.replay.innovation_health`).
 
     """
 
@@ -38,6 +40,7 @@ class VariantResult:
     states: Dict[str, dict] = field(default_factory=dict)
     outputs: Dict[str, dict] = field(default_factory=dict)
     summary: Dict[str, object] = field(default_factory=dict)
+    sensors: Dict[str, dict] = field(default_factory=dict)
     error: Optional[np.ndarray] = None       # (N, n) x_hat - x_true; NaN where unmatched
 
     @property
@@ -118,6 +121,7 @@ class EvalResult:
                 'summary': dict(v.summary),
                 'states': v.states,
                 'outputs': v.outputs,
+                'sensors': v.sensors,
             }
         return jsonable(out)
 

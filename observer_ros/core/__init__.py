@@ -16,6 +16,8 @@ from .errors import *       # noqa: F401,F403
 from .errors import __all__ as _errors_all
 from .estimators import *   # noqa: F401,F403
 from .estimators import __all__ as _estimators_all
+from .innovation import *   # noqa: F401,F403
+from .innovation import __all__ as _innovation_all
 from .model import *        # noqa: F401,F403
 from .model import __all__ as _model_all
 from .simulate import *     # noqa: F401,F403
@@ -25,4 +27,4 @@ from .spec import __all__ as _spec_all
 
 __all__ = (list(_errors_all) + list(_model_all) + list(_spec_all) + list(_analysis_all)
            + list(_design_all) + list(_compensator_all) + list(_estimators_all)
-           + list(_simulate_all))
+           + list(_simulate_all) + list(_innovation_all))

@@ -16,10 +16,15 @@ import numpy as np
 from .model import Plant
 
 __all__ = ['SensorSpec', 'ObserverSpec', 'ControllerSpec', 'SimulatorSpec', 'Vehicle',
-           'OBSERVER_TYPES', 'SENSOR_TYPES']
+           'OBSERVER_TYPES', 'SENSOR_TYPES', 'HISTORY_LENGTH']
 
 OBSERVER_TYPES = ('full', 'reduced', 'open_loop', 'kalman')
 SENSOR_TYPES = ('sensor_msgs/msg/Imu', 'sensor_msgs/msg/JointState', 'std_msgs/msg/Float64')
+
+#: Default ``observer.history_length`` (s): longer than the latency of the slow sensors of
+#: the vehicles here (40 ms), shorter than the node's clock-jump tolerance (0.5 s: a larger
+#: step back is a clock restart). See estimators.history.
+HISTORY_LENGTH = 0.25
 
 
 @dataclass(frozen=True)
@@ -50,6 +55,8 @@ class ObserverSpec:
     Bd: Optional[np.ndarray] = None          # kalman: n x k (None: identity)
     initial_estimate: Optional[np.ndarray] = None   # n (None: zeros)
     rate_hz: Optional[float] = None
+    history_length: float = HISTORY_LENGTH           # s, >= 0
+    publish_rate_hz: Optional[float] = None          # Hz; None: no fixed-rate output
 
 
 @dataclass(frozen=True)

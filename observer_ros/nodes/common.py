@@ -80,6 +80,7 @@ TOPICS = {
     'true_state': 'state/true',
     'estimate': 'state/estimate',
     'residual': 'observer/residual',
+    'covariance': 'state/covariance',
     'command': 'control/u',
     'command_array': 'control/u_array',
     'reference': 'control/reference',
@@ -282,8 +283,13 @@ class VehicleNode(Node):
         """Increment a diagnostics counter."""
         self._counters[key] = self._counters.get(key, 0) + n
 
-    def publish_diagnostics(self, level, message, values=None):
-        """Publish one DiagnosticStatus for this node on /diagnostics."""
+    def publish_diagnostics(self, level, message, values=None, extra=()):
+        """
+        Publish this node's DiagnosticStatus on /diagnostics (and ``extra`` ones after it).
+
+        ``extra``: ``(name suffix, level, message, values)`` of statuses named
+        ``<node>/<suffix>`` in the same array (the observer's per-sensor innovation health).
+        """
         status = DiagnosticStatus()
         status.level = level
         status.name = f'{self.get_fully_qualified_name()}'
@@ -295,6 +301,11 @@ class VehicleNode(Node):
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
         array.status = [status]
+        for suffix, level, text, more in extra:
+            part = DiagnosticStatus(level=level, name=f'{status.name}/{suffix}', message=text,
+                                    hardware_id=status.hardware_id)
+            part.values = [KeyValue(key=str(k), value=str(v)) for k, v in sorted(more.items())]
+            array.status.append(part)
         self._diag_pub.publish(array)
 
 

@@ -70,7 +70,7 @@ class ObserverHealth:
         distance to the plant as an estimation error, which the cart's fast observer turns
         into a theta_dot transient of 1e4 rad/s.
         """
-        gap = t - self.estimator.t
+        gap = t - self.history.t
         self.get_logger().warning(
             f'{sensor.topic}: {gap:.2f} s since the estimate, longer than the '
             f'{self._max_gap:.2f} s over which the unstable model grows the error '
@@ -78,11 +78,11 @@ class ObserverHealth:
             throttle_duration_sec=1.0)
         self.count('long_gap_resets')
         self.count('estimator_resets')
-        self.estimator.reset(None, None)
+        self.history.reset(None, None)      # the estimator, and its history forgotten
         x0 = self.estimator.x_hat
         C = self.vehicle.plant.C[list(rows)]
         x0 = x0 + np.linalg.pinv(C) @ (np.asarray(y, dtype=float) - C @ x0)
-        self.estimator.reset(x0, None)
+        self.history.reset(x0, None)
         self._envelope.reset()
 
     def _health_status(self, now, level, message, values):

@@ -4,7 +4,15 @@ Observer node: sensor topics and the command u in, the state estimate x_hat out.
 
 Subscribes to every sensor of the vehicle file (sensor-data QoS) and to ``control/u``;
 publishes ``state/estimate`` (JointState named by the states) and ``observer/residual``
-(named by the outputs). Each measurement corrects with its own rows of C at its own stamp.
+(named by the outputs); a Kalman observer also ``state/covariance``, the covariance P of
+each estimate that answers a measurement (:func:`covariance_names`). Each measurement
+corrects with its own rows of C at its own stamp; a message stamped before the estimate
+but inside ``observer.history_length`` is used at its stamp (the core's
+:class:`~observer_ros.core.estimators.History` rewinds), so sensors with different
+latencies all count. Per sensor, /diagnostics carries the innovation health
+(``<node>/innovation/<sensor>``, :mod:`observer_ros.core.innovation`). With
+``observer.publish_rate_hz`` (free running) the estimate predicted to now is also
+published at that rate.
 
 A malformed stamp (``nanosec`` >= 10^9, negative ``sec``, the first second) is refused and
 counted (``bad_stamps``) before it reaches the estimator; a command stamped far in the
@@ -29,10 +37,11 @@ from .common import (checked_stamp, joint_state, MESSAGE_CLASSES, run_node, SENS
 from .observer_health import ObserverHealth
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
-from ..core.estimators import make_estimator
+from ..core.estimators import History, make_estimator
+from ..core.innovation import InnovationMonitor
 from ..sensors import extract_measurement
 
-__all__ = ['ObserverNode', 'main']
+__all__ = ['ObserverNode', 'covariance_names', 'main']
 
 
 class ObserverNode(ObserverHealth, VehicleNode):
@@ -46,6 +55,11 @@ class ObserverNode(ObserverHealth, VehicleNode):
         ))
         self._design_and_build(self.vehicle)
         v = self.vehicle
+        if v.observer.history_length > self.param('clock_jump_tolerance'):
+            self.get_logger().warning(
+                f'observer.history_length ({v.observer.history_length:g} s) is longer than '
+                f'clock_jump_tolerance ({self.param("clock_jump_tolerance"):g} s): a message '
+                'that late resets the estimator as a clock jump instead')
         self._lockstep = v.simulator.mode == 'lockstep'
         self._pending_commands = 0          # lockstep: estimates whose command is not back
         self._pending_since = None
@@ -60,6 +74,9 @@ class ObserverNode(ObserverHealth, VehicleNode):
         self._future_bound_until = 0.0
         self._init_health()
         self._est_pub = self.create_publisher(JointState, TOPICS['estimate'], STATE_PUB_QOS)
+        # Kalman: P of each estimate answering a measurement (covariance_names)
+        self._cov_pub = self.create_publisher(JointState, TOPICS['covariance'], STATE_PUB_QOS) \
+            if v.observer.kind == 'kalman' else None
         self._res_pub = self.create_publisher(JointState, TOPICS['residual'], STATE_PUB_QOS)
         self._subs = []
         # diagnostics name the topics as remapped and namespaced (/sub1/imu/data)
@@ -81,6 +98,9 @@ class ObserverNode(ObserverHealth, VehicleNode):
             # prediction at observer.rate_hz (default: the simulator's rate)
             rate = v.observer.rate_hz or v.simulator.rate_hz
             self._predict_timer = self.wall_timer(1.0 / rate, self._on_predict)
+            if v.observer.publish_rate_hz:
+                self._publish_timer = self.wall_timer(1.0 / v.observer.publish_rate_hz,
+                                                      self._on_publish_rate)
 
     # -- design -------------------------------------------------------------------------
     def _design_and_build(self, vehicle):
@@ -97,6 +117,11 @@ class ObserverNode(ObserverHealth, VehicleNode):
             log.warning(text)
         self.design = design
         self.estimator = make_estimator(vehicle.plant, vehicle.observer)
+        # every message goes through the history (late ones at their stamps); the
+        # estimator is read (x_hat, t) but only the history changes it
+        self.history = History(self.estimator, vehicle.observer.history_length)
+        self._health = InnovationMonitor([(s.name, s.noise_std) for s in vehicle.sensors],
+                                         kalman=vehicle.observer.kind == 'kalman')
         self.vehicle = vehicle
         # each sensor's rows of C, looked up once rather than per message
         self._rows = {s.name: vehicle.plant.output_rows(s.outputs) for s in vehicle.sensors}
@@ -125,10 +150,13 @@ class ObserverNode(ObserverHealth, VehicleNode):
         if problem is not None:
             self.count('parameter_changes_refused')
             return SetParametersResult(successful=False, reason=problem)
-        # Keep the estimate: only the gain changes.
+        # Keep the estimate: only the gain changes (the history starts again).
         if self.estimator.t is not None:
             estimator.reset(self.estimator.x_hat, self.estimator.t)
         self.vehicle, self.design, self.estimator = vehicle, design, estimator
+        self.history = History(estimator, vehicle.observer.history_length)
+        self._health = InnovationMonitor([(s.name, s.noise_std) for s in vehicle.sensors],
+                                         kalman=vehicle.observer.kind == 'kalman')
         self.get_logger().info(f'observer redesigned: poles {_poles(design.observer_poles)}')
         self.count('parameter_changes_applied')
         return SetParametersResult(successful=True)
@@ -167,10 +195,12 @@ class ObserverNode(ObserverHealth, VehicleNode):
         if not self._check_time(sensor, t, stamp):
             return
         rows = self._rows[sensor.name]
-        if self.estimator.t is not None and t - self.estimator.t > self._max_gap:
+        history = self.history
+        late = history.t is not None and t < history.t
+        if not late and history.t is not None and t - history.t > self._max_gap:
             self._long_gap(sensor, t, y, rows)
         try:
-            x_hat = self.estimator.correct(t, y, rows)
+            x_hat = history.correct(t, y, rows, tag=stamp)
         except (ObserverError, ValueError) as err:
             self._reject('rejected_updates', f'{sensor.topic}: {err}')
             self._answer_without_correction(sensor, t, stamp)
@@ -184,24 +214,47 @@ class ObserverNode(ObserverHealth, VehicleNode):
         problem = self._envelope.check(t, x_hat)
         if problem is not None:
             self._on_divergence(t, problem)
-        self._last_stamp[sensor.name] = t
+        self._last_stamp[sensor.name] = max(t, self._last_stamp.get(sensor.name, t))
         self.count('measurements')
-        # the estimate first: it is what the compensator waits for (benchmarks P1)
-        self._publish_estimate(t, sensor.frame_id, stamp)
-        residual = self.estimator.residual
+        # the estimate first: it is what the compensator waits for (benchmarks P1). A late
+        # measurement is answered with the estimate at the newest stamp, now revised.
+        if late:
+            self.count('late_measurements')
+            self._publish_estimate(history.t, sensor.frame_id, history.head_tag)
+        else:
+            self._publish_estimate(t, sensor.frame_id, stamp)
+        self._publish_covariance()
+        residual = history.residual
+        if residual is not None:
+            self._health.add(sensor.name, residual, history.innovation_covariance)
         if residual is not None and self._res_pub.get_subscription_count():
             self._res_pub.publish(joint_state(sensor.outputs, residual, t, sensor.frame_id,
                                               stamp))
 
-    def _publish_estimate(self, t, frame_id, stamp=None):
-        msg = joint_state(self.vehicle.plant.state_names, self.estimator.x_hat, t, frame_id,
-                          stamp)
+    def _publish_estimate(self, t, frame_id, stamp=None, x_hat=None):
+        x_hat = self.estimator.x_hat if x_hat is None else x_hat
+        msg = joint_state(self.vehicle.plant.state_names, x_hat, t, frame_id, stamp)
         self._est_pub.publish(msg)
         self._last_estimate = msg
         if self._lockstep:
             self._pending_commands += 1
             self._pending_since = time.monotonic()
             self._pending_stamp = t
+
+    def _publish_covariance(self):
+        """Kalman: publish P of the estimate just published, with its stamp."""
+        pub = self._cov_pub
+        if pub is None or not pub.get_subscription_count():
+            return
+        P = getattr(self.estimator, 'P', None)
+        msg = self._last_estimate
+        if P is None or msg is None:
+            return
+        names = self.vehicle.plant.state_names
+        upper = np.triu_indices(len(names))
+        cov = JointState(header=msg.header, name=covariance_names(names),
+                         position=P[upper].tolist())
+        pub.publish(cov)
 
     def _answer_without_correction(self, sensor, t, stamp=None):
         """
@@ -212,19 +265,20 @@ class ObserverNode(ObserverHealth, VehicleNode):
         """
         if not self._lockstep or t is None or t <= 0.0:
             return
-        last = self.estimator.t
+        last = self.history.t
+        x_hat, at = self.estimator.x_hat, last
         if last is None or t >= last:
             try:
-                self.estimator.predict(t)
+                x_hat, at = self.history.predict(t), t
             except (ObserverError, ValueError):
                 return
-        if np.isfinite(self.estimator.x_hat).all():
-            at = self.estimator.t if self.estimator.t is not None else t
-            self._publish_estimate(at, sensor.frame_id, stamp if at == t else None)
+        if np.isfinite(x_hat).all():
+            at = t if at is None else at
+            self._publish_estimate(at, sensor.frame_id, stamp if at == t else None, x_hat)
 
     def _check_time(self, sensor, t, stamp=None):
         """Handle stamps that go backwards, repeat, or lie far in the future."""
-        last = self.estimator.t
+        last = self.history.t
         if last is not None and t < last:
             if last - t > self.param('clock_jump_tolerance'):
                 self._reset_estimator('clock_jumps', f'{sensor.topic}: clock jumped back '
@@ -233,9 +287,11 @@ class ObserverNode(ObserverHealth, VehicleNode):
                 self._future_bound = None
                 self._envelope.reset()
                 return True
-            self._reject('out_of_order', f'{sensor.topic}: stamp {t:.6f} older than '
-                         f'the estimate ({last:.6f}); skipped')
-            return False
+            if not self.history.accepts(t):
+                self._reject('out_of_order', f'{sensor.topic}: stamp {t:.6f} older than the '
+                             f'history ({self.history.length:g} s before the estimate, '
+                             f'{last:.6f}); skipped')
+                return False
         if self._last_stamp.get(sensor.name) == t:
             # a repeat (a simulator re-sending a message whose answer was lost): answer it
             # again with the current estimate, without correcting twice
@@ -264,7 +320,7 @@ class ObserverNode(ObserverHealth, VehicleNode):
 
     def _reset_estimator(self, counter, reason, t=None):
         """Reset the estimator to its initial estimate: always logged and counted."""
-        self.estimator.reset(None, t)
+        self.history.reset(None, t)         # the estimator, and its history forgotten
         self.count(counter)
         self.count('estimator_resets')
         self.get_logger().warning(f'{reason}; estimator reset to its initial estimate',
@@ -281,7 +337,7 @@ class ObserverNode(ObserverHealth, VehicleNode):
         try:
             u = vector_from_joint_state(msg, self.vehicle.plant.input_names, topic)
             now = self.get_clock().now().nanoseconds * 1e-9
-            last = self.estimator.t
+            last = self.history.t
             jump = self.param('clock_jump_tolerance')
             # a command is not a time source: it never moves the estimator's time far (set_input
             # propagates x_hat to its stamp) nor resets it; only the sensors' stamps can
@@ -291,20 +347,13 @@ class ObserverNode(ObserverHealth, VehicleNode):
             elif last is not None and t - last > jump:
                 self._reject('future_stamps', f'{topic}: stamp {t:.6f} is {t - last:.3f} s '
                              'ahead of the estimate; skipped')
-            elif last is not None and t < last:
-                # a command for an older stamp: held from the estimate's time on
+            # inside the history: from its stamp on; older: held from the estimate's time
+            elif self.history.set_input(t, u, tag=msg.header.stamp):
                 if last - t > jump:
                     self._reject('late_commands', f'{topic}: stamp {t:.6f} is {last - t:.3f} '
                                  's older than the estimate; held from now on')
-                self.estimator.set_input(last, u)
-            elif last is not None and t > last:
-                # ahead of the last measurement, within clock_jump_tolerance (a compensator
-                # predicting while this node was paused, on a clock a little ahead of the
-                # plant's): held from the estimate's time; propagating to its stamp would
-                # make the measurements that follow look out of order
-                self.estimator.set_input(last, u)
-            else:
-                self.estimator.set_input(t, u)
+                else:
+                    self.count('late_commands_held_from_now')
         except (ObserverError, ValueError) as err:
             self._reject('bad_commands', f'{topic}: {err}')
         if self._lockstep and self._pending_commands > 0 and t == self._pending_stamp:
@@ -340,18 +389,26 @@ class ObserverNode(ObserverHealth, VehicleNode):
         if any(now_wall - self._last_seen.get(s.name, -np.inf) <= s.timeout
                for s in self.vehicle.sensors):
             return
-        last = self.estimator.t
+        self._publish_prediction('predictions')
+
+    def _on_publish_rate(self):
+        """Publish the estimate predicted to now (``observer.publish_rate_hz``)."""
+        self._publish_prediction('rate_publications')
+
+    def _publish_prediction(self, counter):
+        """Publish the estimate predicted to the clock's time (the history unchanged)."""
+        last = self.history.t
         now = self.get_clock().now().nanoseconds * 1e-9
         # only when the stamps are on this node's clock (not a replayed bag's old time)
         if last is None or not 0.0 < now - last < 100.0 * max(
                 s.timeout for s in self.vehicle.sensors):
             return
         try:
-            self.estimator.predict(now)
+            x_hat = self.history.predict(now)
         except (ObserverError, ValueError):
             return
-        self.count('predictions')
-        self._publish_estimate(now, self.vehicle.sensors[0].frame_id)
+        self.count(counter)
+        self._publish_estimate(now, self.vehicle.sensors[0].frame_id, None, x_hat)
 
     def _on_diagnostics(self):
         now = self.wall_now()
@@ -371,7 +428,31 @@ class ObserverNode(ObserverHealth, VehicleNode):
         if duplicates:
             level = DiagnosticStatus.ERROR
             message = f'more than one publisher: {", ".join(duplicates)}'
-        self.publish_diagnostics(level, message, values)
+        self.publish_diagnostics(level, message, values, extra=self._health_statuses())
+
+    def _health_statuses(self):
+        """Return one status per sensor: its residuals' consistency with the model."""
+        out = []
+        for h in self._health.report():
+            level = DiagnosticStatus.OK if h.consistent else DiagnosticStatus.WARN
+            text = h.problem or (f'{h.name}: consistent' if h.samples >= self._health.window
+                                 else f'{h.name}: {h.samples} residuals, window not full')
+            out.append((f'innovation/{h.name}', level, text, {
+                'samples': h.samples, 'nis_mean': f'{h.nis_mean:.4g}',
+                'nis_bounds': f'{h.nis_low:.4g}..{h.nis_high:.4g}',
+                'whiteness_p': f'{h.whiteness_p:.3g}'}))
+        return out
+
+
+def covariance_names(state_names):
+    """
+    Return the names of the entries of ``state/covariance``: the upper triangle of P.
+
+    ``'theta,w'`` is ``P[theta, w]``, row by row (``theta,theta``, ``theta,w``, ...,
+    ``w,w``, ...); n (n + 1) / 2 of them.
+    """
+    n = len(state_names)
+    return [f'{state_names[i]},{state_names[j]}' for i in range(n) for j in range(i, n)]
 
 
 def _poles(poles):

@@ -1,0 +1,123 @@
+# observer_ros.core.estimators.current_form: the correction shared by full and reduced order.
+"""
+Current-form correction ``x+ = x- + M (ybar - C x-)`` with same-stamp fusion.
+
+The full-order and reduced-order observers given poles differ only in their gain M.
+
+"""
+
+import numpy as np
+
+from .base import _as_rows, Estimator
+
+
+class _CurrentForm(Estimator):
+    """
+    Estimators whose correction is ``x+ = x- + M(h, rows) (ybar - C x-)``.
+
+    h is the time since the previous correction (or since the initial estimate),
+    so predictions in between do not change the error dynamics from one
+    correction to the next, ``e+ <- (I - M C) Ad(h) e+``. Several corrections
+    at one time are fused: the correction is recomputed from the prior at that
+    time with all the rows received at that time (ybar = y - D u of each row as
+    received).
+
+    """
+
+    _STATE = Estimator._STATE + ('_x_prior', '_acc', '_acc_rows', '_acc_key', '_t_corr')
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        p = self._plant.p
+        n = self._plant.n
+        self._x_prior = np.zeros(n)
+        self._acc = np.zeros(p)
+        self._acc_rows = set()
+        self._acc_key = None
+        self._t_corr = None
+        self._init_gains = {}
+
+    def _reset_state(self):
+        self._acc_rows = set()
+        self._acc_key = None
+        self._t_corr = None
+
+    def _correct(self, y, info):
+        t = self._t
+        ybar = y - info.D @ self._u
+        if self._t_corr is None or t != self._t_corr:
+            h = t - self._t_anchor
+            self._acc_key = None if h <= 0.0 else self._cache.key(h)
+            np.copyto(self._x_prior, self._x)
+            self._acc_rows = set(info.rows)
+            self._t_corr = t
+            union = info if info.is_sorted else \
+                self._rows_info(tuple(sorted(info.rows)), 'rows')
+        else:
+            self._acc_rows.update(info.rows)
+            union = self._rows_info(tuple(sorted(self._acc_rows)), 'rows')
+        self._acc[info.idx] = ybar
+        self._residual = ybar - info.C @ self._x_prior
+        self._t_anchor = t
+        M = self._gain(self._acc_key, union)
+        if M is None:
+            np.copyto(self._x, self._x_prior)
+            return
+        innov = self._acc[union.idx] - union.C @ self._x_prior
+        np.dot(M, innov, out=self._buf)
+        self._buf += self._x_prior
+        self._x, self._buf = self._buf, self._x
+
+    def _gain(self, key, info):
+        """Return M (n x len(info.rows)) for the interval key, or None (no correction)."""
+        raise NotImplementedError
+
+    def _zpoles(self, step):
+        if step.k is None:
+            return np.exp(self._poles * step.h)
+        return self._poles ** step.k
+
+    def correction_gain(self, dt, rows=None):
+        """
+        Return the gain M of a correction that comes dt seconds after the previous one.
+
+        Parameters
+        ----------
+        dt : float
+            Time since the previous correction, > 0.
+        rows : sequence of int, optional
+            Output rows of the correction; default all measured rows.
+
+        Returns
+        -------
+        M : (n, len(rows)) ndarray
+            ``x+ = x- + M (y - D u - C[rows] x-)``.
+
+        """
+        info = self._all if rows is None else self._rows_info(tuple(sorted(
+            _as_rows(rows, 'rows', self._plant))), 'rows')
+        return self._gain(self._cache.key(self._as_time(dt)), info).copy()
+
+    def error_matrix(self, dt, rows=None):
+        """
+        Return the error transition from one correction to the next, dt seconds later.
+
+        Parameters
+        ----------
+        dt : float
+            Time between the corrections, > 0.
+        rows : sequence of int, optional
+            Output rows of the second correction; default all measured rows.
+
+        Returns
+        -------
+        F : (n, n) ndarray
+            ``e+_{k+1} = F e+_k`` with ``F = (I - M C[rows]) Ad(dt)``; its
+            eigenvalues are the z-plane observer poles exp(s dt).
+
+        """
+        info = self._all if rows is None else self._rows_info(tuple(sorted(
+            _as_rows(rows, 'rows', self._plant))), 'rows')
+        step = self._cache.step(self._as_time(dt))
+        M = self._gain(step.key, info)
+        return (np.eye(self._plant.n) - M @ info.C) @ step.Ad

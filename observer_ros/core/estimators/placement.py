@@ -1,0 +1,153 @@
+# observer_ros.core.estimators.placement: the correction gain of one sampled step.
+"""
+Pole placement for the gain of a step: a quick direct formula, else the full design.
+
+Also the detectability check the observers run on (A, C) when they are built.
+
+"""
+
+import numpy as np
+
+from ..analysis import is_stable_eigenvalue, observable_decomposition, stability_margin
+from ..design import observer_gain, pole_placement_error
+from ..errors import DesignError, NotDetectableError
+
+#: A gain from the quick placement (:func:`_quick_gain`) is kept only if its poles
+#: are within this relative error (``design.pole_placement_error``) of those asked
+#: for; otherwise the full design (place and acker compared) runs.
+QUICK_PLACE_TOL = 1e-10
+
+
+def _pick_poles(z, count):
+    """
+    Choose ``count`` of the desired z-plane poles ``z`` (conjugate pairs kept).
+
+    The fastest poles (smallest ``|z|``) are taken first. When only one place is
+    left for a complex pair, the real pole ``|z|`` (same decay) is used.
+
+    """
+    z = np.asarray(z, dtype=complex)
+    if z.size == count:
+        return z
+    if z.size < count:
+        raise DesignError(f'{count} poles are needed but only {z.size} were given')
+    tol = 1e-9 * max(1.0, float(np.max(np.abs(z))))
+    order = sorted(range(z.size), key=lambda i: (abs(z[i]), -z[i].imag, z[i].real))
+    used = set()
+    chosen = []
+    for i in order:
+        if len(chosen) == count:
+            break
+        if i in used:
+            continue
+        used.add(i)
+        if abs(z[i].imag) <= tol:
+            chosen.append(complex(z[i].real))
+            continue
+        partner = [j for j in order if j not in used and abs(z[j] - np.conj(z[i])) <= tol]
+        if partner:
+            used.add(partner[0])
+        if len(chosen) + 2 <= count:
+            chosen.extend([z[i], np.conj(z[i])])
+        else:
+            chosen.append(complex(abs(z[i])))
+    return np.array(chosen, dtype=complex)
+
+
+def _quick_gain(A, C, z, method):
+    """
+    M with eig(A - M C) = z by one direct formula, or None when it is not accurate.
+
+    One output (``auto`` or ``acker``): Ackermann's formula for the observer,
+    ``M = phi(A) O^-1 e_n`` with ``O = [C; C A; ...; C A^(n-1)]`` and phi the
+    polynomial with roots z (tens of microseconds). Then, for ``auto`` when
+    Ackermann lost digits, for several outputs, or for ``place``: scipy's
+    ``place_poles`` on the dual (what python-control's place calls; about a
+    millisecond). A result is kept only if its placed poles are within
+    :data:`QUICK_PLACE_TOL` of z, where neither method can lose to the other by
+    much, so it stands for the comparison ``design.observer_gain`` makes (several
+    milliseconds: decompositions, both methods, four pole errors). Every failure
+    (singular O, repeated poles, loss of digits) returns None.
+
+    """
+    p = C.shape[0]
+    if p == 1 and method in ('auto', 'acker'):
+        M = _checked(A, C, z, _ackermann)
+        if M is not None or method == 'acker':
+            return M
+    if method in ('auto', 'place'):
+        return _checked(A, C, z, _place_poles)
+    return None
+
+
+def _ackermann(A, C, z):
+    n = A.shape[0]
+    obsv = np.empty((n, n))
+    row = C[0]
+    for i in range(n):
+        obsv[i] = row
+        row = row @ A
+    coeffs = np.poly(z).real
+    P = np.eye(n)
+    for c in coeffs[1:]:
+        P = P @ A
+        P.flat[::n + 1] += c
+    e = np.zeros(n)
+    e[-1] = 1.0
+    return (P @ np.linalg.solve(obsv, e)).reshape(n, 1)
+
+
+def _place_poles(A, C, z):
+    import scipy.signal
+    return scipy.signal.place_poles(A.T, C.T, z, method='YT').gain_matrix.T
+
+
+def _checked(A, C, z, formula):
+    try:
+        M = formula(A, C, z)
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+    if not np.all(np.isfinite(M)) or pole_placement_error(A - M @ C, z) > QUICK_PLACE_TOL:
+        return None
+    return np.ascontiguousarray(M, dtype=float)
+
+
+def _place(A, C, zpoles, method):
+    """
+    Gain M with the observable part of eig(A - M C) at (some of) ``zpoles``.
+
+    The quick formula of :func:`_quick_gain` is tried first (all n poles, checked).
+    Otherwise, when (A, C) is observable all n poles are placed
+    (design.observer_gain). Otherwise the pair is split by the orthogonal
+    observable decomposition ``T^T A T = [[Ao, 0], [A21, Au]]``, ``C T = [Co, 0]``;
+    r = rank poles are chosen by :func:`_pick_poles` and placed for (Ao, Co), and
+    the unobservable eigenvalues eig(Au) are kept: ``M = T[:, :r] Mo``.
+
+    """
+    n = A.shape[0]
+    if len(zpoles) == n:
+        M = _quick_gain(A, C, np.asarray(zpoles, dtype=complex), method)
+        if M is not None:
+            return M
+    _, _, _, T, r = observable_decomposition(A, None, C)
+    if r == n:
+        return observer_gain(A, C, _pick_poles(zpoles, n), method)
+    if r == 0:
+        return np.zeros((n, C.shape[0]))
+    To = T[:, :r]
+    Mo = observer_gain(To.T @ A @ To, C @ To, _pick_poles(zpoles, r), method)
+    return To @ Mo
+
+
+def _unobservable_check(A, C, discrete, what):
+    """Rank of (A, C); raise NotDetectableError if an unobservable mode is not stable."""
+    Abar, _, _, _, r = observable_decomposition(A, None, C)
+    n = A.shape[0]
+    if r < n:
+        margin = stability_margin(A)
+        for lam in np.linalg.eigvals(Abar[r:, r:]):
+            if not is_stable_eigenvalue(lam, discrete, margin):
+                raise NotDetectableError(
+                    f'{what}: (A, C) is not detectable: the unobservable eigenvalue '
+                    f'{complex(lam):.6g} is not stable')
+    return r

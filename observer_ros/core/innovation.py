@@ -1,0 +1,314 @@
+# observer_ros.core.innovation: are a sensor's residuals consistent with the model?
+"""
+Innovation health per sensor: normalised innovation squared and whiteness, windowed.
+
+Each residual ``r = y - C x_prior - D u`` of a sensor is whitened by its covariance S,
+``e = L^-1 r`` with ``S = L L^T``: for a Kalman filter ``S = C P C^T + R`` (the
+predicted covariance of the residual); for the other observers the sensor's noise alone,
+``S = diag(noise_std^2)``, which leaves out the estimation error and so under-states the
+residual. Over the last ``window`` residuals of the sensor:
+
+- the NIS ``|e|^2`` has mean p (the sensor's number of outputs) when the model holds;
+  its window mean is compared with the two-sided chi-square bounds of ``window * p``
+  degrees of freedom at the level ``alpha``: above the upper bound the residuals are
+  too large (a bias, a wrong sign or frame, noise_std too small), below the lower one
+  too small (noise_std too large, reported but not a warning);
+- each component of e is tested for whiteness (Ljung-Box over lags 1..``lags``, mean
+  removed, the statistic ``N (N + 2) sum rho_k^2 / (N - k)`` against chi-square with
+  ``lags`` degrees of freedom): a Kalman filter's innovations are white when its model
+  is right; a correlated residual means a model error, a wrong latency or a frame
+  mismatch.
+
+A sensor is *inconsistent* when, for a Kalman filter, its window mean NIS is above the
+upper bound or a component is not white; for the other observers (S without the
+estimation error) when the mean NIS is above :data:`OTHER_MARGIN` times the upper bound,
+a residual several times the sensor's noise. The node reports this on /diagnostics, the
+evaluation over a whole bag (:func:`sequence_health`).
+
+"""
+
+from dataclasses import dataclass
+import math
+
+import numpy as np
+import scipy.linalg
+from scipy.special import chdtrc, chdtri
+
+__all__ = ['InnovationMonitor', 'SensorHealth', 'whiten', 'ljung_box', 'nis_bounds',
+           'sequence_health', 'WINDOW', 'LAGS', 'ALPHA', 'OTHER_MARGIN']
+
+#: Residuals per sensor in a window.
+WINDOW = 50
+
+#: Largest lag of the whiteness test.
+LAGS = 5
+
+#: Level of the tests (two-sided for the NIS): a consistent sensor is flagged this
+#: seldom per window.
+ALPHA = 1e-3
+
+#: Observers other than Kalman whiten by the sensor noise only: their NIS is flagged only
+#: above this many times the chi-square bound.
+OTHER_MARGIN = 10.0
+
+
+def whiten(residual, S):
+    """
+    Return ``e = L^-1 r`` with ``S = L L^T`` (Cholesky): unit covariance if r's is S.
+
+    Parameters
+    ----------
+    residual : (p,) array_like
+        Residual of one message.
+    S : (p, p) array_like
+        Its covariance, positive definite.
+
+    Returns
+    -------
+    e : (p,) ndarray
+        ``|e|^2`` is the NIS ``r^T S^-1 r``.
+
+    """
+    r = np.asarray(residual, dtype=float).reshape(-1)
+    L = scipy.linalg.cholesky(np.atleast_2d(np.asarray(S, dtype=float)), lower=True)
+    return scipy.linalg.solve_triangular(L, r, lower=True)
+
+
+def nis_bounds(samples, dim, alpha=ALPHA):
+    """
+    Return the two-sided bounds of a window mean of NIS for a consistent sensor.
+
+    Parameters
+    ----------
+    samples : int
+        Residuals in the window.
+    dim : int
+        Outputs per residual (p).
+    alpha : float
+        Level: a consistent sensor's mean falls outside with probability alpha.
+
+    Returns
+    -------
+    low, high : float
+        ``chi2(samples * dim)`` quantiles ``alpha / 2`` and ``1 - alpha / 2``, divided by
+        samples.
+
+    """
+    k = samples * dim
+    return float(chdtri(k, 1.0 - alpha / 2.0)) / samples, float(chdtri(k, alpha / 2.0)) / samples
+
+
+def ljung_box(x, lags=LAGS):
+    """
+    Ljung-Box statistic of a sequence (mean removed) and its p-value.
+
+    Parameters
+    ----------
+    x : (N,) array_like
+        The sequence.
+    lags : int
+        Largest lag k (at most N // 4).
+
+    Returns
+    -------
+    q : float
+        ``N (N + 2) sum_{j<=k} rho_j^2 / (N - j)``; NaN when it is undefined.
+    p : float
+        Chi-square survival of q with k degrees of freedom (small: not white).
+
+    """
+    x = np.asarray(x, dtype=float)
+    N = x.size
+    k = min(int(lags), N // 4)
+    d = x - x.mean() if N else x
+    denom = float(d @ d)
+    if k < 1 or not denom > 0.0 or not math.isfinite(denom):
+        return math.nan, math.nan
+    rho = np.array([float(d[:-j] @ d[j:]) / denom for j in range(1, k + 1)])
+    q = float(N * (N + 2) * np.sum(rho ** 2 / (N - np.arange(1, k + 1))))
+    return q, float(chdtrc(k, q))
+
+
+@dataclass
+class SensorHealth:
+    """The health of one sensor's residuals over its last window."""
+
+    name: str
+    samples: int                 # residuals so far
+    nis_mean: float              # window mean of the NIS (NaN until the window is full)
+    nis_low: float
+    nis_high: float
+    whiteness_p: float           # smallest Ljung-Box p over the components
+    consistent: bool             # False: a WARN naming the sensor
+    problem: str = ''            # what is wrong, naming the sensor
+
+    def as_dict(self):
+        """Return the figures as a plain dict."""
+        return dict(vars(self))
+
+
+def _judge(name, E, kalman, lags, alpha, samples):
+    """Health of the whitened residuals E (window x p)."""
+    W, p = E.shape
+    low, high = nis_bounds(W, p, alpha)
+    nis_mean = float(np.mean(np.sum(E * E, axis=1)))
+    pvals = [ljung_box(E[:, j], lags)[1] for j in range(p)]
+    pvals = [v for v in pvals if math.isfinite(v)]
+    white_p = min(pvals) if pvals else math.nan
+    limit = high if kalman else OTHER_MARGIN * high
+    problem = ''
+    if not nis_mean <= limit:
+        problem = (f'{name}: residuals too large for the model (mean NIS {nis_mean:.3g} over '
+                   f'the last {W}, at most {limit:.3g} expected): a bias, a wrong sign or '
+                   'frame, or noise_std too small')
+    elif kalman and white_p < alpha:
+        problem = (f'{name}: residuals not white (Ljung-Box p {white_p:.2g} over lags '
+                   f'1..{min(lags, W // 4)}): a model error, a latency or a frame mismatch')
+    return SensorHealth(name, samples, nis_mean, low, high, white_p, not problem, problem)
+
+
+class InnovationMonitor:
+    """
+    Windowed NIS and whiteness of each sensor's residuals (see the module's text).
+
+    Parameters
+    ----------
+    sensors : sequence of (str, array_like)
+        Each sensor's name and noise_std (one per output; S of the observers other
+        than Kalman, and R's part when no S is given).
+    kalman : bool
+        The residuals come with S = C P C^T + R (a Kalman filter): both tests apply.
+    window, lags, alpha
+        See :data:`WINDOW`, :data:`LAGS`, :data:`ALPHA`.
+
+    """
+
+    def __init__(self, sensors, kalman, window=WINDOW, lags=LAGS, alpha=ALPHA):
+        if int(window) < 8:
+            raise ValueError(f'window must be at least 8; got {window!r}')
+        self._window = int(window)
+        self._lags = int(lags)
+        self._alpha = float(alpha)
+        self._kalman = bool(kalman)
+        self._std = {}
+        self._inv_std = {}              # None where a noise_std is 0 (cannot whiten)
+        self._buf = {}
+        self._count = {}
+        for name, std in sensors:
+            std = np.asarray(std, dtype=float).reshape(-1)
+            self._std[name] = std
+            self._inv_std[name] = 1.0 / std if np.all(std > 0.0) else None
+            self._buf[name] = np.full((self._window, std.size), np.nan)
+            self._count[name] = 0
+
+    @property
+    def window(self):
+        """Return the number of residuals per window."""
+        return self._window
+
+    def add(self, name, residual, S=None):
+        """
+        Add one residual of a sensor.
+
+        Parameters
+        ----------
+        name : str
+            The sensor.
+        residual : (p,) array_like
+            Its residual.
+        S : (p, p) array_like, optional
+            Its covariance (Kalman); default ``diag(noise_std^2)``. A residual that
+            cannot be whitened (a zero noise_std, a non-finite value) is not counted.
+
+        """
+        buf = self._buf[name]
+        try:
+            if S is None:
+                inv = self._inv_std[name]
+                if inv is None:
+                    return
+                e = np.multiply(residual, inv)
+            else:
+                e = whiten(residual, S)
+        except (ValueError, np.linalg.LinAlgError):
+            return
+        if e.shape != buf.shape[1:] or not math.isfinite(float(e @ e)):
+            return
+        k = self._count[name]
+        buf[k % self._window] = e
+        self._count[name] = k + 1
+
+    def health(self, name):
+        """
+        Return the :class:`SensorHealth` of a sensor's last window.
+
+        Parameters
+        ----------
+        name : str
+            The sensor.
+
+        Returns
+        -------
+        health : SensorHealth
+            Consistent (with NaN figures) until the window is full.
+
+        """
+        count = self._count[name]
+        if count < self._window:
+            p = self._std[name].size
+            low, high = nis_bounds(self._window, p, self._alpha)
+            return SensorHealth(name, count, math.nan, low, high, math.nan, True)
+        k = count % self._window
+        E = np.roll(self._buf[name], -k, axis=0)       # oldest first
+        return _judge(name, E, self._kalman, self._lags, self._alpha, count)
+
+    def report(self):
+        """Return the health of every sensor (list of :class:`SensorHealth`)."""
+        return [self.health(name) for name in self._std]
+
+
+def sequence_health(name, E, kalman, window=WINDOW, lags=LAGS, alpha=ALPHA):
+    """
+    Health of a sensor over a whole run: its windows judged as the node judges them.
+
+    Parameters
+    ----------
+    name : str
+        The sensor.
+    E : (N, p) array_like
+        Its whitened residuals in order (rows with a non-finite value are left out).
+    kalman : bool
+        See :class:`InnovationMonitor`.
+    window, lags, alpha
+        See :class:`InnovationMonitor`.
+
+    Returns
+    -------
+    figures : dict
+        ``samples``, ``nis_mean`` (all residuals), ``nis_low`` and ``nis_high`` (bounds
+        of a window mean), ``windows`` (consecutive, non-overlapping),
+        ``windows_inconsistent``, ``whiteness_p`` (smallest over the windows),
+        ``consistent`` (every window) and ``problem`` (the first inconsistent window's).
+
+    """
+    E = np.asarray(E, dtype=float)
+    E = E[np.all(np.isfinite(E), axis=1)] if E.size else E.reshape(0, max(E.shape[-1:] or [1]))
+    N = E.shape[0]
+    p = E.shape[1] if E.ndim == 2 else 1
+    low, high = nis_bounds(window, p, alpha)
+    out = {'samples': int(N), 'nis_mean': float(np.mean(np.sum(E * E, axis=1))) if N else
+           math.nan, 'nis_low': low, 'nis_high': high, 'windows': N // window,
+           'windows_inconsistent': 0, 'whiteness_p': math.nan, 'consistent': True,
+           'problem': ''}
+    ps = []
+    for w in range(N // window):
+        h = _judge(name, E[w * window:(w + 1) * window], kalman, lags, alpha, N)
+        if math.isfinite(h.whiteness_p):
+            ps.append(h.whiteness_p)
+        if not h.consistent:
+            out['windows_inconsistent'] += 1
+            if out['consistent']:
+                out['consistent'], out['problem'] = False, h.problem
+    if ps:
+        out['whiteness_p'] = min(ps)
+    return out

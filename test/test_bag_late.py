@@ -1,0 +1,89 @@
+# test_bag_late: bags whose sensors have different latencies, replayed in receive order.
+"""A bag in receive order gives the estimates of the same bag in stamp order."""
+
+import json
+
+from bag_synth import blank, IMU, JOINT_STATE, vector_msg, write_bag
+import late_sensors
+import numpy as np
+from numpy.testing import assert_allclose, assert_array_equal
+from observer_ros.bag.evaluate import main as eval_main
+from observer_ros.bag.reader import read_recording
+from observer_ros.bag.replay import replay
+from observer_ros.sensors import fill_measurement
+from observer_ros.vehicle import load_vehicle
+import pytest
+
+TOPICS = {'gyro': ('imu/data', IMU), 'pitch': ('pitch', JOINT_STATE)}
+
+
+def _bag(path, veh, msgs, truth, latency=True):
+    """Write the messages received at their arrival (or, latency=False, stamp) times."""
+    sensors = {s.name: s for s in veh.sensors}
+    out = [('state/true', JOINT_STATE, ns, vector_msg(veh.plant.state_names, x, ns))
+           for ns, x in truth]
+    for kind, ns, arrival, value in msgs:
+        if kind == 'u':
+            out.append(('control/u', JOINT_STATE, arrival if latency else ns,
+                        vector_msg(['delta'], [value], ns)))
+            continue
+        topic, msgtype = TOPICS[kind]
+        msg = blank(msgtype, ns)
+        fill_measurement(msg, sensors[kind], [value])
+        out.append((topic, msgtype, arrival if latency else ns, msg))
+    # receive order; messages received together keep the order of the list (stamp order)
+    out.sort(key=lambda m: m[2])
+    return write_bag(path, out)
+
+
+@pytest.fixture(scope='module', params=['full', 'kalman'])
+def bags(request, tmp_path_factory):
+    tmp = tmp_path_factory.mktemp(f'late_{request.param}')
+    veh = late_sensors.vehicle(tmp, request.param)
+    msgs, truth = late_sensors.messages(veh)
+    received = _bag(tmp / 'received', veh, late_sensors.stamp_order(msgs), truth)
+    stamped = _bag(tmp / 'stamped', veh, late_sensors.stamp_order(msgs), truth, latency=False)
+    return veh, received, stamped, tmp
+
+
+def test_receive_order_bag_gives_the_stamp_order_estimates(bags):
+    veh, received, stamped, _ = bags
+    late = replay(read_recording(received, veh), veh, exact=True)
+    ref = replay(read_recording(stamped, veh), veh)
+    assert late.counts['out_of_order'] == 0
+    assert late.counts['late_measurements'] == 60           # every pitch message
+    assert late.counts['measurements'] == ref.counts['measurements'] == 360
+    assert_array_equal(late.stamp_ns, ref.stamp_ns)
+    assert_allclose(late.x_hat, ref.x_hat, rtol=0.0, atol=1e-9)
+    # without a history (length 0) all 60 pitch messages are dropped as out of order
+    path = late_sensors.write_vehicle(received.parent, veh.observer.kind)
+    none = load_vehicle(path, overrides=['observer.history_length:=0.0'])
+    dropped = replay(read_recording(received, none), none)
+    assert dropped.counts['out_of_order'] == 60
+    assert dropped.counts['late_measurements'] == 0
+
+
+def test_bulk_replay_is_off_for_a_bag_with_late_messages(bags):
+    veh, received, _, _ = bags
+    rec = read_recording(received, veh)
+    assert_array_equal(replay(rec, veh).x_hat, replay(rec, veh, exact=True).x_hat)
+    assert replay(rec, veh).bulk_steps == 0
+
+
+def test_observer_eval_on_receive_order_reports_the_stamp_order_error(bags):
+    veh, received, stamped, tmp = bags
+    vehicle_file = late_sensors.write_vehicle(tmp, veh.observer.kind)
+    results = {}
+    for name, bag in (('received', received), ('stamped', stamped)):
+        out = tmp / f'eval_{name}'
+        assert eval_main([str(bag), '--vehicle', str(vehicle_file), '--out', str(out),
+                          '--no-plots', '--no-bag', '--force']) == 0
+        results[name] = json.loads((out / 'results.json').read_text())
+    got, want = results['received'], results['stamped']
+    a = got['variants']['design']['states']
+    b = want['variants']['design']['states']
+    assert list(a) == ['theta', 'w', 'q']
+    for state in a:
+        assert a[state]['rmse'] == pytest.approx(b[state]['rmse'], rel=1e-9, abs=1e-15)
+    assert got['variants']['design']['counts']['out_of_order'] == 0
+    assert np.isfinite([a[state]['rmse'] for state in a]).all()

@@ -1,0 +1,166 @@
+# test_nodes_late: the observer node with sensors of different latencies, over DDS.
+"""Late messages published out of order reach the stamp-order estimate; fixed-rate output."""
+
+import late_sensors
+import numpy as np
+from numpy.testing import assert_allclose
+from observer_ros.core.estimators import make_estimator
+from observer_ros.nodes.common import joint_state, SENSOR_QOS, STATE_QOS
+from observer_ros.nodes.observer_node import covariance_names
+from observer_ros.timeutil import ns_to_sec, stamp_to_sec
+import pytest
+from ros_helpers import Probe, Proc
+from sensor_msgs.msg import Imu, JointState
+from test_nodes_faults import Listener
+
+
+def _stamp(msg, ns):
+    msg.header.stamp.sec = ns // 1_000_000_000
+    msg.header.stamp.nanosec = ns % 1_000_000_000
+    return msg
+
+
+def _gyro(ns, q):
+    msg = _stamp(Imu(), ns)
+    msg.angular_velocity.y = float(q)
+    return msg
+
+
+def _pitch(ns, theta):
+    msg = _stamp(JointState(), ns)
+    msg.name, msg.position = ['theta'], [float(theta)]
+    return msg
+
+
+@pytest.fixture
+def late_observer(tmp_path, request):
+    kind, params = request.param
+    path = late_sensors.write_vehicle(tmp_path, kind)
+    proc = Proc('observer_node', path, 'diagnostics_period:=0.2', *params, log_dir=tmp_path)
+    probe = Probe()
+    try:
+        listener = Listener(probe)
+        node = probe.node
+        pubs = {'gyro': node.create_publisher(Imu, 'imu/data', SENSOR_QOS),
+                'pitch': node.create_publisher(JointState, 'pitch', SENSOR_QOS),
+                'u': node.create_publisher(JointState, 'control/u', STATE_QOS)}
+        for name, pub in pubs.items():
+            probe.spin_until(lambda: pub.get_subscription_count() >= 1, 30.0, f'{name} matched')
+        listener.wait_matched('state/estimate', '/diagnostics')
+        listener.wait_alive('observer')
+        yield proc, probe, listener, pubs, late_sensors.vehicle(tmp_path, kind)
+    finally:
+        probe.close()
+    assert proc.stop() == 0, proc.output()
+
+
+@pytest.mark.parametrize('late_observer', [('full', ())], indirect=True)
+def test_messages_out_of_order_over_dds_give_the_stamp_order_estimate(late_observer):
+    proc, probe, listener, pubs, veh = late_observer
+    msgs, _ = late_sensors.messages(veh, steps=150)
+    # one more gyro message after all the others: its answer holds every message before
+    last_ns = msgs[-1][1] + 10_000_000
+    msgs.append(('gyro', last_ns, last_ns + 1_000_000, 0.001))
+    answered = 0
+    for kind, ns, _, value in late_sensors.receive_order(msgs):
+        if kind == 'u':
+            pubs['u'].publish(joint_state(['delta'], [value], ns_to_sec(ns)))
+            continue
+        pubs[kind].publish(_gyro(ns, value) if kind == 'gyro' else _pitch(ns, value))
+        answered += 1
+        # each measurement is answered by one estimate (the newest, revised if it was late)
+        probe.spin_until(lambda: len(listener.estimates) >= answered, 10.0,
+                         f'the answer to {kind} stamped {ns}')
+    # the reference: the core estimator given the same messages in stamp order
+    est = make_estimator(veh.plant, veh.observer)
+    for kind, ns, _, value in late_sensors.stamp_order(msgs):
+        if kind == 'u':
+            est.set_input(ns_to_sec(ns), [value])
+        else:
+            est.correct(ns_to_sec(ns), [value], (0,) if kind == 'gyro' else (1,))
+    final = listener.estimates[-1]
+    assert stamp_to_sec(final.header.stamp) == ns_to_sec(last_ns)
+    assert_allclose(final.position, est.x_hat, rtol=0.0, atol=1e-9)
+    listener.wait_counter('observer', 'late_measurements', 30)
+    assert listener.counter('observer', 'out_of_order') == 0
+    assert listener.counter('observer', 'measurements') == answered
+    assert proc.alive(), proc.output()
+
+
+@pytest.mark.parametrize('late_observer', [('full', ('observer.publish_rate_hz:=50.0',))],
+                         indirect=True)
+def test_publish_rate_gives_the_prediction_to_now(late_observer):
+    proc, probe, listener, pubs, veh = late_observer
+    # a measurement stamped now (the node's clock is the system clock): then predictions
+    now_ns = probe.node.get_clock().now().nanoseconds
+    pubs['gyro'].publish(_gyro(now_ns, 0.02))
+    t0 = ns_to_sec(now_ns)
+    probe.spin_until(lambda: sum(stamp_to_sec(m.header.stamp) > t0
+                                 for m in listener.estimates) >= 10, 20.0, '10 predictions')
+    est = make_estimator(veh.plant, veh.observer)
+    est.correct(t0, [0.02], (0,))
+    predictions = [m for m in listener.estimates if stamp_to_sec(m.header.stamp) > t0]
+    stamps = [stamp_to_sec(m.header.stamp) for m in predictions]
+    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    for msg, t in zip(predictions, stamps):
+        probe_est = make_estimator(veh.plant, veh.observer)
+        probe_est.restore_state(est.save_state())
+        assert_allclose(msg.position, probe_est.predict(t), rtol=1e-9, atol=1e-12)
+    listener.wait_counter('observer', 'rate_publications', 1)
+
+
+def _health(listener, sensor):
+    """Return the latest innovation status of a sensor (None before one)."""
+    for array in reversed(listener.diagnostics):
+        for status in array.status:
+            if status.name.endswith(f'observer/innovation/{sensor}'):
+                return status
+    return None
+
+
+def _level(status):
+    level = status.level
+    return level if isinstance(level, int) else int.from_bytes(level, 'little')
+
+
+@pytest.mark.parametrize('late_observer', [('kalman', ())], indirect=True)
+@pytest.mark.parametrize('fault', [(1.0, 0.1, 500), (-1.0, 0.0, 500)], ids=['bias', 'flip'])
+def test_a_faulty_sensor_is_named_on_diagnostics(late_observer, fault):
+    proc, probe, listener, pubs, veh = late_observer
+    # the pitch sensor gets a 0.1 rad bias (10 sigma), or its axis flipped, from step 500;
+    # the data stop when the monitor's window (50 pitch readings) holds only faulty ones
+    msgs, _ = late_sensors.messages(veh, steps=750, process_noise=True, seed=3,
+                                    commands=False, faults={'pitch': fault})
+    covariances = []
+    sub = probe.node.create_subscription(JointState, 'state/covariance', covariances.append,
+                                         STATE_QOS)
+    probe.spin_until(lambda: sub.get_publisher_count() >= 1, 20.0, 'state/covariance matched')
+    answered = 0
+    for kind, ns, _, value in late_sensors.receive_order(msgs):
+        pubs[kind].publish(_gyro(ns, value) if kind == 'gyro' else _pitch(ns, value))
+        answered += 1
+        probe.spin_until(lambda: len(listener.estimates) >= answered, 10.0,
+                         f'the answer to {kind} stamped {ns}')
+    WARN = 1
+    probe.spin_until(lambda: (s := _health(listener, 'pitch')) is not None and
+                     _level(s) == WARN, 10.0, 'an innovation WARN naming pitch')
+    status = _health(listener, 'pitch')
+    assert status.message.startswith('pitch: residuals'), status.message
+    gyro = _health(listener, 'gyro')
+    assert _level(gyro) == 0, gyro.message
+    # the node's main status is not changed by it
+    assert listener.latest_status('observer').name.endswith('observer')
+    # the Kalman covariance of the last estimate, with its stamp: that of the core filter
+    # given the messages in stamp order
+    est = make_estimator(veh.plant, veh.observer)
+    for kind, ns, _, value in late_sensors.stamp_order(msgs):
+        est.correct(ns_to_sec(ns), [value], (0,) if kind == 'gyro' else (1,))
+    probe.spin_until(lambda: covariances and covariances[-1].header.stamp ==
+                     listener.estimates[-1].header.stamp, 10.0, 'the last covariance')
+    last = covariances[-1]
+    assert last.name == covariance_names(['theta', 'w', 'q'])
+    assert last.name[:3] == ['theta,theta', 'theta,w', 'theta,q']
+    upper = np.triu_indices(3)
+    assert_allclose(last.position, est.P[upper], rtol=1e-9, atol=1e-15)
+    assert_allclose(listener.estimates[-1].position, est.x_hat, rtol=0.0, atol=1e-9)
+    assert proc.alive(), proc.output()
