@@ -11,6 +11,7 @@ import math
 import numpy as np
 
 from .replay import innovation_health
+from .running_metrics import blocked_state_metrics
 
 __all__ = ['DEFAULT_TOLERANCE', 'STEADY_FRACTION', 'WHITENESS_LAGS', 'truth_at',
            'state_metrics', 'whiteness', 'tolerances', 'score_variant']
@@ -73,43 +74,10 @@ def state_metrics(t, error, epoch, tolerance, steady_fraction=STEADY_FRACTION):
     -------
     metrics : list of dict
         One per state: samples, rmse, max_abs_error, settling_time, ss_std, ss_mean.
+        Computed block by block (``running_metrics``): memory bounded by the block.
 
     """
-    ok = np.all(np.isfinite(error), axis=1)
-    t, error, epoch = t[ok], error[ok], epoch[ok]
-    n = error.shape[1]
-    out = []
-    if not t.size:
-        return [{'samples': 0, 'rmse': math.nan, 'max_abs_error': math.nan,
-                 'settling_time': math.nan, 'ss_std': math.nan, 'ss_mean': math.nan}
-                for _ in range(n)]
-    settle = np.zeros(n)
-    steady = np.zeros(t.size, dtype=bool)
-    for e in np.unique(epoch):
-        sel = np.flatnonzero(epoch == e)
-        tau = t[sel] - t[sel[0]]
-        steady[sel[tau >= (1.0 - steady_fraction) * tau[-1]]] = True
-        outside = np.abs(error[sel]) > tolerance[None, :]
-        for i in range(n):
-            bad = np.flatnonzero(outside[:, i])
-            if not bad.size:
-                continue
-            if bad[-1] == sel.size - 1:
-                settle[i] = math.inf
-            else:
-                settle[i] = max(settle[i], tau[bad[-1] + 1])
-    ss = error[steady]
-    for i in range(n):
-        e = error[:, i]
-        out.append({
-            'samples': int(e.size),
-            'rmse': float(np.sqrt(np.mean(e * e))),
-            'max_abs_error': float(np.max(np.abs(e))),
-            'settling_time': float(settle[i]),
-            'ss_std': float(np.std(ss[:, i])) if ss.shape[0] > 1 else math.nan,
-            'ss_mean': float(np.mean(ss[:, i])) if ss.shape[0] else math.nan,
-        })
-    return out
+    return blocked_state_metrics(t, error, epoch, tolerance, steady_fraction)
 
 
 def whiteness(r, lags=WHITENESS_LAGS):
