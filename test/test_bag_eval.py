@@ -331,7 +331,7 @@ def test_bag_bulk_self_check_catches_a_discrepancy_anywhere(runs, tmp_path, monk
         pos = np.flatnonzero(kind < 0)
         order = np.argsort(seq[pos], kind='stable')
         c_seq, c_idx = seq[pos][order], idx[pos][order]
-        mseq = run['mseq']
+        mseq = seq[run['mev']]                   # seq of each measurement
         U = np.empty((b - a, u0.size))
         U[:] = u0
         last = np.searchsorted(c_seq, mseq[a + 1:b + 1]) - 1

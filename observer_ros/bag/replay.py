@@ -626,7 +626,6 @@ def _find_runs(events, streams, cmd, est, jump, future_tolerance):
         return {}
     msens = events.kind[mev]
     midx = events.idx[mev]
-    mseq = events.seq[mev]
     tm = np.empty(M)
     ok = np.ones(M, dtype=bool)
     for k, stream in enumerate(streams):
@@ -664,7 +663,9 @@ def _find_runs(events, streams, cmd, est, jump, future_tolerance):
     ok_i = step_ok.astype(np.int8)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], ok_i, [0]])))
     runs = {}
-    shared = {'midx': midx, 'mseq': mseq, 'msens': msens, 'tm': tm, 'mev': mev,
+    # per measurement only what the pieces need whole (sensor, index and seq of a piece's
+    # measurements are taken from the events through mev: three arrays fewer kept)
+    shared = {'tm': tm, 'mev': mev,
               'kind': events.kind, 'idx': events.idx, 'seq': events.seq,
               'last_cmd': last_cmd, 'gap_cmds': gap_cmds,
               'step_class': step_class, 'n_classes': n_keys * len(streams),
@@ -976,16 +977,16 @@ def _check_steps(run, cmd, maps, cls, sens, Y, X, x0, u0, scale):
 def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
     """Replay measurements a+1..b of a run in bulk; hand the state back to est."""
     a, b = run['a'], run['b']
-    midx, mseq, msens, tm = run['midx'], run['mseq'], run['msens'], run['tm']
+    tm = run['tm']
     K = b - a
     t_a = float(tm[a])
     if est.t != t_a:
         return None
     plant = est.plant
     n, p = plant.n, plant.p
-    steps = slice(a + 1, b + 1)
-    sens = msens[steps]
-    idx = midx[steps]
+    ev = run['mev'][a + 1:b + 1]             # the events of measurements a+1..b
+    sens = run['kind'][ev]
+    idx = run['idx'][ev]
     U = _held_inputs(run, cmd, est.u, a, b)
     # classes of this run, and their maps measured on the estimator
     cls_all = run['step_class'][a:b]
@@ -1055,7 +1056,7 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
         out_ns[m:m + K][sel] = streams[k].stamp_ns[idx[sel]]
     out_x[m:m + K] = X
     out_r[m:m + K] = R
-    out_seq[m:m + K] = mseq[steps]
+    out_seq[m:m + K] = run['seq'][ev]
     out_sensor[m:m + K] = sens
     t_b = float(tm[b])
     # hand over: the estimator is at x_b, t_b, holding the input it held at b
