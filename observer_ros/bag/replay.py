@@ -263,7 +263,8 @@ class _Events:
             kinds.append(np.full(sel.size, k, dtype=np.int64))
             idxs.append(sel)
             seqs.append(stream.seq[sel])
-            stamps.append(stream.stamp_ns[sel])
+            if lockstep:
+                stamps.append(stream.stamp_ns[sel])
         cmd = recording.command
         self.command = cmd
         if cmd is not None and plant.m:
@@ -272,17 +273,25 @@ class _Events:
             kinds.append(np.full(sel.size, -1, dtype=np.int64))
             idxs.append(sel)
             seqs.append(cmd.seq[sel])
-            stamps.append(cmd.stamp_ns[sel])
+            if lockstep:
+                stamps.append(cmd.stamp_ns[sel])
         if kinds:
-            kind = np.concatenate(kinds)
-            idx = np.concatenate(idxs)
+            # one whole-bag column at a time, each part freed once joined (peak memory)
             seq = np.concatenate(seqs)
+            del seqs[:]
             order = np.argsort(seq, kind='stable')
             if lockstep:
+                kind = np.concatenate(kinds)
                 stamp = np.concatenate(stamps)[order]
                 epoch = epochs_of(stamp, clock_jump_tolerance)
                 order = order[np.lexsort((seq[order], kind[order] < 0, stamp, epoch))]
-            self.kind, self.idx, self.seq = kind[order], idx[order], seq[order]
+                del stamp, epoch, kind
+            self.seq = seq[order]
+            del seq
+            self.kind = np.concatenate(kinds)[order]
+            del kinds[:]
+            self.idx = np.concatenate(idxs)[order]
+            del idxs[:]
         else:
             self.kind = self.idx = self.seq = np.zeros(0, dtype=np.int64)
 
@@ -387,9 +396,11 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
     rows = [tuple(plant.output_rows(s.outputs)) for s in sensors]
     rows_idx = [np.array(r, dtype=np.intp) for r in rows]
     streams = events.streams
-    times = [s.t for s in streams]
+    # seconds of one stamp as Stream.t gives them (ns * 1e-9), taken per event: no
+    # whole-bag float copies of the stamps and receive times
+    times = [s.stamp_ns for s in streams]
     values = [s.values for s in streams]
-    logs = [s.log_ns.astype(np.float64) * 1e-9 for s in streams]
+    logs = [s.log_ns for s in streams]
     cmd = events.command
     if cmd is not None and plant.m:
         cmd_t = cmd.t
@@ -437,7 +448,7 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
                 counts['bad_commands'] += 1
             i += 1
             continue
-        t = float(times[k][j])
+        t = float(times[k][j]) * 1e-9
         last = est.t
         if last is not None and t < last:
             if last - t > jump:
@@ -453,7 +464,7 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
             counts['duplicates'] += 1
             i += 1
             continue
-        if future_tolerance is not None and t - logs[k][j] > future_tolerance:
+        if future_tolerance is not None and t - float(logs[k][j]) * 1e-9 > future_tolerance:
             counts['future_stamps'] += 1
             i += 1
             continue
