@@ -6,11 +6,10 @@ from pathlib import Path
 import tracemalloc
 
 import numpy as np
-import pytest
-
 from observer_ros.bag.evaluate import evaluate_bag
 from observer_ros.bag.metrics import STEADY_FRACTION, truth_at
 from observer_ros.bag.running_metrics import blocked_state_metrics
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLES = ROOT / 'bags' / 'samples'
