@@ -11,6 +11,7 @@ import numpy as np
 from ..analysis import is_stable_eigenvalue, observable_decomposition, stability_margin
 from ..design import observer_gain, pole_placement_error
 from ..errors import DesignError, NotDetectableError
+from ..verify import verify_placement
 
 #: A gain from the quick placement (:func:`_quick_gain`) is kept only if its poles
 #: are within this relative error (``design.pole_placement_error``) of those asked
@@ -112,9 +113,9 @@ def _checked(A, C, z, formula):
     return np.ascontiguousarray(M, dtype=float)
 
 
-def _place(A, C, zpoles, method):
+def _place(A, C, zpoles, method, field='observer.poles'):
     """
-    Gain M with the observable part of eig(A - M C) at (some of) ``zpoles``.
+    Gain M with the observable part of eig(A - M C) at (some of) ``zpoles``, verified.
 
     The quick formula of :func:`_quick_gain` is tried first (all n poles, checked).
     Otherwise, when (A, C) is observable all n poles are placed
@@ -123,20 +124,41 @@ def _place(A, C, zpoles, method):
     r = rank poles are chosen by :func:`_pick_poles` and placed for (Ao, Co), and
     the unobservable eigenvalues eig(Au) are kept: ``M = T[:, :r] Mo``.
 
+    Whichever path made it, the gain then passes the check every design passes
+    (``verify.verify_placement``, z-plane): the achieved eigenvalues of ``A - M C``
+    (of its observable block ``Ao - Mo Co`` when partial) must be stable and within
+    the placement's conditioning bound of the poles asked for.
+
+    Raises
+    ------
+    DesignVerificationError
+        The gain fails that check; the message starts with ``field``.
+
     """
     n = A.shape[0]
     if len(zpoles) == n:
-        M = _quick_gain(A, C, np.asarray(zpoles, dtype=complex), method)
+        z = np.asarray(zpoles, dtype=complex)
+        M = _quick_gain(A, C, z, method)
         if M is not None:
-            return M
+            return _verified(A, C, M, z, field)
     _, _, _, T, r = observable_decomposition(A, None, C)
     if r == n:
-        return observer_gain(A, C, _pick_poles(zpoles, n), method)
+        z = _pick_poles(zpoles, n)
+        return _verified(A, C, observer_gain(A, C, z, method), z, field)
     if r == 0:
         return np.zeros((n, C.shape[0]))
     To = T[:, :r]
-    Mo = observer_gain(To.T @ A @ To, C @ To, _pick_poles(zpoles, r), method)
+    z = _pick_poles(zpoles, r)
+    Ao, Co = To.T @ A @ To, C @ To
+    Mo = _verified(Ao, Co, observer_gain(Ao, Co, z, method), z, field)
     return To @ Mo
+
+
+def _verified(A, C, M, z, field):
+    """Return M after ``verify_placement`` of ``A - M C`` against the z-plane poles z."""
+    norm = np.linalg.norm(A, 2) + np.linalg.norm(M, 2) * np.linalg.norm(C, 2)
+    verify_placement(A - M @ C, z, field, norm, discrete=True)
+    return M
 
 
 def _unobservable_check(A, C, discrete, what):
