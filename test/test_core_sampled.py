@@ -22,9 +22,8 @@ from observer_ros.core.spec import (ControllerSpec, ObserverSpec, SensorSpec, Si
                                     Vehicle)
 from observer_ros.core.verify import verify_placement
 from observer_ros.vehicle import load_vehicle
-import pytest
-
 import late_sensors
+import pytest
 
 # A random 14-state plant with one output whose continuous observer design passes
 # core/verify.py, while the gain of every sampled step (z = exp(s h), clustered near 1)
@@ -103,9 +102,8 @@ def test_every_step_gain_is_verified(tmp_path):
         F = est.error_matrix(0.01, (0,))
         est.error_matrix(0.01, (0,))          # cached: not designed again
         est.error_matrix(0.05, (0, 1))
-    assert calls == ["observer.poles at the sampled step h = 0.01 s with outputs ['q']",
-                     "observer.poles at the sampled step h = 0.05 s with outputs "
-                     "['q', 'theta']"]
+    at = 'observer.poles at the sampled step h = {} s with outputs {}'
+    assert calls == [at.format(0.01, ['q']), at.format(0.05, ['q', 'theta'])]
     assert_allclose(np.sort(np.abs(np.linalg.eigvals(F))),
                     np.exp(np.array([-0.8, -0.7, -0.6]) * 0.01), rtol=1e-9)
 
@@ -150,8 +148,8 @@ def test_sensor_pattern_of_the_two_sensor_submarine(tmp_path):
     veh = late_sensors.vehicle(tmp_path, 'full')
     steps, events = sensor_pattern(veh)
     assert steps == 5
-    assert [(j, rows) for j, rows, _ in events] == [(1, (0,)), (2, (0,)), (3, (0,)),
-                                                   (4, (0,)), (5, (0, 1))]
+    pattern = [(j, rows) for j, rows, _ in events]
+    assert pattern == [(1, (0,)), (2, (0,)), (3, (0,)), (4, (0,)), (5, (0, 1))]
     assert events[-1][2] == ('gyro', 'pitch')
 
 

@@ -25,8 +25,8 @@ from .design import (controller_gain, kalman_gain, lqr_gain, observer_gain,
                      pole_placement_error, reduced_order_observer, ReducedOrderDesign)
 from .errors import (DesignError, DimensionError, NotDetectableError, ObserverDesignWarning,
                      ObserverError)
-from .model import as_matrix, as_poles, as_vector
 from .estimators.sampled import check_sampled_observer, SampledCheck
+from .model import as_matrix, as_poles, as_vector
 from .verify import (PlacementCheck, stability_status, unstable_eigenvalues, verify_placement,
                      verify_stable)
 

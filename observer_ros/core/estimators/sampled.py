@@ -187,7 +187,7 @@ def check_sampled_observer(vehicle):
     multi = len({rows for _, rows, _ in events}) > 1
     bad = unstable_eigenvalues(product, discrete=True)
     if bad:
-        why = ('each step\'s gain places the poles of its own map, but the product of the '
+        why = ("each step's gain places the poles of its own map, but the product of the "
                'alternating maps is not stable; use observer.type: kalman (it handles '
                'sensors at different rates), slower observer.poles, or sensors at one rate '
                '(the same rate_divider)') if multi else \
@@ -200,7 +200,7 @@ def check_sampled_observer(vehicle):
     messages = []
     if multi and rate > SLOW_DECAY_FRACTION * designed:
         messages.append(
-            f'observer.poles: with sensors {sensors} the sampled observer\'s error decays at '
+            f"observer.poles: with sensors {sensors} the sampled observer's error decays at "
             f'{rate:.3g}/s over one period of the sensor pattern ({period:.6g} s, spectral '
             f'radius {rho:.4g}), not at the designed {designed:.3g}/s: the per-step gains '
             f'interact; a Kalman observer (observer.type: kalman) handles sensors at '
