@@ -10,6 +10,7 @@ sensors at different rates the product of the per-step error maps must be stable
 
 import warnings
 
+import late_sensors
 import numpy as np
 from numpy.testing import assert_allclose
 from observer_ros.core.compensator import design_vehicle, to_json_dict
@@ -22,7 +23,6 @@ from observer_ros.core.spec import (ControllerSpec, ObserverSpec, SensorSpec, Si
                                     Vehicle)
 from observer_ros.core.verify import verify_placement
 from observer_ros.vehicle import load_vehicle
-import late_sensors
 import pytest
 
 # A random 14-state plant with one output whose continuous observer design passes
