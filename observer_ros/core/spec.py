@@ -73,6 +73,7 @@ class ControllerSpec:
     u_max: Optional[np.ndarray] = None       # m
     safe_command: str = 'zero'               # zero | hold
     stale_timeout: float = 0.5
+    predict_timeout: float = 0.0             # s of predict-and-hold before safe_command
 
 
 @dataclass(frozen=True)

@@ -4,12 +4,13 @@ Compensator node: ``state/estimate`` in, the command ``control/u`` out.
 
 The control law is the seeds' tracking form u = K (x_d - x_hat) - Kd x_d (seed 002,
 Eq. 5.109; with x_d = 0 it is u = -K x_hat), clipped to the file's input limits. The
-command carries the stamp of the estimate it answers. A stale or non-finite estimate, or
-a malformed stamp, gives the file's safe command (zero or hold) and an error on
-/diagnostics. Every command passes one gate before it is sent: finite and inside
-``controller.u_min``/``u_max``, or it is not sent (the safe command instead, an ERROR on
-/diagnostics). A second publisher of ``control/u`` or ``state/estimate`` is reported as
-an ERROR naming the topic.
+command carries the stamp of the estimate it answers. A stale, non-finite or diverging
+estimate, or a malformed stamp, gives the safe command (core/safe_command.py:
+predict-and-hold for ``controller.predict_timeout``, then ``controller.safe_command``)
+and an ERROR on /diagnostics. Every command passes one gate before it is sent: finite and
+inside ``controller.u_min``/``u_max``, or it is not sent (the safe command instead, an
+ERROR on /diagnostics). A second publisher of ``control/u`` or ``state/estimate`` is
+reported as an ERROR naming the topic.
 
 """
 
@@ -19,12 +20,18 @@ from rcl_interfaces.msg import SetParametersResult
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
+from .checks import changed_pole_problem, divergence_envelopes, own_parameter_problem
 from .common import (checked_stamp, joint_state, LATCHED_QOS, run_node, SAFE_COMMAND_FRAME,
                      STATE_PUB_QOS, STATE_QOS, TOPICS, vector_from_joint_state, VehicleNode)
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
+from ..core.health import SettleCheck, settling_time
+from ..core.safe_command import SafeCommand
 
 __all__ = ['CompensatorNode', 'command_problem', 'control_law', 'main']
+
+# After an outage, wait at most this many observer settling times for it to settle again.
+RESYNC_SETTLINGS = 10.0
 
 
 def control_law(K, x_hat, x_d, Kd, u_min=None, u_max=None):
@@ -83,11 +90,18 @@ class CompensatorNode(VehicleNode):
             ('publish_array', False, 'also publish control/u_array, a Float64MultiArray '
              '(ros2_control)'),
             ('diagnostics_period', 1.0, 's (wall) between /diagnostics reports'),
+            ('clock_jump_tolerance', 0.5, 's: an estimate this far back means the clock '
+             'restarted'),
         ))
         self._apply(self.vehicle, design_vehicle(self.vehicle))
-        self._last_u = np.zeros(self.vehicle.plant.m)
         self._last_estimate_time = None      # node clock when the last good x_hat came
+        self._last_stamp = None              # its stamp (s): the estimates' time base
         self._stale = False
+        self._diverging = None               # what diverges (a report), or None
+        self._safe_mode = None               # how the last safe command was decided
+        self._resyncing = False              # back from an outage, the observer settling
+        self._recovering = False             # closing the loop again after an outage
+        self._safe_timer = None
         self._refused = None                 # why the last command was not sent
         self._duplicates = []                # other publishers of our topics
         self._cmd_pub = self.create_publisher(JointState, TOPICS['command'], STATE_PUB_QOS)
@@ -114,6 +128,21 @@ class CompensatorNode(VehicleNode):
         self.Kd = np.zeros((m, n)) if c.Kd is None else np.asarray(c.Kd, float).reshape(m, n)
         self.u_min, self.u_max = c.u_min, c.u_max
         self.design = design
+        last = getattr(self, 'safe', None)
+        self.safe = SafeCommand(vehicle.plant, self._law, vehicle.sample_time, c.safe_command,
+                                c.predict_timeout)
+        if last is not None:
+            self.safe.sent(last.last_command)
+        self.x_envelope, self.u_envelope = divergence_envelopes(vehicle, self.K, self.x_d,
+                                                                self.Kd)
+        # after an outage the observer needs this long (its slowest pole) to converge
+        self.settle = settling_time(design.observer_poles, vehicle.sample_time,
+                                    vehicle.plant.is_discrete)
+        self.settle_check = SettleCheck(self.safe.Ad, self.safe.Bd, self.safe.dt,
+                                        self.x_envelope.file_scale)
+
+    def _law(self, x_hat):
+        return control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
 
     def _publish_reference(self):
         now = self.get_clock().now().nanoseconds * 1e-9
@@ -126,7 +155,7 @@ class CompensatorNode(VehicleNode):
         except ObserverError as err:
             self.count('bad_stamps')
             self.get_logger().error(f'{err}; safe command', throttle_duration_sec=1.0)
-            self._publish_safe(self._now())     # the stamp is not usable: the node's time
+            self._publish_safe(self._estimate_clock())   # the stamp is not usable
             return
         try:
             x_hat = vector_from_joint_state(msg, self.vehicle.plant.state_names, topic)
@@ -135,12 +164,88 @@ class CompensatorNode(VehicleNode):
             self.get_logger().error(f'{err}; safe command', throttle_duration_sec=1.0)
             self._publish_safe(t, msg.header.stamp)
             return
-        with np.errstate(all='ignore'):     # an overflow gives inf/NaN: refused below
-            u = control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
+        if self._last_stamp is not None and \
+                self._last_stamp - t > self.param('clock_jump_tolerance'):
+            self._clock_restarted(t)
+        elif self._stale and np.isfinite(self.settle):
+            # back after an outage: the observer restarts or catches up; until it has
+            # settled (its estimates follow the model again; at most RESYNC_SETTLINGS of
+            # its settling times) the prediction keeps closing the loop
+            self._resyncing = True
+            self.settle_check.start(self._estimate_clock() + RESYNC_SETTLINGS * self.settle)
         self._last_estimate_time = self.wall_now()
+        self._last_stamp = t
         self._stale = False
+        if self._resyncing:
+            self.count('resync_commands')
+            self._publish_safe(t, msg.header.stamp)
+            if self.settle_check.settled(t, x_hat, self.safe.last_command):
+                self._resyncing = False
+                self._recovering = True
+            return
+        if self._recovering:
+            self._recover(t, x_hat, msg.header.stamp)
+            return
+        with np.errstate(all='ignore'):     # an overflow gives inf/NaN: caught below
+            u_law = control_law(self.K, x_hat, self.x_d, self.Kd)    # before the limits
+            u = control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
+        # an overflowing law is the command gate's (refused, or saturated by the limits)
+        problem = None if not np.isfinite(u_law).all() else (
+            self.x_envelope.check(t, x_hat) or self.u_envelope.check(t, u_law))
+        if problem is not None:
+            if self._diverging is None:
+                self.get_logger().error(f'diverging: {problem}; safe command')
+            self._diverging = problem
+            self.count('divergence_safe_commands')
+            self._publish_safe(t, msg.header.stamp)
+            return
+        self._diverging = None
+        self._stop_safe_timer()
         if self._publish(u, t, msg.header.stamp):   # the estimate's stamp, to the ns
+            self.safe.trusted(t, x_hat, u)
             self.count('commands')
+
+    def _recover(self, t, x_hat, stamp):
+        """
+        Close the loop on the estimate after an outage, even beyond the envelope.
+
+        The prediction has had its time (predict_timeout, then the observer's settling
+        time): the plant may really be far away now (an unstable plant predicted open loop
+        for seconds), and only the closed loop brings it back. Beyond the envelope this is
+        reported as ERROR (``diverging``); back inside it, the envelope is armed again.
+        """
+        with np.errstate(all='ignore'):
+            u_law = control_law(self.K, x_hat, self.x_d, self.Kd)
+            u = control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
+        problem = self.x_envelope.check(t, x_hat) or self.u_envelope.check(t, u_law)
+        if problem is None:
+            self._recovering = False
+            self._diverging = None
+        else:
+            self._diverging = f'{problem} (recovering after an outage: closing the loop)'
+            self.count('recovery_commands')
+        if self._publish(u, t, stamp):
+            self.safe.trusted(t, x_hat, u)
+            self.count('commands')
+
+    def _clock_restarted(self, t):
+        """Estimates from a clock that started over: forget the old run's commands."""
+        self.get_logger().warning(f'state/estimate: clock jumped back {self._last_stamp - t:.3f}'
+                                  ' s (a restarted simulator?); safe command and limits reset')
+        self.count('clock_jumps')
+        self._resyncing = False
+        self._recovering = False
+        self.safe.reset()
+        self.x_envelope.reset()
+        self.u_envelope.reset()
+
+    def _estimate_clock(self):
+        """Return now on the estimates' time base (their last stamp plus the time since)."""
+        if self._last_stamp is None:
+            return self._now()
+        sim = self.vehicle.simulator
+        rate = sim.realtime_factor if sim.mode == 'realtime' else 1.0
+        return self._last_stamp + (self.wall_now() - self._last_estimate_time) * rate
 
     def _now(self):
         return self.get_clock().now().nanoseconds * 1e-9
@@ -158,7 +263,7 @@ class CompensatorNode(VehicleNode):
         return True
 
     def _send(self, u, t, stamp=None, frame_id=''):
-        self._last_u = u
+        self.safe.sent(u)
         self._cmd_pub.publish(joint_state(self.vehicle.plant.input_names, u, t,
                                           frame_id=frame_id, stamp=stamp))
         if self._array_pub is not None:
@@ -166,32 +271,58 @@ class CompensatorNode(VehicleNode):
 
     def _publish_safe(self, t, stamp=None, frame_id=''):
         """
-        Send the safe command: the one entry point of every fallback.
+        Send the safe command for time t: the one place it is decided (SafeCommand).
 
-        ``hold`` repeats the last command sent (it passed the gate), ``zero`` sends zero,
-        clipped into the limits (a vehicle whose limits exclude zero). ``frame_id``
+        Predict-and-hold within ``controller.predict_timeout`` of the last trusted estimate,
+        then ``controller.safe_command`` (zero or hold), clipped into the limits; sent
+        without the gate (every fallback comes here: #15's refused commands too). ``frame_id``
         SAFE_COMMAND_FRAME marks one that answers no estimate (a stale one).
         """
-        c = self.vehicle.controller
-        u = self._last_u if c.safe_command == 'hold' else np.zeros(self.vehicle.plant.m)
+        u, self._safe_mode = self.safe.command(t)
         if self.u_min is not None or self.u_max is not None:
             u = np.clip(u, self.u_min, self.u_max)
         self._send(u, t, stamp, frame_id)
         self.count('safe_commands')
+        self.count(f'safe_commands_{self._safe_mode}')
+
+    def _stop_safe_timer(self):
+        if self._safe_timer is not None:
+            self._safe_timer.cancel()
+            self.destroy_timer(self._safe_timer)
+            self._safe_timer = None
 
     def _on_watchdog(self):
         if self._last_estimate_time is None:
             return
         age = self.wall_now() - self._last_estimate_time
-        if age > self.vehicle.controller.stale_timeout:
-            if not self._stale:
-                self.get_logger().error(f'estimate stale ({age:.2f} s); safe command '
-                                        f'({self.vehicle.controller.safe_command})')
+        if age > self.vehicle.controller.stale_timeout and not self._stale:
+            c = self.vehicle.controller
+            self.get_logger().error(f'estimate stale ({age:.2f} s); safe command '
+                                    f'(predict {c.predict_timeout:g} s, then '
+                                    f'{c.safe_command})')
             self._stale = True
-            # no estimate behind it: marked, so that lock-step does not take it for one
-            self._publish_safe(self._now(), frame_id=SAFE_COMMAND_FRAME)
+            # a safe command every sample time while stale (the prediction's step)
+            self._stop_safe_timer()
+            self._safe_timer = self.wall_timer(
+                self.vehicle.sample_time / self._time_rate(), self._on_safe_tick)
+            self._on_safe_tick()
+
+    def _time_rate(self):
+        sim = self.vehicle.simulator
+        return sim.realtime_factor if sim.mode == 'realtime' else 1.0
+
+    def _on_safe_tick(self):
+        if not self._stale:
+            self._stop_safe_timer()
+            return
+        # no estimate behind it: marked, so that lock-step does not take it for one
+        self._publish_safe(self._estimate_clock(), frame_id=SAFE_COMMAND_FRAME)
 
     def _on_set_parameters(self, params):
+        problem = own_parameter_problem(params)
+        if problem is not None:
+            self.count('parameter_changes_refused')
+            return SetParametersResult(successful=False, reason=problem)
         changed = [p for p in params if p.name.startswith('controller.')]
         if not changed:
             return SetParametersResult(successful=True)
@@ -205,9 +336,12 @@ class CompensatorNode(VehicleNode):
             # stabilise
             vehicle = self.load_vehicle(overrides)
             design = design_vehicle(vehicle)
+            problem = changed_pole_problem(vehicle, 'controller', names)
         except (ObserverError, ValueError) as err:
+            problem = str(err)
+        if problem is not None:
             self.count('parameter_changes_refused')
-            return SetParametersResult(successful=False, reason=str(err))
+            return SetParametersResult(successful=False, reason=problem)
         self._apply(vehicle, design)
         self._publish_reference()
         self.get_logger().info(f'controller redesigned: K = {self.K.tolist()}')
@@ -215,6 +349,7 @@ class CompensatorNode(VehicleNode):
         return SetParametersResult(successful=True)
 
     def _on_diagnostics(self):
+        values = {'u': np.array2string(self.safe.last_command)}
         self._duplicates = self.duplicate_publishers((TOPICS['command'], TOPICS['estimate']))
         refused, self._refused = self._refused, None
         if self._duplicates:
@@ -222,15 +357,18 @@ class CompensatorNode(VehicleNode):
             message = f'more than one publisher: {", ".join(self._duplicates)}'
         elif refused:
             level, message = DiagnosticStatus.ERROR, refused
+        elif self._diverging is not None:
+            level, message = DiagnosticStatus.ERROR, f'diverging: {self._diverging}'
         elif self._stale:
-            level, message = DiagnosticStatus.ERROR, \
-                f'estimate stale: safe command ({self.resolve_topic_name(TOPICS["estimate"])})'
+            level = DiagnosticStatus.ERROR
+            message = (f'estimate stale: safe command ({self._safe_mode}; '
+                       f'{self.resolve_topic_name(TOPICS["estimate"])})')
         elif self._last_estimate_time is None:
             level, message = DiagnosticStatus.WARN, \
                 f'waiting for {self.resolve_topic_name(TOPICS["estimate"])}'
         else:
             level, message = DiagnosticStatus.OK, 'closing the loop'
-        self.publish_diagnostics(level, message, {'u': np.array2string(self._last_u)})
+        self.publish_diagnostics(level, message, values)
 
 
 def main(args=None):

@@ -31,8 +31,10 @@ import numpy as np
 from rcl_interfaces.msg import SetParametersResult
 from sensor_msgs.msg import JointState
 
+from .checks import changed_pole_problem, own_parameter_problem
 from .common import (checked_stamp, joint_state, MESSAGE_CLASSES, run_node, SENSOR_SUB_QOS,
                      STATE_PUB_QOS, STATE_QOS, TOPICS, vector_from_joint_state, VehicleNode)
+from .observer_health import ObserverHealth
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 from ..core.estimators import History, make_estimator
@@ -42,7 +44,7 @@ from ..sensors import extract_measurement
 __all__ = ['ObserverNode', 'covariance_names', 'main']
 
 
-class ObserverNode(VehicleNode):
+class ObserverNode(ObserverHealth, VehicleNode):
     """Estimate the state from the vehicle's sensors and commands."""
 
     def __init__(self):
@@ -70,6 +72,7 @@ class ObserverNode(VehicleNode):
         # second, or when a stamp passes it, rather than per message): see _check_time
         self._future_bound = None
         self._future_bound_until = 0.0
+        self._init_health()
         self._est_pub = self.create_publisher(JointState, TOPICS['estimate'], STATE_PUB_QOS)
         # Kalman: P of each estimate answering a measurement (covariance_names)
         self._cov_pub = self.create_publisher(JointState, TOPICS['covariance'], STATE_PUB_QOS) \
@@ -124,20 +127,29 @@ class ObserverNode(VehicleNode):
         self._rows = {s.name: vehicle.plant.output_rows(s.outputs) for s in vehicle.sensors}
         self._stamped = {s.name: hasattr(MESSAGE_CLASSES[s.msg_type], 'header')
                          for s in vehicle.sensors}
+        self._build_health(vehicle)
 
     def _on_set_parameters(self, params):
+        problem = own_parameter_problem(params)
+        if problem is not None:
+            self.count('parameter_changes_refused')
+            return SetParametersResult(successful=False, reason=problem)
         observer_params = [p for p in params if p.name.startswith('observer.')]
         if not observer_params:
             return SetParametersResult(successful=True)
         overrides = {p.name: p.value for p in params}
         try:
-            # the loader refuses unstable or unpaired poles, the design an unusable gain
+            # the loader refuses unstable or unpaired poles, the design an unusable gain,
+            # the margin check poles stable in name only
             vehicle = self.load_vehicle(overrides)
             design = design_vehicle(vehicle)
+            problem = changed_pole_problem(vehicle, 'observer', set(overrides))
             estimator = make_estimator(vehicle.plant, vehicle.observer)
         except (ObserverError, ValueError) as err:
+            problem = str(err)
+        if problem is not None:
             self.count('parameter_changes_refused')
-            return SetParametersResult(successful=False, reason=str(err))
+            return SetParametersResult(successful=False, reason=problem)
         # Keep the estimate: only the gain changes (the history starts again).
         if self.estimator.t is not None:
             estimator.reset(self.estimator.x_hat, self.estimator.t)
@@ -151,11 +163,15 @@ class ObserverNode(VehicleNode):
 
     # -- callbacks ----------------------------------------------------------------------
     def _on_measurement(self, sensor, msg):
-        self._last_seen[sensor.name] = self.wall_now()
+        start = self._last_seen[sensor.name] = self.wall_now()
+        missed = self._missed_before(sensor, msg)
         if self._lockstep and self._pending_commands > 0:
             self._queue.append((sensor, msg))
-            return
-        self._process_measurement(sensor, msg)
+        else:
+            self._process_measurement(sensor, msg)
+        if self._load.took(start, self.wall_now(), missed) and self._load.overloaded:
+            # said at once: a saturated executor may run the diagnostics timer late
+            self._on_diagnostics()
 
     def _process_measurement(self, sensor, msg):
         t = None
@@ -181,6 +197,8 @@ class ObserverNode(VehicleNode):
         rows = self._rows[sensor.name]
         history = self.history
         late = history.t is not None and t < history.t
+        if not late and history.t is not None and t - history.t > self._max_gap:
+            self._long_gap(sensor, t, y, rows)
         skipped = getattr(self.estimator, 'unverified_corrections', 0)
         try:
             x_hat = history.correct(t, y, rows, tag=stamp)
@@ -199,6 +217,9 @@ class ObserverNode(VehicleNode):
                                   t)
             self._answer_without_correction(sensor, t, stamp)
             return
+        problem = self._envelope.check(t, x_hat)
+        if problem is not None:
+            self._on_divergence(t, problem)
         self._last_stamp[sensor.name] = max(t, self._last_stamp.get(sensor.name, t))
         self.count('measurements')
         # the estimate first: it is what the compensator waits for (benchmarks P1). A late
@@ -270,6 +291,7 @@ class ObserverNode(VehicleNode):
                                       f'{last - t:.3f} s')
                 self._last_stamp.clear()
                 self._future_bound = None
+                self._envelope.reset()
                 return True
             if not self.history.accepts(t):
                 self._reject('out_of_order', f'{sensor.topic}: stamp {t:.6f} older than the '
@@ -405,6 +427,9 @@ class ObserverNode(VehicleNode):
         if silent:
             level = DiagnosticStatus.WARN
             message = f'predicting only: no data on {", ".join(silent)}'
+        values = {'observer_type': self.vehicle.observer.kind,
+                  'x_hat': np.array2string(self.estimator.x_hat, precision=6)}
+        level, message = self._health_status(now, level, message, values)
         if self._counters.get('unverified_gain_corrections') and level == DiagnosticStatus.OK:
             level = DiagnosticStatus.WARN
             message = 'some corrections skipped: their step gain failed verification'
@@ -412,11 +437,7 @@ class ObserverNode(VehicleNode):
         if duplicates:
             level = DiagnosticStatus.ERROR
             message = f'more than one publisher: {", ".join(duplicates)}'
-        x_hat = self.estimator.x_hat
-        self.publish_diagnostics(level, message, {
-            'observer_type': self.vehicle.observer.kind,
-            'x_hat': np.array2string(x_hat, precision=6),
-        }, extra=self._health_statuses())
+        self.publish_diagnostics(level, message, values, extra=self._health_statuses())
 
     def _health_statuses(self):
         """Return one status per sensor: its residuals' consistency with the model."""

@@ -24,10 +24,12 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticStatus
 import numpy as np
+from rcl_interfaces.msg import SetParametersResult
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool
 
+from .checks import own_parameter_problem
 from .common import (joint_state, LATCHED_QOS, MESSAGE_CLASSES, run_node, SAFE_COMMAND_FRAME,
                      SENSOR_QOS, stamp_to_sec, STATE_PUB_QOS, STATE_QOS, to_stamp, TOPICS,
                      vector_from_joint_state, VehicleNode)
@@ -35,6 +37,11 @@ from ..core.model import zoh_matrices
 from ..sensors import fill_measurement
 
 __all__ = ['PlantSimulatorNode', 'main']
+
+# s: a realtime command stamped further ahead of the simulated time is not for this run
+FUTURE_COMMAND = 2.0
+# realtime: how many command_timeouts to wait for a matched command publisher at start
+READY_WAIT = 10.0
 
 
 class PlantSimulatorNode(VehicleNode):
@@ -87,6 +94,8 @@ class PlantSimulatorNode(VehicleNode):
         self._started = False
         self._done = False
         self._latest_cmd_stamp = None
+        self._ready_since = None            # realtime: wall time of the first tick
+        self._handshake_sent = None         # realtime: when step 0 last went out
         self._step_wall = None              # realtime: wall time the step's gyro went out
         self._loop_us = []                  # realtime: measurement -> its command, us
         self._last_sent = None
@@ -103,6 +112,11 @@ class PlantSimulatorNode(VehicleNode):
             self.count('late_commands', 0)
         self._diag_timer = self.wall_timer(self.param('diagnostics_period'),
                                            self._on_diagnostics)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+    def _on_set_parameters(self, params):
+        problem = own_parameter_problem(params)
+        return SetParametersResult(successful=problem is None, reason=problem or '')
 
     def _on_recorder_ready(self, msg):
         self._recorder_ready = bool(msg.data)
@@ -208,6 +222,11 @@ class PlantSimulatorNode(VehicleNode):
             self.get_logger().warning(f'{err}', throttle_duration_sec=1.0)
             return
         if not self._lockstep:
+            if stamp > self.t + FUTURE_COMMAND:
+                # not an answer to this run (a compensator still on the time of a run
+                # before a restart): never applied
+                self.count('future_commands')
+                return
             self.u = u
             self._latest_cmd_stamp = stamp
             if self._step_wall is not None and abs(stamp - self.t) <= 0.25 * self.dt:
@@ -265,7 +284,13 @@ class PlantSimulatorNode(VehicleNode):
     def _realtime_step(self):
         if self._done:
             return
-        if self._started:       # (k stays 0 until the first advance)
+        if not self._started:
+            if not self._realtime_ready():
+                return
+            self._started = True    # step 0 went out (and was answered): step on
+            self.get_logger().info(f'{self.vehicle.name}: realtime run of {self.steps} '
+                                   f'steps of {self.dt} s')
+        if self._started:
             # the command answering the previous step should be here by now; before the
             # first command the loop is not closed yet (peers starting, DDS matching):
             # those steps are open_loop_steps, not late commands (benchmarks P2)
@@ -290,6 +315,42 @@ class PlantSimulatorNode(VehicleNode):
         self.count('steps')
         if self.steps is not None and self.k >= self.steps:
             self._finish()
+
+    def _realtime_ready(self):
+        """
+        Realtime: step on once a command has answered step 0 (commands reach the plant).
+
+        Step 0's measurements go out every resend period once the command publisher and
+        ``wait_for_subscribers`` sensor readers are matched, until a command stamped t_0
+        comes back (or READY_WAIT x command_timeout passed: then open loop). A simulator
+        restarted under a running observer and compensator must not step before their
+        commands reach it (a matched reader is not enough: the compensator's writer may not
+        have matched it yet): the observer would correct with commands the plant never
+        gets, and the cart's unstable compensator (D(s) has a pole at +95.75) then
+        diverges on its own, x_hat and u x2.6 every 10 ms.
+        """
+        now = time.monotonic()
+        if self._ready_since is None:
+            self._ready_since = now
+        if self._latest_cmd_stamp is not None and \
+                abs(self._latest_cmd_stamp - self.t) <= 0.25 * self.dt:
+            return True
+        waited = now - self._ready_since
+        if waited > READY_WAIT * self.vehicle.simulator.command_timeout:
+            self.get_logger().warning(f'no command answered step 0 after {waited:.1f} s; '
+                                      'running open loop')
+            return True
+        need = int(self.param('wait_for_subscribers'))
+        matched = self._cmd_sub.get_publisher_count() >= 1 and all(
+            pub.get_subscription_count() >= need for _, pub, _ in self._sensor_pubs)
+        if matched and (self._handshake_sent is None or
+                        now - self._handshake_sent >= self._resend_period):
+            for sensor, pub, rows in self._sensors_due():
+                pub.publish(self._measure(sensor, rows))
+            self._publish_step_state()
+            self._handshake_sent = self._step_wall = now
+            self.count('start_measurements')
+        return False
 
     def _on_diagnostics(self):
         level = DiagnosticStatus.OK

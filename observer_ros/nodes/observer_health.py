@@ -1,0 +1,103 @@
+# observer_ros.nodes.observer_health: the observer's overload, divergence and gap checks.
+"""
+What the observer node checks about itself (issue 16), as a mixin of ObserverNode.
+
+Overload (core.health.LoadMeter: busy fraction, messages missed by their stamps), a
+diverging estimate (core.health.Envelope: reported, never OK), and a measurement after a
+gap so long that predicting across it would amplify the error (the estimate restarts at
+the measurement). The node calls these from its measurement path and its diagnostics.
+
+"""
+
+from diagnostic_msgs.msg import DiagnosticStatus
+import numpy as np
+
+from .checks import state_scale
+from .common import stamp_to_sec
+from ..core.health import Envelope, ENVELOPE_FACTOR, LoadMeter, max_prediction_gap
+
+__all__ = ['DIVERGENCE_HOLD', 'ObserverHealth']
+
+# wall s: a divergence stays reported (ERROR) this long after the last implausible estimate
+DIVERGENCE_HOLD = 2.0
+
+
+class ObserverHealth:
+    """The observer's self-checks; needs the ObserverNode attributes it names."""
+
+    def _init_health(self):
+        self._load = LoadMeter()            # overload: busy fraction, missed stamps
+        self._diverging = None              # the last divergence report, and its wall time
+        self._diverged_at = None
+
+    def _build_health(self, vehicle):
+        """Set the vehicle's bounds: sensor periods, envelope, longest prediction."""
+        # each sensor's period (s): a longer gap between its stamps is missed messages
+        self._periods = {s.name: s.rate_divider / vehicle.simulator.rate_hz
+                         for s in vehicle.sensors}
+        self._envelope = Envelope(vehicle.plant.state_names, state_scale(vehicle), 'x_hat')
+        self._max_gap = max_prediction_gap(vehicle.plant.A, vehicle.sample_time,
+                                           vehicle.plant.is_discrete)
+
+    def _missed_before(self, sensor, msg):
+        """Return how many messages of the sensor its stamp says were missed (0 if none)."""
+        last = self._last_stamp.get(sensor.name)
+        if last is None or not self._stamped[sensor.name]:
+            return 0
+        gap = stamp_to_sec(msg.header.stamp) - last
+        period = self._periods[sensor.name]
+        return max(int(round(gap / period)) - 1, 0) if gap < 100.0 * period else 0
+
+    def _on_divergence(self, t, problem):
+        """
+        Report an estimate beyond the plausible envelope: ERROR on /diagnostics at once.
+
+        The estimate goes on (a plant that really went far must still be tracked); the
+        compensator, with its own envelope, sends the safe command.
+        """
+        if self._diverging is None:
+            self.get_logger().error(f'diverging: {problem}')
+        self._diverging, self._diverged_at = problem, self.wall_now()
+        self.count('divergence_reports')
+        self._on_diagnostics()
+
+    def _long_gap(self, sensor, t, y, rows):
+        """
+        Start over at the measurement: predicting across this gap would amplify the error.
+
+        The new estimate is the one nearest x_hat(0) that agrees with y (least squares on
+        C's rows, u taken as zero): restarting from x_hat(0) itself would leave the whole
+        distance to the plant as an estimation error, which the cart's fast observer turns
+        into a theta_dot transient of 1e4 rad/s.
+        """
+        gap = t - self.history.t
+        self.get_logger().warning(
+            f'{sensor.topic}: {gap:.2f} s since the estimate, longer than the '
+            f'{self._max_gap:.2f} s over which the unstable model grows the error '
+            f'{ENVELOPE_FACTOR:g} x; estimator restarted at the measurement',
+            throttle_duration_sec=1.0)
+        self.count('long_gap_resets')
+        self.count('estimator_resets')
+        self.history.reset(None, None)      # the estimator, and its history forgotten
+        x0 = self.estimator.x_hat
+        C = self.vehicle.plant.C[list(rows)]
+        x0 = x0 + np.linalg.pinv(C) @ (np.asarray(y, dtype=float) - C @ x0)
+        self.history.reset(x0, None)
+        self._envelope.reset()
+
+    def _health_status(self, now, level, message, values):
+        """Return the diagnostics level and message with overload and divergence in them."""
+        load = self._load
+        load.idle(now)
+        if load.rate is not None:
+            values.update(answered_per_s=f'{load.rate:.1f}', busy=f'{load.busy:.2f}',
+                          missed_per_s=f'{load.missed_rate:.1f}')
+        if load.overloaded:
+            level = DiagnosticStatus.ERROR
+            message = (f'overloaded: answering {load.rate:.1f} measurements/s, '
+                       f'{load.missed_rate:.1f}/s missed, busy {100 * load.busy:.0f} %')
+        if self._diverged_at is not None and now - self._diverged_at < DIVERGENCE_HOLD:
+            level, message = DiagnosticStatus.ERROR, f'diverging: {self._diverging}'
+        elif self._diverged_at is not None:
+            self._diverging = self._diverged_at = None
+        return level, message
