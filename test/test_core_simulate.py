@@ -145,3 +145,23 @@ def test_reset():
     sim.reset([1.0, 2.0, 3.0], t0=0.0)
     assert_allclose(sim.x, [1.0, 2.0, 3.0])
     assert sim.t == 0.0
+
+
+def test_process_noise_factor_is_the_exact_step_covariance():
+    """The node simulator and PlantSimulator add w with Qd(dt) (continuous) or W (discrete)."""
+    from observer_ros.core.simulate import process_noise_factor
+    A = np.array([[0.0, 1.0], [-2.0, -0.5]])
+    plant = Plant(A, np.array([[0.0], [1.0]]), np.eye(2), np.zeros((2, 1)))
+    wstd = np.array([0.1, 0.3])
+    for dt in (0.001, 0.05):
+        S = process_noise_factor(plant, wstd, dt)
+        Q = process_noise_covariance(A, np.diag(wstd ** 2), dt)
+        assert_allclose(S @ S.T, Q, rtol=1e-10, atol=1e-15)
+        # an intensity: the covariance of a step grows with the step, about W dt
+        assert_allclose(np.diag(Q), wstd ** 2 * dt, rtol=0.1)
+    discrete = Plant(0.9 * np.eye(2), np.array([[0.0], [1.0]]), np.eye(2), np.zeros((2, 1)),
+                     dt=0.1)
+    S = process_noise_factor(discrete, wstd, 0.1)
+    assert_allclose(S @ S.T, np.diag(wstd ** 2), atol=1e-15)
+    S2 = process_noise_factor(discrete, wstd, 0.2, samples=2)
+    assert_allclose(S2 @ S2.T, np.diag(wstd ** 2) * (1 + 0.81), atol=1e-15)

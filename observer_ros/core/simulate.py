@@ -18,13 +18,49 @@ from .errors import DimensionError, ObserverError
 from .estimators import process_noise_covariance, StepCache
 from .model import as_vector, Plant, zoh_matrices
 
-__all__ = ['PlantSimulator']
+__all__ = ['PlantSimulator', 'process_noise_factor']
 
 
 def _sqrtm_psd(Q):
     """Symmetric square root factor S with S S^T = Q, for Q positive semidefinite."""
     w, V = np.linalg.eigh(0.5 * (Q + Q.T))
     return V * np.sqrt(np.clip(w, 0.0, None))
+
+
+def process_noise_factor(plant, process_noise_std, dt, samples=None):
+    """
+    Factor S (S S^T = Q) of the covariance the process noise adds over one step.
+
+    Parameters
+    ----------
+    plant : Plant
+        The model.
+    process_noise_std : (n,) array_like
+        Continuous plant: square root of the diagonal intensity of w (units per
+        square-root second), so the noise does not depend on the step. Discrete
+        plant: standard deviation per sample.
+    dt : float
+        Step in seconds (continuous plant).
+    samples : int, optional
+        Discrete plant: samples in the step (default 1).
+
+    Returns
+    -------
+    S : (n, n) ndarray
+        ``S @ standard_normal(n)`` has the exact covariance of the step:
+        ``Qd(dt)`` of :func:`~observer_ros.core.estimators.process_noise_covariance`
+        (continuous), ``sum A^i W A^i^T`` over the samples (discrete).
+
+    """
+    W = np.diag(np.asarray(process_noise_std, dtype=float) ** 2)
+    if not plant.is_discrete:
+        return _sqrtm_psd(process_noise_covariance(plant.A, W, dt))
+    Q = np.zeros_like(W)
+    term = W
+    for _ in range(1 if samples is None else samples):
+        Q = Q + term
+        term = plant.A @ term @ plant.A.T
+    return _sqrtm_psd(Q)
 
 
 class PlantSimulator:
@@ -133,16 +169,7 @@ class PlantSimulator:
             k = None
         S = None
         if self._w_std is not None:
-            W = np.diag(self._w_std ** 2)
-            if k is None:
-                Q = process_noise_covariance(plant.A, W, dt)
-            else:
-                Q = np.zeros_like(W)
-                term = W
-                for _ in range(k):
-                    Q = Q + term
-                    term = plant.A @ term @ plant.A.T
-            S = _sqrtm_psd(Q)
+            S = process_noise_factor(plant, self._w_std, dt, k)
         ent = (Ad, Bd, S)
         self._steps[dt] = ent
         if len(self._steps) > 64:

@@ -34,6 +34,7 @@ from .common import (joint_state, LATCHED_QOS, MESSAGE_CLASSES, run_node, SAFE_C
                      SENSOR_QOS, stamp_to_sec, STATE_PUB_QOS, STATE_QOS, to_stamp, TOPICS,
                      vector_from_joint_state, VehicleNode)
 from ..core.model import zoh_matrices
+from ..core.simulate import process_noise_factor
 from ..sensors import fill_measurement
 
 __all__ = ['PlantSimulatorNode', 'main']
@@ -64,6 +65,10 @@ class PlantSimulatorNode(VehicleNode):
         else:
             self.Ad, self.Bd = zoh_matrices(plant.A, plant.B, self.dt)
         self.C, self.D = plant.C, plant.D
+        # the exact covariance of one step, as core.simulate and the Kalman design read
+        # simulator.process_noise_std (an intensity for a continuous model)
+        self._w_factor = None if v.simulator.process_noise_std is None else \
+            process_noise_factor(plant, v.simulator.process_noise_std, self.dt)
         self.x = np.array(v.simulator.initial_state, dtype=float)
         self.u = np.zeros(plant.m)
         self.k = 0
@@ -162,8 +167,8 @@ class PlantSimulatorNode(VehicleNode):
         """Integrate from t_k to t_k+1 holding u."""
         self.x = self.Ad @ self.x + self.Bd @ self.u
         sim = self.vehicle.simulator
-        if sim.process_noise_std is not None:
-            self.x = self.x + self.rng.standard_normal(self.x.size) * sim.process_noise_std
+        if self._w_factor is not None:
+            self.x = self.x + self._w_factor @ self.rng.standard_normal(self.x.size)
         self.k += 1
 
     # -- lockstep ---------------------------------------------------------------------------
