@@ -214,7 +214,8 @@ class CompensatorNode(VehicleNode):
         The prediction has had its time (predict_timeout, then the observer's settling
         time): the plant may really be far away now (an unstable plant predicted open loop
         for seconds), and only the closed loop brings it back. Beyond the envelope this is
-        reported as ERROR (``diverging``); back inside it, the envelope is armed again.
+        reported as ERROR (``diverging``); once x_hat and u are strictly inside the
+        envelope (:meth:`Envelope.inside`) for an observer settling time, it is armed again.
         """
         with np.errstate(all='ignore'):
             u_law = control_law(self.K, x_hat, self.x_d, self.Kd)
