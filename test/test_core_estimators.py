@@ -942,14 +942,14 @@ def test_quick_gain_matches_the_full_design():
         Ad, _ = zoh_matrices(plant.A, plant.B, h)
         C = plant.C @ Ad
         z = np.exp(np.array(poles, dtype=complex) * h)
-        M = estimators._quick_gain(Ad, C, z, 'auto')
+        M, _ = estimators._quick_gain(Ad, C, z, 'auto')
         assert M is not None
         assert_allclose(M, observer_gain(Ad, C, z), rtol=1e-6, atol=1e-12)
     # Unobservable pair (the cart from theta): no quick gain, the decomposition runs.
     plant = cart(C=((1.0, 0.0, 0.0, 0.0),))
     Ad, _ = zoh_matrices(plant.A, plant.B, 0.01)
     z = np.exp(np.array(CART_POLES) * 0.01)
-    assert estimators._quick_gain(Ad, plant.C @ Ad, z, 'auto') is None
+    assert estimators._quick_gain(Ad, plant.C @ Ad, z, 'auto')[0] is None
 
 
 @pytest.mark.parametrize('vehicle', ['submarine', 'cart_pendulum', 'aircraft_lateral',

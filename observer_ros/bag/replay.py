@@ -61,6 +61,7 @@ from typing import Dict, Optional, Tuple
 import numpy as np
 
 from .errors import BagToolError
+from .step_maps import bulk_maps
 from ..core.errors import ObserverError
 from ..core.estimators import History, make_estimator
 from ..core.innovation import sequence_health, whiten
@@ -78,6 +79,7 @@ CHECK_IRREGULAR = 16           # most windows at irregular places of a stretch
 IRREGULAR_STEPS = 3            # steps of each of those
 MAX_GROWTH = 1e3               # unstable step maps: most growth to the end of the bag
 CHECK_RTOL = 1e-10             # bulk vs call, relative to the terms of the steps so far
+CHECK_CLASSES = 32             # step classes checked call by call (jittered: one per step)
 _PROGRESS_EVERY = 1 << 15
 
 
@@ -576,6 +578,32 @@ def _has_late(events, streams, cmd, length):
 # Bulk replay of stretches of measurements at distinct, increasing stamps
 # ---------------------------------------------------------------------------------------
 
+def _key_ids(key_of, steps):
+    """
+    Return the key id of each step length (-1: no valid key) and the keys by id.
+
+    ``key_of`` is the estimator's ``cache.key``; ids number the distinct keys.
+
+    """
+    try:
+        keys = np.array([key_of(v) for v in steps.tolist()], dtype=float)
+    except (ObserverError, ValueError):
+        keys = None                              # some step has no key: one at a time
+    if keys is not None:
+        ukeys, ids = np.unique(keys, return_inverse=True)
+        return ids.reshape(-1).astype(np.int64), ukeys
+    key_index = {}
+    ids = np.empty(steps.size, dtype=np.int64)
+    for i, v in enumerate(steps.tolist()):
+        try:
+            key = key_of(v)
+        except (ObserverError, ValueError):
+            ids[i] = -1
+            continue
+        ids[i] = key_index.setdefault(key, len(key_index))
+    return ids, np.array(list(key_index), dtype=float)
+
+
 def _find_runs(events, streams, cmd, est, jump, future_tolerance):
     """
     Stretches of measurements each of whose steps is an affine map of the previous x.
@@ -611,15 +639,7 @@ def _find_runs(events, streams, cmd, est, jump, future_tolerance):
     key_id = np.full(M - 1, -1, dtype=np.int64)
     pos = h > 0
     uniq, inv = np.unique(h[pos], return_inverse=True)
-    key_index = {}
-    ids = np.empty(uniq.size, dtype=np.int64)
-    for i, v in enumerate(uniq):
-        try:
-            key = est.cache.key(float(v))
-        except (ObserverError, ValueError):
-            ids[i] = -1
-            continue
-        ids[i] = key_index.setdefault(key, len(key_index))
+    ids, keys = _key_ids(est.cache.key, uniq)
     if ids.size:
         key_id[pos] = ids[inv.reshape(-1)]
     step_ok = (key_id >= 0) & ok[1:]
@@ -639,7 +659,7 @@ def _find_runs(events, streams, cmd, est, jump, future_tolerance):
         bad_gap[gi[~good]] = True
         step_ok &= ~bad_gap[:-1]
         np.add.at(gap_cmds, gi, 1)
-    n_keys = max(1, len(key_index))
+    n_keys = max(1, keys.size)
     step_class = np.where(step_ok, key_id * len(streams) + msens[1:], -1)
     ok_i = step_ok.astype(np.int8)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], ok_i, [0]])))
@@ -647,7 +667,8 @@ def _find_runs(events, streams, cmd, est, jump, future_tolerance):
     shared = {'midx': midx, 'mseq': mseq, 'msens': msens, 'tm': tm, 'mev': mev,
               'kind': events.kind, 'idx': events.idx, 'seq': events.seq,
               'last_cmd': last_cmd, 'gap_cmds': gap_cmds,
-              'step_class': step_class, 'n_classes': n_keys * len(streams)}
+              'step_class': step_class, 'n_classes': n_keys * len(streams),
+              'keys': keys}
     for s0, s1 in zip(edges[::2], edges[1::2]):
         a, b = int(s0), int(s1)                 # steps a..b-1: measurements a+1..b
         if b + 1 < M and tm[b + 1] == tm[b]:
@@ -706,6 +727,76 @@ def _probe(probe, t0, t1, rows):
     return F, G, H, Rx, Ry, Ru
 
 
+def _spread(items, count):
+    """Return up to ``count`` of ``items`` spread evenly, the first and the last included."""
+    if len(items) <= count:
+        return list(items)
+    return [items[i] for i in np.linspace(0, len(items) - 1, count).round().astype(int)]
+
+
+def _step_maps(est, run, first, sens, rows, warnings):
+    """
+    Return the affine maps of the step classes of a run (first step of class c: first[c]).
+
+    As ``(F, G, H, Rx, Ry, Ru)``, each stacked over the classes (see :func:`_probe`).
+
+    Built in bulk (:func:`~observer_ros.bag.step_maps.bulk_maps`) when there are more
+    than :data:`CHECK_CLASSES` classes (jittered stamps) and the estimator is one it
+    models, then checked against :func:`_probe` on :data:`CHECK_CLASSES` classes spread
+    over the run; else measured by :func:`_probe` class by class. None: not linear.
+
+    """
+    probe = _twin(est)
+    a, tm = run['a'], run['tm']
+    first = np.asarray(first)
+    t0, t1 = tm[a + first], tm[a + first + 1]
+    ks = sens[first]
+    maps = None
+    if len(first) > CHECK_CLASSES:
+        keys = run['keys'][run['step_class'][a + first] // len(rows)]
+        maps = bulk_maps(est, keys, ks, rows)
+    todo = range(len(first)) if maps is None else _spread(range(len(first)), CHECK_CLASSES)
+    probed = {}
+    for c in todo:
+        mp = _probe(probe, float(t0[c]), float(t1[c]), rows[ks[c]])
+        if mp is None:
+            warnings.append('bulk replay disabled: an estimator step is not linear')
+            return None
+        probed[c] = mp
+    if maps is None:
+        return _stacked([probed[c] for c in range(len(first))])
+    for c, mp in probed.items():
+        for bulk, measured in zip((M[c] for M in maps), mp):
+            if np.max(np.abs(bulk - measured)) > CHECK_RTOL * (1.0 + np.max(np.abs(measured))):
+                warnings.append("bulk step maps differ from the estimator's at t = "
+                                f'{float(t1[c]):.9g} s; measuring every step')
+                maps = [_probe(probe, float(t0[i]), float(t1[i]), rows[ks[i]])
+                        for i in range(len(first))]
+                return None if any(mp is None for mp in maps) else _stacked(maps)
+    return maps
+
+
+def _spectral_radius(F, h):
+    """
+    Return the largest spectral radius of the step maps F (step lengths h).
+
+    At most :data:`CHECK_CLASSES` * 8 maps are decomposed: spread over the classes, and
+    the shortest and longest steps (a map's poles move monotonically with its length,
+    ``exp(s h)``); jittered stamps give one class per step.
+
+    """
+    if F.shape[0] > 8 * CHECK_CLASSES:
+        pick = _spread(range(F.shape[0]), 8 * CHECK_CLASSES)
+        pick += [int(np.argmin(h)), int(np.argmax(h))]
+        F = F[pick]
+    return float(np.max(np.abs(np.linalg.eigvals(F))))
+
+
+def _stacked(maps):
+    """Return the maps (F, G, H, Rx, Ry, Ru) of the classes as six stacked arrays."""
+    return tuple(np.stack(part) for part in zip(*maps))
+
+
 def _held_inputs(run, cmd, u0, a, b):
     """
     Return the input held at each correction a+1..b: that of the last command before it.
@@ -737,11 +828,12 @@ def _call_events(check, run, streams, cmd, rows, e0, e1):
     for e in range(e0, e1):
         k, j = int(kind[e]), int(idx[e])
         if k < 0:
-            t = float(cmd.t[j])
+            t = float(cmd.stamp_ns[j]) * 1e-9        # cmd.t[j], without the whole array
             last = check.t
             check.set_input(last if last is not None and t < last else t, cmd.values[j])
         else:
-            xs.append(check.correct(float(streams[k].t[j]), streams[k].values[j], rows[k]))
+            t = float(streams[k].stamp_ns[j]) * 1e-9  # streams[k].t[j]
+            xs.append(check.correct(t, streams[k].values[j], rows[k]))
     return np.array(xs).reshape(-1, check.n)
 
 
@@ -833,9 +925,7 @@ def _class_matvec(M, classes, V, chunk=1 << 16):
 
 def _term_scale(maps, cls, sens, Y, Xprev, X, U):
     """Return the running maximum over steps of ``max(|F| |x_prev| + |G| |y| + |H| |u|, |x|)``."""
-    absF = np.abs(np.stack([mp[0] for mp in maps]))
-    absH = np.abs(np.stack([mp[2] for mp in maps]))
-    absG = np.abs(np.stack([mp[1] for mp in maps]))
+    absF, absG, absH = (np.abs(M) for M in maps[:3])
     terms = _class_matvec(absF, cls, np.abs(Xprev)) + _class_matvec(absH, cls, np.abs(U))
     for k, y in enumerate(Y):
         if y is not None:
@@ -868,9 +958,7 @@ def _check_steps(run, cmd, maps, cls, sens, Y, X, x0, u0, scale):
     held = last >= 0
     if held.any():
         U[held] = cmd.values[idx[last[held]]]
-    F = np.stack([mp[0] for mp in maps])
-    H = np.stack([mp[2] for mp in maps])
-    G = np.stack([mp[1] for mp in maps])
+    F, G, H = maps[:3]
     Xprev = np.vstack([x0[None, :], X[:-1]])
     pred = _class_matvec(F, cls, Xprev) + _class_matvec(H, cls, U)
     for k, y in enumerate(Y):
@@ -903,22 +991,15 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
     cls_all = run['step_class'][a:b]
     classes, first, cls = np.unique(cls_all, return_index=True, return_inverse=True)
     cls = cls.reshape(-1)
-    Fs = np.empty((classes.size, n, n))
     W = np.zeros((K, n))
     Y = [None] * len(streams)
-    maps = []
-    probe = _twin(est)
-    for c, f in enumerate(first):
-        k = int(sens[f])
-        mp = _probe(probe, float(tm[a + f]), float(tm[a + f + 1]), rows[k])
-        if mp is None:
-            warnings.append('bulk replay disabled: an estimator step is not linear')
-            return None
-        maps.append(mp)
-        Fs[c] = mp[0]
+    maps = _step_maps(est, run, first, sens, rows, warnings)
+    if maps is None:
+        return None
+    Fs = maps[0]
     # an unstable estimator (the open loop of an unstable plant) amplifies every
     # difference in round-off until the end of the bag: call by call, as the node
-    rho = max(float(np.max(np.abs(np.linalg.eigvals(F)))) for F in Fs)
+    rho = _spectral_radius(Fs, tm[a + first + 1] - tm[a + first])
     if rho > 1.0 and (run['tm'].size - a) * np.log(rho) > np.log(MAX_GROWTH):
         return None
     for k in range(len(streams)):
@@ -926,8 +1007,7 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
         if not sel.any():
             continue
         Y[k] = streams[k].values[idx[sel]]
-        Gk = np.stack([maps[c][1] for c in range(classes.size)])
-        Hk = np.stack([maps[c][2] for c in range(classes.size)])
+        Gk, Hk = maps[1], maps[2]
         ck = cls[sel]
         W[sel] = _class_matvec(Gk, ck, Y[k]) + _class_matvec(Hk, ck, U[sel])
     x0 = est.x_hat
@@ -941,9 +1021,7 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
         if not sel.size:
             continue
         ck = cls[sel]
-        Rx = np.stack([mp[3] for mp in maps])
-        Ry = np.stack([mp[4] for mp in maps])
-        Ru = np.stack([mp[5] for mp in maps])
+        Rx, Ry, Ru = maps[3:]
         r = (_class_matvec(Rx, ck, Xprev[sel]) + _class_matvec(Ry, ck, Y[k])
              + _class_matvec(Ru, ck, U[sel]))
         R[np.ix_(sel, rows_idx[k])] = r
@@ -958,7 +1036,7 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
     if problem is None:
         problem = _check_windows(est, run, streams, cmd, rows, X, U, scale)
     check = _twin(est)
-    for f in first if problem is None else ():
+    for f in _spread(first, CHECK_CLASSES) if problem is None else ():
         k = int(sens[f])
         check.reset(Xprev[f], float(tm[a + f]))
         check.set_input(float(tm[a + f]), U[f])

@@ -25,6 +25,7 @@ from .design import (controller_gain, kalman_gain, lqr_gain, observer_gain,
                      pole_placement_error, reduced_order_observer, ReducedOrderDesign)
 from .errors import (DesignError, DimensionError, NotDetectableError, ObserverDesignWarning,
                      ObserverError)
+from .estimators.sampled import check_sampled_observer, SampledCheck
 from .model import as_matrix, as_poles, as_vector
 from .verify import (PlacementCheck, stability_status, unstable_eigenvalues, verify_placement,
                      verify_stable)
@@ -790,6 +791,7 @@ class VehicleDesign:
     controller_placement: Optional[PlacementCheck] = None
     separation_error: Optional[float] = None
     separation_allowed: Optional[float] = None
+    sampled: Optional[SampledCheck] = None
 
     @property
     def observer(self):
@@ -936,6 +938,9 @@ def design_vehicle(vehicle):
             verify_stable(A - L @ C if reduced is None else reduced.F, 'observer.gain',
                           'eig(A - L C)' if reduced is None else 'eig(F)', discrete)
 
+        # the gains the loop runs: per sampled step and set of outputs, at the sensors' rates
+        sampled, sampled_messages = check_sampled_observer(vehicle)
+        messages.extend(sampled_messages)
         K, ctrl_check = _controller(ctrl_spec, A, B, n, m, discrete, names,
                                     ctrb_report.uncontrollable_eigenvalues)
     messages.extend(str(w.message) for w in caught
@@ -1003,7 +1008,7 @@ def design_vehicle(vehicle):
         compensator_poles=comp_poles, reduced=reduced, P=P, Kd=Kd, reference=reference,
         tracking_residual=residual, noise_gain=noise_gain, warnings=tuple(messages),
         observer_placement=obs_check, controller_placement=ctrl_check,
-        separation_error=sep_err, separation_allowed=sep_allowed)
+        separation_error=sep_err, separation_allowed=sep_allowed, sampled=sampled)
 
 
 def _norm(M):
@@ -1104,7 +1109,8 @@ def to_json_dict(design):
             'observer': None if design.observer_placement is None else
             design.observer_placement.to_json(),
             'controller': None if design.controller_placement is None else
-            design.controller_placement.to_json()},
+            design.controller_placement.to_json(),
+            'sampled': None if design.sampled is None else design.sampled.to_json()},
         'warnings': list(design.warnings),
     }
     if design.reduced is not None:
@@ -1187,6 +1193,12 @@ def format_report(design, vehicle=None):
     lines.append(f'Observer ({design.kind}), poles ({plane}): '
                  f'{_poles_line(design.observer_poles)}')
     lines.extend(_placement_lines(design.observer_placement))
+    if design.sampled is not None:
+        sc = design.sampled
+        lines.append(f' sampled gains (sensors {list(sc.sensors)}, period {sc.period:.6g} s, '
+                     f'{len(sc.corrections)} corrections): verified; error map over one period '
+                     f'has spectral radius {sc.spectral_radius:.4g} (decay {sc.decay_rate:.3g}/s, '
+                     f'designed {sc.designed_rate:.3g}/s)')
     if design.reduced is not None:
         r = design.reduced
         est = [design.state_names[i] for i in r.rest]

@@ -199,12 +199,18 @@ class ObserverNode(ObserverHealth, VehicleNode):
         late = history.t is not None and t < history.t
         if not late and history.t is not None and t - history.t > self._max_gap:
             self._long_gap(sensor, t, y, rows)
+        skipped = getattr(self.estimator, 'unverified_corrections', 0)
         try:
             x_hat = history.correct(t, y, rows, tag=stamp)
         except (ObserverError, ValueError) as err:
             self._reject('rejected_updates', f'{sensor.topic}: {err}')
             self._answer_without_correction(sensor, t, stamp)
             return
+        if getattr(self.estimator, 'unverified_corrections', 0) > skipped:
+            # the gain of this step failed its verification: prediction only (core)
+            reason = next(reversed(self.estimator.gain_failures.values()))
+            self._reject('unverified_gain_corrections',
+                         f'{sensor.topic}: correction skipped (prediction only): {reason}')
         if not np.isfinite(x_hat).all():
             # Never publish a NaN: restart from the initial estimate.
             self._reset_estimator('numerical_resets', f'{sensor.topic}: estimate not finite',
@@ -424,6 +430,9 @@ class ObserverNode(ObserverHealth, VehicleNode):
         values = {'observer_type': self.vehicle.observer.kind,
                   'x_hat': np.array2string(self.estimator.x_hat, precision=6)}
         level, message = self._health_status(now, level, message, values)
+        if self._counters.get('unverified_gain_corrections') and level == DiagnosticStatus.OK:
+            level = DiagnosticStatus.WARN
+            message = 'some corrections skipped: their step gain failed verification'
         duplicates = self.duplicate_publishers((TOPICS['estimate'], TOPICS['command']))
         if duplicates:
             level = DiagnosticStatus.ERROR

@@ -222,30 +222,30 @@ class Estimator:
         Return a gain (or Kalman noise) of a step: designed on the grid, interpolated.
 
         ``name`` identifies the value in the steps' ``extra`` dicts; the interpolated
-        value is cached on the step of ``key`` itself.
+        value is cached on the step of ``key`` itself. A design that returns None (a
+        gain refused by its verification, see ``_verified_gain``) is cached as None,
+        and so is the interpolation of a step whose grid neighbours include one.
 
         """
         step = self._cache.get(key)
-        value = step.extra.get(name)
-        if value is not None:
-            return value
+        if name in step.extra:
+            return step.extra[name]
         if self._gain_cache is None:
             value = design(step)
         else:
             g0, g1, w = _bracket(key, self._gain_digits)
             value = self._grid_value(g0, name, design)
-            if g1 is not None:
-                value = (1.0 - w) * value + w * self._grid_value(g1, name, design)
+            if g1 is not None and value is not None:
+                other = self._grid_value(g1, name, design)
+                value = None if other is None else (1.0 - w) * value + w * other
         step.extra[name] = value
         return value
 
     def _grid_value(self, g, name, design):
         step = self._gain_cache.get(g)
-        value = step.extra.get(name)
-        if value is None:
-            value = design(step)
-            step.extra[name] = value
-        return value
+        if name not in step.extra:
+            step.extra[name] = design(step)
+        return step.extra[name]
 
     # ------------------------------------------------------------ public steps
 

@@ -9,6 +9,7 @@ The full-order and reduced-order observers given poles differ only in their gain
 import numpy as np
 
 from .base import _as_rows, Estimator
+from ..errors import DesignVerificationError
 
 
 class _CurrentForm(Estimator):
@@ -21,6 +22,12 @@ class _CurrentForm(Estimator):
     at one time are fused: the correction is recomputed from the prior at that
     time with all the rows received at that time (ybar = y - D u of each row as
     received).
+
+    Every gain designed for a step is verified (``placement._place``). A step whose
+    gain fails the check is never corrected with it: that correction is skipped
+    (prediction only, as if the measurement had not come), counted in
+    :attr:`unverified_corrections`, and :attr:`gain_failures` keeps the reason per
+    (step, rows). ``correction_gain`` and ``error_matrix`` raise it instead.
 
     """
 
@@ -36,6 +43,8 @@ class _CurrentForm(Estimator):
         self._acc_key = None
         self._t_corr = None
         self._init_gains = {}
+        self.unverified_corrections = 0
+        self.gain_failures = {}
 
     def _reset_state(self):
         self._acc_rows = set()
@@ -61,6 +70,8 @@ class _CurrentForm(Estimator):
         self._t_anchor = t
         M = self._gain(self._acc_key, union)
         if M is None:
+            if self._acc_key is not None:
+                self.unverified_corrections += 1
             np.copyto(self._x, self._x_prior)
             return
         innov = self._acc[union.idx] - union.C @ self._x_prior
@@ -71,6 +82,30 @@ class _CurrentForm(Estimator):
     def _gain(self, key, info):
         """Return M (n x len(info.rows)) for the interval key, or None (no correction)."""
         raise NotImplementedError
+
+    def _verified_design(self, step, rows, design):
+        """
+        Return ``design(step)``, or None when the gain fails its verification.
+
+        The refusal's message names the step and the outputs; it is kept in
+        :attr:`gain_failures` under ``(step.key, rows)``.
+
+        """
+        names = [self._plant.output_names[i] for i in rows]
+        at = f'{step.k} sample(s)' if step.k is not None else f'h = {step.h:.6g} s'
+        try:
+            return design(step, f'observer.poles at the sampled step {at} with outputs {names}')
+        except DesignVerificationError as err:
+            self.gain_failures[(step.key, tuple(rows))] = str(err)
+            return None
+
+    def _checked_gain(self, key, info):
+        M = self._gain(key, info)
+        if M is None:
+            reason = self.gain_failures.get((key, info.rows)) or next(
+                reversed(self.gain_failures.values()), 'no gain for this step')
+            raise DesignVerificationError(reason)
+        return M
 
     def _zpoles(self, step):
         if step.k is None:
@@ -96,7 +131,7 @@ class _CurrentForm(Estimator):
         """
         info = self._all if rows is None else self._rows_info(tuple(sorted(
             _as_rows(rows, 'rows', self._plant))), 'rows')
-        return self._gain(self._cache.key(self._as_time(dt)), info).copy()
+        return self._checked_gain(self._cache.key(self._as_time(dt)), info).copy()
 
     def error_matrix(self, dt, rows=None):
         """
@@ -115,9 +150,14 @@ class _CurrentForm(Estimator):
             ``e+_{k+1} = F e+_k`` with ``F = (I - M C[rows]) Ad(dt)``; its
             eigenvalues are the z-plane observer poles exp(s dt).
 
+        Raises
+        ------
+        DesignVerificationError
+            The gain of this step fails its verification (also ``correction_gain``).
+
         """
         info = self._all if rows is None else self._rows_info(tuple(sorted(
             _as_rows(rows, 'rows', self._plant))), 'rows')
         step = self._cache.step(self._as_time(dt))
-        M = self._gain(step.key, info)
+        M = self._checked_gain(step.key, info)
         return (np.eye(self._plant.n) - M @ info.C) @ step.Ad

@@ -141,8 +141,9 @@ class FullOrderEstimator(_CurrentForm):
         if self._mode != 'poles':
             raise ObserverError('correction_gain and error_matrix apply to a full-order '
                                 'observer given poles')
-        return self._gain_value(key, info.rows, lambda step: placement._place(
-            step.Ad, info.C @ step.Ad, self._zpoles(step), self._method))
+        return self._gain_value(key, info.rows, lambda step: self._verified_design(
+            step, info.rows, lambda s, field: placement._place(
+                s.Ad, info.C @ s.Ad, self._zpoles(s), self._method, field)))
 
     def _propagate(self, step):
         mode = self._mode

@@ -11,6 +11,7 @@ import numpy as np
 from ..analysis import is_stable_eigenvalue, observable_decomposition, stability_margin
 from ..design import observer_gain, pole_placement_error
 from ..errors import DesignError, NotDetectableError
+from ..verify import verify_placement
 
 #: A gain from the quick placement (:func:`_quick_gain`) is kept only if its poles
 #: are within this relative error (``design.pole_placement_error``) of those asked
@@ -63,21 +64,34 @@ def _quick_gain(A, C, z, method):
     polynomial with roots z (tens of microseconds). Then, for ``auto`` when
     Ackermann lost digits, for several outputs, or for ``place``: scipy's
     ``place_poles`` on the dual (what python-control's place calls; about a
-    millisecond). A result is kept only if its placed poles are within
-    :data:`QUICK_PLACE_TOL` of z, where neither method can lose to the other by
-    much, so it stands for the comparison ``design.observer_gain`` makes (several
-    milliseconds: decompositions, both methods, four pole errors). Every failure
-    (singular O, repeated poles, loss of digits) returns None.
+    millisecond for a few states, seconds for 20). A result is kept only if its
+    placed poles are within :data:`QUICK_PLACE_TOL` of z, where neither method can
+    lose to the other by much, so it stands for the comparison
+    ``design.observer_gain`` makes (several milliseconds: decompositions, both
+    methods, four pole errors). Every failure (singular O, repeated poles, loss of
+    digits) gives None.
+
+    Returns
+    -------
+    M : (n, p) ndarray or None
+        The accurate gain.
+    placed : (n, p) ndarray or None
+        ``place_poles``' gain whether accurate or not (None if not computed or it
+        failed): with several outputs it is python-control's ``place``, the only
+        candidate ``observer_gain`` has, so :func:`_place` does not compute it twice.
 
     """
     p = C.shape[0]
     if p == 1 and method in ('auto', 'acker'):
         M = _checked(A, C, z, _ackermann)
         if M is not None or method == 'acker':
-            return M
+            return M, None
     if method in ('auto', 'place'):
-        return _checked(A, C, z, _place_poles)
-    return None
+        placed = _attempt(_place_poles, A, C, z)
+        if placed is not None and pole_placement_error(A - placed @ C, z) <= QUICK_PLACE_TOL:
+            return placed, placed
+        return None, placed
+    return None, None
 
 
 def _ackermann(A, C, z):
@@ -102,19 +116,24 @@ def _place_poles(A, C, z):
     return scipy.signal.place_poles(A.T, C.T, z, method='YT').gain_matrix.T
 
 
-def _checked(A, C, z, formula):
+def _attempt(formula, A, C, z):
     try:
         M = formula(A, C, z)
     except (ValueError, np.linalg.LinAlgError):
         return None
-    if not np.all(np.isfinite(M)) or pole_placement_error(A - M @ C, z) > QUICK_PLACE_TOL:
+    return np.ascontiguousarray(M, dtype=float) if np.all(np.isfinite(M)) else None
+
+
+def _checked(A, C, z, formula):
+    M = _attempt(formula, A, C, z)
+    if M is None or pole_placement_error(A - M @ C, z) > QUICK_PLACE_TOL:
         return None
-    return np.ascontiguousarray(M, dtype=float)
+    return M
 
 
-def _place(A, C, zpoles, method):
+def _place(A, C, zpoles, method, field='observer.poles'):
     """
-    Gain M with the observable part of eig(A - M C) at (some of) ``zpoles``.
+    Gain M with the observable part of eig(A - M C) at (some of) ``zpoles``, verified.
 
     The quick formula of :func:`_quick_gain` is tried first (all n poles, checked).
     Otherwise, when (A, C) is observable all n poles are placed
@@ -123,20 +142,48 @@ def _place(A, C, zpoles, method):
     r = rank poles are chosen by :func:`_pick_poles` and placed for (Ao, Co), and
     the unobservable eigenvalues eig(Au) are kept: ``M = T[:, :r] Mo``.
 
+    With several outputs the quick path's ``place_poles`` gain is the full design's
+    too (python-control's place is that call), so it is not computed twice.
+    Whichever path made it, the gain then passes the check every design passes
+    (``verify.verify_placement``, z-plane): the achieved eigenvalues of ``A - M C``
+    (of its observable block ``Ao - Mo Co`` when partial) must be stable and within
+    the placement's conditioning bound of the poles asked for.
+
+    Raises
+    ------
+    DesignVerificationError
+        The gain fails that check; the message starts with ``field``.
+
     """
     n = A.shape[0]
+    placed = None
     if len(zpoles) == n:
-        M = _quick_gain(A, C, np.asarray(zpoles, dtype=complex), method)
+        z = np.asarray(zpoles, dtype=complex)
+        M, placed = _quick_gain(A, C, z, method)
         if M is not None:
-            return M
+            return _verified(A, C, M, z, field)
     _, _, _, T, r = observable_decomposition(A, None, C)
     if r == n:
-        return observer_gain(A, C, _pick_poles(zpoles, n), method)
+        z = _pick_poles(zpoles, n)
+        if placed is not None and C.shape[0] > 1:
+            # observer_gain would call the same place_poles again (its only candidate
+            # with several outputs): seconds for 20 states
+            return _verified(A, C, placed, z, field)
+        return _verified(A, C, observer_gain(A, C, z, method), z, field)
     if r == 0:
         return np.zeros((n, C.shape[0]))
     To = T[:, :r]
-    Mo = observer_gain(To.T @ A @ To, C @ To, _pick_poles(zpoles, r), method)
+    z = _pick_poles(zpoles, r)
+    Ao, Co = To.T @ A @ To, C @ To
+    Mo = _verified(Ao, Co, observer_gain(Ao, Co, z, method), z, field)
     return To @ Mo
+
+
+def _verified(A, C, M, z, field):
+    """Return M after ``verify_placement`` of ``A - M C`` against the z-plane poles z."""
+    norm = np.linalg.norm(A, 2) + np.linalg.norm(M, 2) * np.linalg.norm(C, 2)
+    verify_placement(A - M @ C, z, field, norm, discrete=True)
+    return M
 
 
 def _unobservable_check(A, C, discrete, what):

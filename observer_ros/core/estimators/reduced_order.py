@@ -153,20 +153,25 @@ class ReducedOrderEstimator(_CurrentForm):
         M = step.extra.get(info.rows)
         if M is None:
             Mfull = self._gain_value(key, 'Mfull', self._design_gain)
-            M = Mfull[:, self._cols(info)]
+            M = None if Mfull is None else Mfull[:, self._cols(info)]
             step.extra[info.rows] = M
         return M
 
     def _design_gain(self, step):
         """Tinv [I; Lr] of a step: Lr places the poles on (Phi22, Phi12) (or is given)."""
         if self._mode == 'poles':
-            pm = self._pm
-            Phi = self._T @ step.Ad @ self._Tinv
-            Lr = placement._place(Phi[pm:, pm:], Phi[:pm, pm:], self._zpoles(step),
-                                  self._method)
+            Lr = self._verified_design(step, self._all.rows, self._place_reduced)
+            if Lr is None:
+                return None
         else:
             Lr = self._L
         return self._full_gain(Lr)
+
+    def _place_reduced(self, step, field):
+        pm = self._pm
+        Phi = self._T @ step.Ad @ self._Tinv
+        return placement._place(Phi[pm:, pm:], Phi[:pm, pm:], self._zpoles(step),
+                                self._method, field)
 
     # continuous given gain: z-form with ybar held ---------------------------
 
