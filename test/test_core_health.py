@@ -33,6 +33,18 @@ def test_envelope_flags_growth_and_names_the_component():
     assert env.check(0.0, [0.5, 1.0]) is None
 
 
+def test_envelope_inside_is_strict_where_check_lets_a_shrinking_excursion_pass():
+    # what the compensator's recovery after an outage waits for: a value far beyond the
+    # bound but shrinking passes check() (not growing), and is still not inside
+    env = Envelope(['theta', 'x'], [1.0, 1.0], 'x_hat')
+    for k, v in enumerate([1e4, 5e3, 2e3, 1e3, 500.0, 200.0]):
+        assert env.check(0.01 * k, [v, 0.0]) is None
+        assert not env.inside([v, 0.0])
+    assert env.inside([99.0, -100.0])
+    assert not env.inside([0.0, float('inf')])
+    assert not env.inside([float('nan'), 0.0])
+
+
 def test_load_meter_busy_and_missed():
     meter = LoadMeter(window=0.5)
     # 100 Hz with 1 ms of work each: idle, not overloaded, 100 answers/s

@@ -115,9 +115,14 @@ def test_simulator_killed_and_restarted_converges_again(loop_of, vehicle):
 
 
 @pytest.mark.xfail(strict=False, reason=(
-    'issue 16 part 2 not finished: passed twice before merging #15, fails since; after the '
-    'pause the observer refuses the predicted commands stamped ahead of its stalled '
-    'estimate, does not settle, and the divergence safe command then opens the loop'))
+    'not reliable on the shared, loaded 2-core machine: 3 of 8 runs passed (44.6 to 56.9 s). '
+    'The pause leaves the cart 1.7e3 to 5.9e3 from x_d (the prediction runs open loop, '
+    'e^(3.28 t)); the compensator now keeps the loop closed until x_hat is back inside '
+    'its envelope, and the cart was back within 0.05 after 21 and 29 s of simulated time '
+    'in two traced runs. In 3 failed runs the state grew to 1e35..1e80 with the loop still '
+    'closed (no divergence safe command logged), and in 2 the cart diverged before the '
+    'pause, 2 to 3.5 s after the start: the loop is only conditionally stable (compensator '
+    'pole +96 rad/s) and loses it under the late and out-of-order messages of a loaded machine'))
 def test_paused_observer_loop_recovers_on_the_prediction(loop_of):
     lp = loop_of('cart_pendulum')
     lp.wait_converged(0, 6.0)
@@ -206,6 +211,40 @@ def test_compensator_reports_divergence_and_sends_the_safe_command(
     last = [m for m in listener.commands if stamp_to_sec(m.header.stamp) > 6.3]
     assert last and all(m.position[0] == 0.0 for m in last), [   # submarine: zero
         (stamp_to_sec(m.header.stamp), m.position[0]) for m in last]
+
+
+def test_compensator_keeps_the_loop_closed_until_back_inside_after_an_outage(
+        compensator_setup):  # noqa: F811
+    proc, probe, listener, est = compensator_setup
+    names = ['theta', 'w', 'q']
+    est.publish(joint_state(names, [0.1, 0.0, 0.0], 5.0))
+    listener.wait_counter('compensator', 'commands', 1)
+    listener.wait_counter('compensator', 'safe_commands', 1, 20.0)     # stale
+    # back: the first estimate starts the resync, one past its deadline (10 observer
+    # settling times, 67 s on the submarine) ends it and the recovery begins
+    est.publish(joint_state(names, [0.1, 0.0, 0.0], 6.0))
+    est.publish(joint_state(names, [0.1, 0.0, 0.0], 500.0))
+    listener.wait_counter('compensator', 'resync_commands', 2, 20.0)
+    # far beyond the envelope (theta bound 52 rad): shrinking once, then growing 6 times,
+    # as the cart's estimate swings while the loop brings it back. Check() lets the
+    # shrinking one pass; ending the recovery on it reopened the loop on the growth
+    for k, x in enumerate([1e4, 0.9e4, 1.0e4, 1.1e4, 1.2e4, 1.3e4, 1.4e4, 1.5e4]):
+        est.publish(joint_state(names, [x, 0.0, 0.0], 500.05 + 0.05 * k))
+    listener.wait_counter('compensator', 'recovery_commands', 8, 20.0)
+    assert listener.counter('compensator', 'divergence_safe_commands') == 0
+    status = listener.latest_status('compensator')
+    assert status.level == DiagnosticStatus.ERROR and 'recovering' in status.message
+    # back inside for an observer settling time (6.7 s of stamps): the loop is OK again
+    est.publish(joint_state(names, [0.1, 0.0, 0.0], 600.0))
+    est.publish(joint_state(names, [0.1, 0.0, 0.0], 607.0))
+    probe.spin_until(lambda: (s := listener.latest_status('compensator')) is not None
+                     and s.level == DiagnosticStatus.OK, 20.0, 'the compensator OK again')
+    # and the envelope is armed again: a growth now gives the divergence safe command
+    x = 0.1
+    for k in range(1, 9):
+        x *= 30.0
+        est.publish(joint_state(names, [x, 0.0, 0.0], 607.0 + 0.05 * k))
+    listener.wait_counter('compensator', 'divergence_safe_commands', 1, 20.0)
 
 
 def test_overloaded_observer_says_so(observer_setup):  # noqa: F811

@@ -93,6 +93,16 @@ class Envelope:
         """Return the magnitudes beyond which a component is divergence (ndarray)."""
         return self.factor * np.maximum(self.scale, self._seen)
 
+    def inside(self, value):
+        """
+        Tell whether every component of ``value`` is finite and within :attr:`bound`.
+
+        Stricter than :meth:`check`, which lets a few values beyond the bound pass (a
+        transient): for deciding that a loop closed again after an outage is back.
+        """
+        mag = np.abs(np.asarray(value, dtype=float))
+        return bool(np.all(np.isfinite(mag)) and np.all(mag <= self.bound))
+
     def check(self, t, value):
         """
         Return None if ``value`` at time t is plausible, else a one-line report.

@@ -101,6 +101,7 @@ class CompensatorNode(VehicleNode):
         self._safe_mode = None               # how the last safe command was decided
         self._resyncing = False              # back from an outage, the observer settling
         self._recovering = False             # closing the loop again after an outage
+        self._inside_since = None            # recovering: stamp since inside the envelope
         self._safe_timer = None
         self._refused = None                 # why the last command was not sent
         self._duplicates = []                # other publishers of our topics
@@ -182,6 +183,7 @@ class CompensatorNode(VehicleNode):
             if self.settle_check.settled(t, x_hat, self.safe.last_command):
                 self._resyncing = False
                 self._recovering = True
+                self._inside_since = None
             return
         if self._recovering:
             self._recover(t, x_hat, msg.header.stamp)
@@ -212,16 +214,29 @@ class CompensatorNode(VehicleNode):
         The prediction has had its time (predict_timeout, then the observer's settling
         time): the plant may really be far away now (an unstable plant predicted open loop
         for seconds), and only the closed loop brings it back. Beyond the envelope this is
-        reported as ERROR (``diverging``); back inside it, the envelope is armed again.
+        reported as ERROR (``diverging``); once x_hat and u are strictly inside the
+        envelope (:meth:`Envelope.inside`) for an observer settling time, it is armed again.
         """
         with np.errstate(all='ignore'):
             u_law = control_law(self.K, x_hat, self.x_d, self.Kd)
             u = control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
-        problem = self.x_envelope.check(t, x_hat) or self.u_envelope.check(t, u_law)
-        if problem is None:
+        # back only when strictly inside both bounds for an observer settling time: the
+        # envelope's check lets values beyond the bound pass while they do not grow, and
+        # a loop reopened by a divergence safe command in mid-recovery diverges for good
+        inside = self.x_envelope.inside(x_hat) and self.u_envelope.inside(u_law)
+        if not inside:
+            self._inside_since = None
+        elif self._inside_since is None:
+            self._inside_since = t
+        if inside and t - self._inside_since >= self.settle:
             self._recovering = False
             self._diverging = None
+            self.x_envelope.check(t, x_hat)     # re-armed from here on
+            self.u_envelope.check(t, u_law)
         else:
+            problem = self.x_envelope.check(t, x_hat) or self.u_envelope.check(t, u_law) \
+                or (f'back inside the envelope for less than {self.settle:g} s' if inside
+                    else 'beyond the envelope')
             self._diverging = f'{problem} (recovering after an outage: closing the loop)'
             self.count('recovery_commands')
         if self._publish(u, t, stamp):

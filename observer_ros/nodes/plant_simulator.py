@@ -166,7 +166,6 @@ class PlantSimulatorNode(VehicleNode):
     def _advance(self):
         """Integrate from t_k to t_k+1 holding u."""
         self.x = self.Ad @ self.x + self.Bd @ self.u
-        sim = self.vehicle.simulator
         if self._w_factor is not None:
             self.x = self.x + self._w_factor @ self.rng.standard_normal(self.x.size)
         self.k += 1
