@@ -655,9 +655,6 @@ def _find_runs(events, streams, cmd, est, jump, future_tolerance):
     step_ok = (key_id >= 0) & ok[1:]
     cev = np.flatnonzero(events.kind == -1)
     gap_cmds = np.zeros(M, dtype=np.int64)
-    # the last command at or before each event, in the replay order (-1: none)
-    last_cmd = np.maximum.accumulate(np.where(events.kind == -1,
-                                              np.arange(len(events)), -1))
     if cev.size:
         cidx = events.idx[cev]
         ct = cmd.t[cidx]
@@ -678,7 +675,7 @@ def _find_runs(events, streams, cmd, est, jump, future_tolerance):
     # measurements are taken from the events through mev: three arrays fewer kept)
     shared = {'tm': tm, 'mev': mev,
               'kind': events.kind, 'idx': events.idx, 'seq': events.seq,
-              'last_cmd': last_cmd, 'gap_cmds': gap_cmds,
+              'gap_cmds': gap_cmds,
               'step_class': step_class, 'n_classes': n_keys * len(streams),
               'keys': keys}
     for s0, s1 in zip(edges[::2], edges[1::2]):
@@ -817,10 +814,14 @@ def _held_inputs(run, cmd, u0, a, b):
     measurement a; else ``u0``, the input the estimator held at a.
 
     """
-    last = run['last_cmd'][run['mev'][a + 1:b + 1]]
+    mev = run['mev']
+    e0, e1 = int(mev[a]), int(mev[b]) + 1       # the events from measurement a to b
+    # the last command at or before each of these events, from a on (-1: none)
+    last = np.maximum.accumulate(np.where(run['kind'][e0:e1] == -1, np.arange(e0, e1), -1))
+    last = last[mev[a + 1:b + 1] - e0]
     U = np.empty((b - a, u0.size))
     U[:] = u0
-    after_a = last > run['mev'][a]
+    after_a = last > e0
     if after_a.any():
         U[after_a] = cmd.values[run['idx'][last[after_a]]]
     return U
