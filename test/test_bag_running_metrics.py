@@ -6,6 +6,7 @@ from pathlib import Path
 import tracemalloc
 
 import numpy as np
+from numpy.testing import assert_array_equal
 from observer_ros.bag.evaluate import evaluate_bag
 from observer_ros.bag.metrics import STEADY_FRACTION, truth_at
 from observer_ros.bag.running_metrics import blocked_state_metrics
@@ -111,7 +112,10 @@ def test_blocked_metrics_equal_whole_series_on_sample_bags(sample):
     checked = 0
     for vr in result.variants.values():
         rep = vr.replay
-        error = rep.x_hat - truth_at(result.truth, rep.stamp_ns, rep.epoch)
+        error = rep.x_hat - truth_at(result.truth, rep.stamp_ns, rep.epoch, block=1 << 30)
+        for block in (7, 1000):         # the truth at the stamps, block by block
+            assert_array_equal(rep.x_hat - truth_at(result.truth, rep.stamp_ns, rep.epoch,
+                                                    block=block), error)
         want = whole_series_metrics(rep.t, error, rep.epoch, tol)
         for block in (5, 113):
             assert_same(blocked_state_metrics(rep.t, error, rep.epoch, tol,
@@ -119,6 +123,22 @@ def test_blocked_metrics_equal_whole_series_on_sample_bags(sample):
         assert_same(list(vr.states.values()), want)      # what observer-eval reports
         checked += want[0]['samples'] > 0
     assert checked
+
+
+def test_truth_at_block_by_block_interpolates_each_epoch_alone():
+    """Two epochs, stamps between, on and outside the truth's: any block, the same rows."""
+    t_ns = np.array([10, 20, 30, 5, 15], dtype=np.int64) * 10**9
+    values = np.arange(10.0).reshape(5, 2) ** 2
+    truth = (t_ns, values, np.array([0, 0, 0, 1, 1]))
+    stamp = np.array([10, 12, 20, 29, 31, 4, 5, 9, 15, 16], dtype=np.int64) * 10**9
+    epoch = np.array([0, 0, 0, 0, 0, 1, 1, 1, 1, 1])
+    whole = truth_at(truth, stamp, epoch, block=1 << 30)
+    assert_array_equal(whole[0], values[0])
+    assert_array_equal(whole[6], values[3])
+    assert whole[1, 0] == pytest.approx(0.0 + 0.2 * 4.0) and np.isnan(whole[4]).all()
+    assert np.isnan(whole[5]).all() and np.isnan(whole[9]).all()
+    for block in (1, 2, 3, 7):
+        assert_array_equal(truth_at(truth, stamp, epoch, block=block), whole)
 
 
 def _peak(size):

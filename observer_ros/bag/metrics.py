@@ -11,7 +11,7 @@ import math
 import numpy as np
 
 from .replay import innovation_health
-from .running_metrics import blocked_state_metrics
+from .running_metrics import BLOCK, blocked_state_metrics
 
 __all__ = ['DEFAULT_TOLERANCE', 'STEADY_FRACTION', 'WHITENESS_LAGS', 'truth_at',
            'state_metrics', 'whiteness', 'tolerances', 'score_variant']
@@ -21,36 +21,43 @@ STEADY_FRACTION = 0.2           # the last 20 % of the run is the steady state
 WHITENESS_LAGS = 20             # autocorrelation lags 1..k of the residual
 
 
-def truth_at(truth, stamp_ns, epoch):
+def truth_at(truth, stamp_ns, epoch, block=BLOCK):
     """
     Return the true state at the estimates' stamps.
 
     Exact where a truth stamp matches, linear interpolation inside the epoch's truth
-    otherwise, NaN outside.
+    otherwise, NaN outside. The estimates are taken ``block`` at a time (the temporaries
+    are bounded by the block; every value is computed alone, so the result does not
+    depend on the block).
 
     """
     t_ns, values, t_epoch = truth
     out = np.full((stamp_ns.size, values.shape[1]), np.nan)
-    for e in np.unique(epoch):
-        sel = np.flatnonzero(epoch == e)
-        tsel = np.flatnonzero(t_epoch == e)
-        if not tsel.size:
-            continue
-        order = np.argsort(t_ns[tsel], kind='stable')
-        tn = t_ns[tsel][order]
-        tv = values[tsel][order]
-        ns = stamp_ns[sel]
-        pos = np.clip(np.searchsorted(tn, ns), 0, tn.size - 1)
-        exact = tn[pos] == ns
-        out[sel[exact]] = tv[pos[exact]]
-        rest = ~exact & (ns >= tn[0]) & (ns <= tn[-1])
-        if rest.any():
-            base = tn[0]
-            x = (tn - base).astype(np.float64) * 1e-9
-            q = (ns[rest] - base).astype(np.float64) * 1e-9
-            for i in range(tv.shape[1]):
-                out[sel[rest], i] = np.interp(q, x, tv[:, i])
+    prepared = {}
+    for lo in range(0, stamp_ns.size, block):
+        eb = epoch[lo:lo + block]
+        for e in np.unique(eb):
+            if e not in prepared:
+                tsel = np.flatnonzero(t_epoch == e)
+                order = np.argsort(t_ns[tsel], kind='stable')
+                tn = t_ns[tsel][order]
+                prepared[e] = (tn, values[tsel][order],
+                               (tn - tn[0]).astype(np.float64) * 1e-9) if tsel.size else None
+            if prepared[e] is not None:
+                sel = lo + np.flatnonzero(eb == e)
+                _truth_rows(out, sel, stamp_ns[sel], *prepared[e])
     return out
+
+
+def _truth_rows(out, sel, ns, tn, tv, x):
+    pos = np.clip(np.searchsorted(tn, ns), 0, tn.size - 1)
+    exact = tn[pos] == ns
+    out[sel[exact]] = tv[pos[exact]]
+    rest = ~exact & (ns >= tn[0]) & (ns <= tn[-1])
+    if rest.any():
+        q = (ns[rest] - tn[0]).astype(np.float64) * 1e-9
+        for i in range(tv.shape[1]):
+            out[sel[rest], i] = np.interp(q, x, tv[:, i])
 
 
 def state_metrics(t, error, epoch, tolerance, steady_fraction=STEADY_FRACTION):
