@@ -118,8 +118,8 @@ def _wait_nodes(env, *names):
         assert time.monotonic() < deadline, f'nodes {names} not all up: {listed}'
 
 
-def _assert_stopped_cleanly(launch, nodes):
-    code = launch.stop()
+def _assert_stopped_cleanly(launch, nodes, code=None):
+    code = launch.stop() if code is None else code
     out = launch.output()
     assert code == 0, out[-3000:]
     assert 'process has died' not in out and 'Traceback' not in out, out[-3000:]
@@ -166,9 +166,10 @@ def test_closed_loop_launch_params_and_one_clock(ros2env, tmp_path):
         assert 'Publisher count: 1' in info.stdout, info.stdout + first.output()[-2000:]
         _check_parameters(ros2env, tmp_path)
     finally:
-        if second is not None:
-            _assert_stopped_cleanly(second, 3)
-        _assert_stopped_cleanly(first, 3)
+        # stop both before judging either: a failed check must not leave a launch running
+        codes = [first.stop()] + ([] if second is None else [second.stop()])
+        for launch, code in zip((first, second), codes):
+            _assert_stopped_cleanly(launch, 3, code)
 
 
 def _check_parameters(env, tmp_path):
