@@ -452,6 +452,22 @@ class _Progress:
             self.label = None
 
 
+def tool_error(progress, err):
+    """
+    End a command-line tool on ``err``: one ``error:`` line; return the exit status.
+
+    2 for an ObserverError or OSError (its first line), 130 for Ctrl-C.
+
+    """
+    progress.finish()
+    if isinstance(err, KeyboardInterrupt):
+        print('error: interrupted', file=sys.stderr)
+        return 130
+    text = str(err).splitlines()[0] if str(err) else type(err).__name__
+    print(f'error: {text}', file=sys.stderr)
+    return 2
+
+
 _EPILOG = """\
 variants:
   --variant NAME:KEY:=VALUE[,KEY:=VALUE...]   (repeatable; the same NAME adds overrides)
@@ -555,15 +571,8 @@ def main(argv=None):
             progress.finish()
             files = write_results(result, out, force=args.force, plots=not args.no_plots,
                                   results_bag=not args.no_bag, bag_max_messages=args.bag_max)
-    except (ObserverError, OSError) as err:
-        progress.finish()
-        text = str(err).splitlines()[0] if str(err) else type(err).__name__
-        print(f'error: {text}', file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        progress.finish()
-        print('error: interrupted', file=sys.stderr)
-        return 130
+    except (ObserverError, OSError, KeyboardInterrupt) as err:
+        return tool_error(progress, err)
     print(format_table(result))
     for text in result.warnings:
         print(f'warning: {text}', file=sys.stderr)

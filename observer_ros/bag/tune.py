@@ -37,7 +37,7 @@ import warnings
 import numpy as np
 
 from .errors import BagToolError
-from .evaluate import _load_vehicle, _Progress
+from .evaluate import _load_vehicle, _Progress, tool_error
 from .gain_search import DEFAULT_SCALES, gain_search, search_overrides
 from .identify import Identification, identify
 from .metrics import WHITENESS_LAGS
@@ -407,15 +407,8 @@ def main(argv=None):
                           args.force, not args.no_plots, progress,
                           args.input_noise, args.refine)
         progress.finish()
-    except (ObserverError, OSError) as err:
-        progress.finish()
-        text = str(err).splitlines()[0] if str(err) else type(err).__name__
-        print(f'error: {text}', file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        progress.finish()
-        print('error: interrupted', file=sys.stderr)
-        return 130
+    except (ObserverError, OSError, KeyboardInterrupt) as err:
+        return tool_error(progress, err)
     print(format_report(result))
     if result.identification is not None:
         for text in result.identification.warnings:
