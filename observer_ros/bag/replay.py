@@ -80,6 +80,7 @@ IRREGULAR_STEPS = 3            # steps of each of those
 MAX_GROWTH = 1e3               # unstable step maps: most growth to the end of the bag
 CHECK_RTOL = 1e-10             # bulk vs call, relative to the terms of the steps so far
 CHECK_CLASSES = 32             # step classes checked call by call (jittered: one per step)
+RUN_BLOCK = 1 << 17           # steps: the bulk stretches are found this many at a time
 _PROGRESS_EVERY = 1 << 15
 
 
@@ -403,7 +404,7 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
     logs = [s.log_ns for s in streams]
     cmd = events.command
     if cmd is not None and plant.m:
-        cmd_t = cmd.t
+        cmd_t = cmd.stamp_ns
         cmd_u = cmd.values
     n_meas = int(sum(int((events.kind == k).sum()) for k in range(len(streams))))
     out_ns = np.zeros(n_meas, dtype=np.int64)
@@ -434,7 +435,7 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
             progress(i, total)
         k, j, sq = event(i)
         if k < 0:
-            t = float(cmd_t[j])
+            t = float(cmd_t[j]) * 1e-9
             u = cmd_u[j]
             last = est.t
             try:
@@ -569,20 +570,25 @@ def innovation_health(rep):
     return out
 
 
-def _has_late(events, streams, cmd, length):
+def _has_late(events, streams, cmd, length, block=1 << 16):
     """Tell whether a message comes, in replay order, up to ``length`` s after a newer one."""
     if length <= 0.0 or not len(events):
         return False
-    kind, idx = events.kind, events.idx
-    t = np.empty(kind.size)
-    for k, stream in enumerate(streams):
-        sel = kind == k
-        t[sel] = stream.t[idx[sel]]
-    if cmd is not None:
-        sel = kind < 0
-        t[sel] = cmd.t[idx[sel]]
-    back = np.maximum.accumulate(t) - t
-    return bool(np.any((back > 0.0) & (back <= length)))
+    top = -np.inf                               # the newest stamp so far
+    for e0 in range(0, len(events), block):     # a block of events at a time
+        kind, idx = events.kind[e0:e0 + block], events.idx[e0:e0 + block]
+        t = np.empty(kind.size)
+        for k, stream in enumerate(streams):
+            sel = kind == k
+            t[sel] = stream.stamp_ns[idx[sel]].astype(np.float64) * 1e-9    # Stream.t
+        if cmd is not None:
+            sel = kind < 0
+            t[sel] = cmd.stamp_ns[idx[sel]].astype(np.float64) * 1e-9
+        back = np.maximum.accumulate(np.concatenate([[top], t]))[1:] - t
+        if np.any((back > 0.0) & (back <= length)):
+            return True
+        top = max(top, float(t.max()))
+    return False
 
 
 # ---------------------------------------------------------------------------------------
@@ -615,7 +621,125 @@ def _key_ids(key_of, steps):
     return ids, np.array(list(key_index), dtype=float)
 
 
-def _find_runs(events, streams, cmd, est, jump, future_tolerance):
+def _steps(events, streams, cmd, est, jump, future_tolerance, mev, s0, s1):
+    """
+    Return the steps s0..s1-1 between measurements s0..s1 (indices into ``mev``).
+
+    As ``(tm, key_id, keys, step_ok, gap_cmds)``: the measurements' stamps in seconds,
+    each step's key id among ``keys`` (the distinct step keys of these steps, sorted;
+    -1: no valid key), whether the step can be replayed in bulk, and the number of
+    commands in the gap after each measurement s0..s1-1. Everything is local to the
+    steps asked for: a block of a long bag, or one piece of a run.
+
+    """
+    ev = mev[s0:s1 + 1]
+    msens = events.kind[ev]
+    midx = events.idx[ev]
+    tm = np.empty(ev.size)
+    ok = np.ones(ev.size, dtype=bool)
+    for k, stream in enumerate(streams):
+        sel = msens == k
+        if not sel.any():
+            continue
+        tm[sel] = stream.stamp_ns[midx[sel]].astype(np.float64) * 1e-9     # as Stream.t
+        if future_tolerance is not None:
+            log = stream.log_ns[midx[sel]].astype(np.float64) * 1e-9
+            ok[sel] = ~(tm[sel] - log > future_tolerance)
+    h = np.diff(tm)
+    key_id = np.full(h.size, -1, dtype=np.int64)
+    pos = h > 0
+    uniq, inv = np.unique(h[pos], return_inverse=True)
+    ids, keys = _key_ids(est.cache.key, uniq)
+    if ids.size:
+        key_id[pos] = ids[inv.reshape(-1)]
+    step_ok = (key_id >= 0) & ok[1:]
+    gap_cmds = np.zeros(h.size, dtype=np.int64)
+    e0 = int(ev[0])
+    cev = np.flatnonzero(events.kind[e0:int(ev[-1])] == -1) + e0   # commands in between
+    if cev.size:
+        ct = cmd.stamp_ns[events.idx[cev]].astype(np.float64) * 1e-9
+        g = np.searchsorted(ev, cev) - 1        # the measurement before each command
+        good = (ct <= tm[g]) & (tm[g] - ct <= jump)
+        step_ok[g[~good]] = False
+        np.add.at(gap_cmds, g, 1)
+    return tm, key_id, keys, step_ok, gap_cmds
+
+
+class _Runs:
+    """
+    The pieces of the bulk stretches, by the event index of their first measurement.
+
+    Found a block of :data:`RUN_BLOCK` steps at a time, keeping the stretches' ends; the
+    arrays a piece needs (stamps, step classes, commands per gap) are built when the
+    replay reaches it, over the piece's own steps (:meth:`get`), so they never exist
+    for the whole bag. The stretches, their pieces and every piece's numbers are those
+    of the whole-bag computation: a step's flag depends only on its two measurements
+    and the events between them, and a piece's class ids keep the order of its keys.
+
+    """
+
+    def __init__(self, events, streams, cmd, est, jump, future_tolerance, block=None):
+        self.args = (events, streams, cmd, est, jump, future_tolerance)
+        self.pieces = {}
+        mev = np.flatnonzero(events.kind >= 0)      # event indices of measurements
+        self.mev = mev
+        M = mev.size
+        if M < MIN_RUN + 1:
+            return
+        block = block or RUN_BLOCK
+        starts, ends = [], []                       # of the stretches of good steps
+        prev = np.zeros(1, dtype=np.int8)           # the flag of the step before a block
+        for s0 in range(0, M - 1, block):
+            s1 = min(M - 1, s0 + block)
+            flags = self._steps(s0, s1)[3].astype(np.int8)
+            d = np.diff(np.concatenate([prev, flags]))
+            starts.append(np.flatnonzero(d == 1) + s0)
+            ends.append(np.flatnonzero(d == -1) + s0)
+            prev = flags[-1:]
+        ends.append(np.full(int(prev[0]), M - 1, dtype=np.int64))
+        for s0, s1 in zip(np.concatenate(starts), np.concatenate(ends)):
+            a, b = int(s0), int(s1)                 # steps a..b-1: measurements a+1..b
+            if b + 1 < M and self._t(b + 1) == self._t(b):
+                b -= 1                              # the next one fuses with b: b by call
+            if b - a < MIN_RUN:
+                continue
+            # pieces of at most MAX_RUN steps, replayed one after the other: the memory
+            # of a bulk stretch (a dozen arrays of its steps) stays bounded on a long bag
+            cuts = list(range(a, b, MAX_RUN)) + [b]
+            if len(cuts) > 2 and cuts[-1] - cuts[-2] < MIN_RUN:
+                del cuts[-2]                        # no short last piece
+            for p0, p1 in zip(cuts, cuts[1:]):
+                self.pieces[int(mev[p0])] = (p0, p1)
+
+    def _steps(self, s0, s1):
+        return _steps(*self.args, self.mev, s0, s1)
+
+    def _t(self, i):
+        events, streams = self.args[:2]
+        e = self.mev[i]
+        return float(streams[events.kind[e]].stamp_ns[events.idx[e]]) * 1e-9
+
+    def __bool__(self):
+        return bool(self.pieces)
+
+    def get(self, i):
+        """Return the piece starting at event i as a run (None: none starts there)."""
+        piece = self.pieces.get(i)
+        if piece is None:
+            return None
+        p0, p1 = piece
+        events, streams = self.args[:2]
+        tm, key_id, keys, _, gap_cmds = self._steps(p0, p1)
+        mev = self.mev[p0:p1 + 1]
+        msens = events.kind[mev[1:]]
+        return {'tm': tm, 'mev': mev, 'kind': events.kind, 'idx': events.idx,
+                'seq': events.seq, 'gap_cmds': gap_cmds,
+                'step_class': key_id * len(streams) + msens, 'keys': keys,
+                'a': 0, 'b': p1 - p0, 'rest': self.mev.size - p0,
+                'commands': int(gap_cmds.sum()), 'last_event': int(mev[-1])}
+
+
+def _find_runs(events, streams, cmd, est, jump, future_tolerance, block=None):
     """
     Stretches of measurements each of whose steps is an affine map of the previous x.
 
@@ -627,74 +751,12 @@ def _find_runs(events, streams, cmd, est, jump, future_tolerance):
     only on those. "In between" is in the replay order (``events``), which in lockstep
     is not the bag order: positions in ``events``, never ``seq``, place the commands.
 
-    Returns {event index of measurement a: run}; the run covers measurements
-    a+1..b (indices into the merged measurement list).
+    Returns a :class:`_Runs`: ``get(event index of measurement a)`` gives the run of
+    measurements a+1..b (a piece of at most :data:`MAX_RUN` steps), indices local to
+    the piece (``a`` is 0).
 
     """
-    mev = np.flatnonzero(events.kind >= 0)      # event indices of measurements
-    M = mev.size
-    if M < MIN_RUN + 1:
-        return {}
-    msens = events.kind[mev]
-    midx = events.idx[mev]
-    tm = np.empty(M)
-    ok = np.ones(M, dtype=bool)
-    for k, stream in enumerate(streams):
-        sel = msens == k
-        tm[sel] = stream.t[midx[sel]]
-        if future_tolerance is not None:
-            log = stream.log_ns[midx[sel]].astype(np.float64) * 1e-9
-            ok[sel] = ~(tm[sel] - log > future_tolerance)
-    h = np.diff(tm)
-    key_id = np.full(M - 1, -1, dtype=np.int64)
-    pos = h > 0
-    uniq, inv = np.unique(h[pos], return_inverse=True)
-    ids, keys = _key_ids(est.cache.key, uniq)
-    if ids.size:
-        key_id[pos] = ids[inv.reshape(-1)]
-    step_ok = (key_id >= 0) & ok[1:]
-    cev = np.flatnonzero(events.kind == -1)
-    gap_cmds = np.zeros(M, dtype=np.int64)
-    if cev.size:
-        cidx = events.idx[cev]
-        ct = cmd.t[cidx]
-        g = np.searchsorted(mev, cev) - 1       # the measurement before each command
-        inside = g >= 0
-        gi = g[inside]
-        good = (ct[inside] <= tm[gi]) & (tm[gi] - ct[inside] <= jump)
-        bad_gap = np.zeros(M, dtype=bool)
-        bad_gap[gi[~good]] = True
-        step_ok &= ~bad_gap[:-1]
-        np.add.at(gap_cmds, gi, 1)
-    n_keys = max(1, keys.size)
-    step_class = np.where(step_ok, key_id * len(streams) + msens[1:], -1)
-    ok_i = step_ok.astype(np.int8)
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], ok_i, [0]])))
-    runs = {}
-    # per measurement only what the pieces need whole (sensor, index and seq of a piece's
-    # measurements are taken from the events through mev: three arrays fewer kept)
-    shared = {'tm': tm, 'mev': mev,
-              'kind': events.kind, 'idx': events.idx, 'seq': events.seq,
-              'gap_cmds': gap_cmds,
-              'step_class': step_class, 'n_classes': n_keys * len(streams),
-              'keys': keys}
-    for s0, s1 in zip(edges[::2], edges[1::2]):
-        a, b = int(s0), int(s1)                 # steps a..b-1: measurements a+1..b
-        if b + 1 < M and tm[b + 1] == tm[b]:
-            b -= 1                              # the next one fuses with b: b by call
-        if b - a < MIN_RUN:
-            continue
-        # pieces of at most MAX_RUN steps, replayed one after the other: the memory of
-        # a bulk stretch (a dozen arrays of its steps) stays bounded on a long bag
-        cuts = list(range(a, b, MAX_RUN)) + [b]
-        if len(cuts) > 2 and cuts[-1] - cuts[-2] < MIN_RUN:
-            del cuts[-2]                        # no short last piece
-        for p0, p1 in zip(cuts, cuts[1:]):
-            run = dict(shared)
-            run.update(a=p0, b=p1, commands=int(gap_cmds[p0:p1].sum()),
-                       last_event=int(mev[p1]))
-            runs[int(mev[p0])] = run
-    return runs
+    return _Runs(events, streams, cmd, est, jump, future_tolerance, block)
 
 
 def _twin(est):
@@ -1013,7 +1075,7 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
     # an unstable estimator (the open loop of an unstable plant) amplifies every
     # difference in round-off until the end of the bag: call by call, as the node
     rho = _spectral_radius(Fs, tm[a + first + 1] - tm[a + first])
-    if rho > 1.0 and (run['tm'].size - a) * np.log(rho) > np.log(MAX_GROWTH):
+    if rho > 1.0 and run['rest'] * np.log(rho) > np.log(MAX_GROWTH):
         return None
     for k in range(len(streams)):
         sel = sens == k

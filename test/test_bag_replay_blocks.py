@@ -1,0 +1,225 @@
+# test/test_bag_replay_blocks.py: the bulk stretches found a block at a time.
+"""
+The replay finds its bulk stretches a block of steps at a time (``replay._Runs``).
+
+Any block size gives the same pieces and bit-identical estimates, residuals and
+counts as one block over the whole bag, on bags with several sensors, commands, truth,
+lockstep reordering, clock jumps and late messages; the transient memory of finding
+them does not grow with the bag.
+
+"""
+
+import copy
+import tracemalloc
+
+from bag_synth import blank, CONFIG, JOINT_STATE, simulate, write_bag
+import late_sensors
+import numpy as np
+from numpy.testing import assert_array_equal
+from observer_ros.bag import replay as replay_mod
+from observer_ros.bag.reader import read_recording
+from observer_ros.bag.replay import _Events, _find_runs, _has_late, replay
+from observer_ros.core.estimators import make_estimator
+from observer_ros.vehicle import load_vehicle
+import pytest
+from test_bag_late import _bag as late_bag
+
+WHOLE = 1 << 40                 # one block over the whole bag
+
+TWO = ['model.outputs:=[theta, q]', 'model.C:=[1.0,0.0,0.0, 0.0,0.0,1.0]',
+       'model.D:=[0.0, 0.0]', 'sensors.names:=[gyro, pitch]',
+       'sensors.pitch.topic:=attitude/pitch', 'sensors.pitch.type:=std_msgs/msg/Float64',
+       'sensors.pitch.fields:=[data]', 'sensors.pitch.outputs:=[theta]',
+       'sensors.pitch.noise_std:=[0.001]', 'sensors.pitch.rate_divider:=2']
+
+
+def _shift_commands(messages, lo, hi, by):
+    """Stamp the commands received in [lo, hi) ns ``by`` ns later (no bulk there)."""
+    out = []
+    for topic, msgtype, ns, msg in messages:
+        if topic == 'control/u' and lo < ns < hi:
+            msg = copy.deepcopy(msg)
+            msg.header.stamp = blank(JOINT_STATE, ns + by).header.stamp
+        out.append((topic, msgtype, ns, msg))
+    return out
+
+
+def _swap_commands(messages, every=7):
+    """Receive u[k] after y[k+1] at every k % every == 3 (a lockstep recording)."""
+    out, held, step = [], None, -1
+    for item in messages:
+        topic, msgtype, ns, msg = item
+        step += topic == '/clock'
+        if topic == 'control/u' and step % every == 3:
+            held = item
+            continue
+        out.append(item)
+        if held is not None and topic not in ('/clock', 'state/true'):
+            out.append((held[0], held[1], ns, held[3]))
+            held = None
+    return out
+
+
+def _case(name, tmp):
+    if name in ('late', 'two_stamped'):      # two sensors, received late or at their stamps
+        veh = late_sensors.vehicle(tmp, 'full')
+        msgs, truth = late_sensors.messages(veh)
+        return veh, late_bag(tmp / name, veh, late_sensors.stamp_order(msgs), truth,
+                             latency=name == 'late')
+    if name == 'loop':                       # the run twice: the stamps jump back
+        veh = load_vehicle(CONFIG / 'submarine.yaml')
+        msgs = simulate(veh, noise=True, seed=2)['messages']
+        span = msgs[-1][2] - msgs[0][2] + 50_000_000
+        log = [ns for _, _, ns, _ in msgs] + [ns + span for _, _, ns, _ in msgs]
+        return veh, write_bag(tmp / name, msgs + msgs, log_ns=log)
+    base, overrides, kwargs, edit = {
+        'sub': ('submarine', None, {'noise': True, 'seed': 3}, None),
+        'cart_shifted': ('cart_pendulum', ['simulator.initial_state:=[0.05, 0.0, 0.0, 0.0]'],
+                         {'noise': True, 'seed': 1},
+                         lambda m: _shift_commands(m, 3 * 10**9, 4 * 10**9, 4_000_000)),
+        'two_sensors': ('submarine', TWO, {'noise': True}, None),
+        'lockstep_swapped': ('submarine', None, {'noise': True, 'seed': 3}, _swap_commands),
+        'realtime_swapped': ('submarine', ['simulator.mode:=realtime'],
+                             {'noise': True, 'seed': 3}, _swap_commands),
+        'reduced': ('submarine_reduced', None, {'noise': True}, None),
+    }[name]
+    veh = load_vehicle(CONFIG / f'{base}.yaml', overrides=overrides)
+    messages = simulate(veh, **kwargs)['messages']
+    if edit is not None:
+        messages = edit(messages)
+    return veh, write_bag(tmp / name, messages)
+
+
+CASES = ['sub', 'cart_shifted', 'two_sensors', 'two_stamped', 'lockstep_swapped',
+         'realtime_swapped', 'loop', 'reduced', 'late']
+BULK = ('sub', 'lockstep_swapped', 'reduced')   # mostly in bulk
+
+
+@pytest.fixture(scope='module')
+def cases(tmp_path_factory):
+    made = {}
+
+    def get(name):
+        if name not in made:
+            made[name] = _case(name, tmp_path_factory.mktemp(name))
+        return made[name]
+    return get
+
+
+def _replayed(rec, veh, monkeypatch, block, max_run):
+    monkeypatch.setattr(replay_mod, 'RUN_BLOCK', block)
+    monkeypatch.setattr(replay_mod, 'MAX_RUN', max_run)
+    return replay(rec, veh)
+
+
+@pytest.mark.parametrize('name', CASES)
+def test_bag_replay_in_blocks_equals_one_block(cases, name, monkeypatch):
+    veh, bag = cases(name)
+    rec = read_recording(bag, veh)
+    for max_run in (replay_mod.MAX_RUN, 100):
+        ref = _replayed(rec, veh, monkeypatch, WHOLE, max_run)
+        if name == 'late':
+            assert ref.counts['late_measurements'] > 0 and ref.bulk_steps == 0
+        elif name == 'cart_shifted':
+            assert 0 < ref.bulk_steps < len(ref)
+        elif name in BULK:
+            assert ref.bulk_steps > len(ref) // 2, name
+        if name == 'loop':
+            assert ref.counts['clock_jumps'] == 1
+        for block in (7, 113):
+            got = _replayed(rec, veh, monkeypatch, block, max_run)
+            for field in ('stamp_ns', 'x_hat', 'residual', 'whitened', 'epoch', 'seq',
+                          'sensor'):
+                assert_array_equal(getattr(got, field), getattr(ref, field), err_msg=field)
+            assert got.counts == ref.counts
+            assert got.bulk_steps == ref.bulk_steps
+            assert got.warnings == ref.warnings
+
+
+def _runs(rec, veh, block):
+    sensors = list(veh.sensors)
+    counts = dict.fromkeys(('zero_stamps', 'bad_messages', 'bad_commands'), 0)
+    events = _Events(rec, sensors, veh.plant, counts,
+                     lockstep=veh.simulator.mode == 'lockstep')
+    est = make_estimator(veh.plant, veh.observer)
+    return events, _find_runs(events, events.streams, events.command, est, 0.5, 10.0,
+                              block=block)
+
+
+@pytest.mark.parametrize('name', ['sub', 'cart_shifted', 'lockstep_swapped'])
+def test_bag_runs_pieces_and_their_arrays_do_not_depend_on_the_block(cases, name,
+                                                                     monkeypatch):
+    veh, bag = cases(name)
+    rec = read_recording(bag, veh)
+    monkeypatch.setattr(replay_mod, 'MAX_RUN', 80)
+    _, ref = _runs(rec, veh, WHOLE)
+    assert ref.pieces
+    if name == 'cart_shifted':
+        assert len(ref.pieces) > 2          # several stretches, not only MAX_RUN's cuts
+    for block in (1, 7, 113):
+        events, got = _runs(rec, veh, block)
+        assert got.pieces == ref.pieces
+        for i in ref.pieces:
+            a, b = ref.get(i), got.get(i)
+            assert set(a) == set(b)
+            for key in a:
+                assert_array_equal(a[key], b[key], err_msg=key)
+            assert (a['step_class'] >= 0).all() and a['b'] == a['tm'].size - 1
+
+
+@pytest.mark.parametrize('name', ['sub', 'late', 'realtime_swapped'])
+def test_bag_has_late_in_blocks_equals_the_whole_scan(cases, name):
+    veh, bag = cases(name)
+    rec = read_recording(bag, veh)
+    events, _ = _runs(rec, veh, WHOLE)
+    whole = _has_late(events, events.streams, events.command, 0.5, block=WHOLE)
+    assert whole == (name != 'sub')      # a late message, a late command
+    for block in (1, 7, 113):
+        assert _has_late(events, events.streams, events.command, 0.5, block=block) == whole
+
+
+def _transient(rec, veh, block):
+    """Return the peak memory of finding the runs above what it keeps, in bytes."""
+    sensors = list(veh.sensors)
+    counts = dict.fromkeys(('zero_stamps', 'bad_messages', 'bad_commands'), 0)
+    events = _Events(rec, sensors, veh.plant, counts)
+    est = make_estimator(veh.plant, veh.observer)
+    tracemalloc.start()
+    try:
+        tracemalloc.reset_peak()
+        base = tracemalloc.get_traced_memory()[0]
+        runs = _find_runs(events, events.streams, events.command, est, 0.5, 10.0,
+                          block=block)
+        kept, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert runs.pieces
+    return peak - kept, kept - base
+
+
+def test_bag_runs_transient_memory_does_not_grow_with_the_bag(tmp_path):
+    veh = load_vehicle(CONFIG / 'submarine.yaml')
+    recs = [read_recording(write_bag(tmp_path / f'steps{steps}',
+                                     simulate(veh, steps=steps, noise=True)['messages']), veh)
+            for steps in (4000, 8000)]
+    assert len(recs[1].sensors['gyro']) > 1.99 * len(recs[0].sensors['gyro'])
+    (t1, k1), (t2, k2) = (_transient(rec, veh, 256) for rec in recs)
+    assert t2 < 1.3 * t1, (t1, t2)
+    # what stays is the measurements' event indices (8 bytes each) and the pieces
+    assert k2 < 1.3 * 2 * k1
+    (w1, _), (w2, _) = (_transient(rec, veh, WHOLE) for rec in recs)
+    assert w2 > 1.6 * w1        # the same measure sees one whole-bag block grow
+
+
+def test_bag_runs_of_no_events_are_none():
+    """No measurement, no stretch: an empty recording's events find no runs."""
+    veh = load_vehicle(CONFIG / 'submarine.yaml')
+    est = make_estimator(veh.plant, veh.observer)
+
+    class _NoEvents:
+        kind = idx = seq = np.zeros(0, dtype=np.int64)
+
+        def __len__(self):
+            return 0
+    runs = _find_runs(_NoEvents(), [], None, est, 0.5, 10.0, block=7)
+    assert not runs and runs.get(0) is None
