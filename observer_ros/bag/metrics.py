@@ -147,18 +147,36 @@ def tolerances(truth_values, names, fraction, absolute):
     return tol
 
 
+def _matched_norm2(error, block=BLOCK):
+    """
+    Return the rows of ``error`` with every state finite, and their squared norms.
+
+    A block of rows at a time (each norm is summed over its own row, so the values do
+    not depend on the block): no whole copies of the matched errors and their squares.
+
+    """
+    ok = np.all(np.isfinite(error), axis=1)
+    norm2 = np.empty(int(ok.sum()))
+    done = 0
+    for lo in range(0, ok.size, block):
+        e = error[lo:lo + block][ok[lo:lo + block]]
+        norm2[done:done + e.shape[0]] = np.sum(e ** 2, axis=1)
+        done += e.shape[0]
+    return ok, norm2
+
+
 def score_variant(result, vr):
     """Fill a VariantResult's metrics (states against the truth, outputs' whiteness)."""
     rep = vr.replay
     plant = result.vehicle.plant
     if result.truth is not None and len(rep):
         x_true = truth_at(result.truth, rep.stamp_ns, rep.epoch)
-        vr.error = rep.x_hat - x_true
+        vr.error = np.subtract(rep.x_hat, x_true, out=x_true)     # in place: no copy
+        del x_true
         tol = np.array([result.tolerance[s] for s in plant.state_names])
         metrics = state_metrics(rep.t, vr.error, rep.epoch, tol)
         vr.states = dict(zip(plant.state_names, metrics))
-        ok = np.all(np.isfinite(vr.error), axis=1)
-        norm2 = np.sum(vr.error[ok] ** 2, axis=1)
+        ok, norm2 = _matched_norm2(vr.error)
         vr.summary['matched'] = int(ok.sum())
         vr.summary['error_rms'] = float(np.sqrt(np.mean(norm2))) if ok.any() else math.nan
         settles = [m['settling_time'] for m in metrics]

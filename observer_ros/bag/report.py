@@ -239,14 +239,13 @@ def write_results_bag(result, path, limit):
     for name, vr in result.variants.items():
         rep = vr.replay
         topics.append((f'/eval/{name}/state/estimate', rep.stamp_ns, rep.x_hat, names))
-        if vr.error is not None:
-            ok = np.all(np.isfinite(vr.error), axis=1)
-            topics.append((f'/eval/{name}/state/error', rep.stamp_ns[ok], vr.error[ok],
-                           names))
+        if vr.error is not None:        # the matched rows, taken once decimated
+            ok = np.flatnonzero(np.all(np.isfinite(vr.error), axis=1))
+            topics.append((f'/eval/{name}/state/error', rep.stamp_ns, vr.error, names, ok))
     with CrcWriter(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        for topic, ns, values, comp in topics:
+        for topic, ns, values, comp, *rows in topics:
             conn = writer.add_connection(topic, js, typestore=store)
-            d = decimate(ns.size, limit)
+            d = rows[0][decimate(rows[0].size, limit)] if rows else decimate(ns.size, limit)
             ns, values = np.asarray(ns[d], dtype=np.int64), values[d]
             if not ns.size:
                 continue
