@@ -252,7 +252,7 @@ class _Events:
                  clock_jump_tolerance=CLOCK_JUMP_TOLERANCE):
         streams = [recording.sensors[s.name] for s in sensors]
         self.streams = streams
-        kinds, idxs, seqs, stamps = [], [], [], []
+        sources = []                            # (kind, stream, selected indices)
         for k, stream in enumerate(streams):
             ok = stream.valid.copy()
             if stream.has_header:
@@ -260,41 +260,61 @@ class _Events:
                 counts['zero_stamps'] += int((zero & ok).sum())
                 ok &= ~zero
             counts['bad_messages'] += int((~stream.valid).sum())
-            sel = np.flatnonzero(ok)
-            kinds.append(np.full(sel.size, k, dtype=np.int64))
-            idxs.append(sel)
-            seqs.append(stream.seq[sel])
-            if lockstep:
-                stamps.append(stream.stamp_ns[sel])
+            sources.append((k, stream, np.flatnonzero(ok)))
         cmd = recording.command
         self.command = cmd
         if cmd is not None and plant.m:
             counts['bad_commands'] += int((~cmd.valid).sum())
-            sel = np.flatnonzero(cmd.valid)
-            kinds.append(np.full(sel.size, -1, dtype=np.int64))
-            idxs.append(sel)
-            seqs.append(cmd.seq[sel])
-            if lockstep:
-                stamps.append(cmd.stamp_ns[sel])
-        if kinds:
-            # one whole-bag column at a time, each part freed once joined (peak memory)
-            seq = np.concatenate(seqs)
-            del seqs[:]
-            order = np.argsort(seq, kind='stable')
-            if lockstep:
-                kind = np.concatenate(kinds)
-                stamp = np.concatenate(stamps)[order]
-                epoch = epochs_of(stamp, clock_jump_tolerance)
-                order = order[np.lexsort((seq[order], kind[order] < 0, stamp, epoch))]
-                del stamp, epoch, kind
-            self.seq = seq[order]
-            del seq
-            self.kind = np.concatenate(kinds)[order]
-            del kinds[:]
-            self.idx = np.concatenate(idxs)[order]
-            del idxs[:]
+            sources.append((-1, cmd, np.flatnonzero(cmd.valid)))
+        if lockstep:
+            self._lockstep(sources, clock_jump_tolerance)
         else:
-            self.kind = self.idx = self.seq = np.zeros(0, dtype=np.int64)
+            self._bag_order(sources)
+
+    def _bag_order(self, sources):
+        """Merge into bag order: each event put at its bag position (seq), no sort."""
+        size = max((int(st.seq[sel].max()) + 1 for _, st, sel in sources if sel.size),
+                   default=0)
+        kind = np.full(size, -2, dtype=np.int8)     # -2: no event at this position
+        idx = np.empty(size, dtype=np.int64)
+        for k, stream, sel in sources:
+            at = stream.seq[sel]
+            kind[at] = k
+            idx[at] = sel
+        self.seq = np.flatnonzero(kind != -2)
+        self.kind = kind[self.seq]
+        del kind
+        self.idx = idx[self.seq]
+
+    def _lockstep(self, sources, clock_jump_tolerance):
+        """
+        Merge into the node's order: stamps sorted within each epoch of bag order.
+
+        From bag order, each epoch's events are sorted stably by (stamp, command after
+        measurement): at equal keys bag order stays, as a sort by (epoch, stamp,
+        command, seq) gives. One int64 key per event (``2 stamp + command``).
+
+        """
+        self._bag_order(sources)
+        kind = self.kind
+        stamp = np.empty(kind.size, dtype=np.int64)
+        for k, stream, _ in sources:
+            sel = np.flatnonzero(kind == k)
+            stamp[sel] = stream.stamp_ns[self.idx[sel]]
+        cuts = np.flatnonzero(np.diff(epochs_of(stamp, clock_jump_tolerance))) + 1
+        order = np.empty(kind.size, dtype=np.int64)
+        for e0, e1 in zip([0, *cuts.tolist()], [*cuts.tolist(), kind.size]):
+            st = stamp[e0:e1]
+            if st.size and -(1 << 62) <= int(st.min()) and int(st.max()) < (1 << 62):
+                key = st * 2 + (kind[e0:e1] < 0)
+                order[e0:e1] = np.argsort(key, kind='stable') + e0
+            else:                               # a stamp too large for the one key
+                order[e0:e1] = np.lexsort((kind[e0:e1] < 0, st)) + e0
+        del stamp
+        if np.any(order != np.arange(order.size)):
+            self.seq = self.seq[order]
+            self.kind = kind[order]
+            self.idx = self.idx[order]
 
     def __len__(self):
         return int(self.kind.size)
