@@ -14,6 +14,7 @@ from .replay import innovation_health
 from .running_metrics import BLOCK, blocked_state_metrics
 
 __all__ = ['DEFAULT_TOLERANCE', 'STEADY_FRACTION', 'WHITENESS_LAGS', 'truth_at',
+           'TruthAt', 'StateError',
            'state_metrics', 'whiteness', 'tolerances', 'score_variant']
 
 DEFAULT_TOLERANCE = 0.02        # fraction of each state's range in the true trajectory
@@ -31,22 +32,76 @@ def truth_at(truth, stamp_ns, epoch, block=BLOCK):
     depend on the block).
 
     """
-    t_ns, values, t_epoch = truth
-    out = np.full((stamp_ns.size, values.shape[1]), np.nan)
-    prepared = {}
-    for lo in range(0, stamp_ns.size, block):
-        eb = epoch[lo:lo + block]
-        for e in np.unique(eb):
-            if e not in prepared:
-                tsel = np.flatnonzero(t_epoch == e)
-                order = np.argsort(t_ns[tsel], kind='stable')
-                tn = t_ns[tsel][order]
-                prepared[e] = (tn, values[tsel][order],
-                               (tn - tn[0]).astype(np.float64) * 1e-9) if tsel.size else None
-            if prepared[e] is not None:
-                sel = lo + np.flatnonzero(eb == e)
-                _truth_rows(out, sel, stamp_ns[sel], *prepared[e])
-    return out
+    return TruthAt(truth)(stamp_ns, epoch, block)
+
+
+class TruthAt:
+    """:func:`truth_at` for one truth, each epoch's truth sorted once for all calls."""
+
+    def __init__(self, truth):
+        self.truth = truth
+        self.prepared = {}
+
+    def _epoch(self, e):
+        if e not in self.prepared:
+            t_ns, values, t_epoch = self.truth
+            tsel = np.flatnonzero(t_epoch == e)
+            order = np.argsort(t_ns[tsel], kind='stable')
+            tn = t_ns[tsel][order]
+            self.prepared[e] = (tn, values[tsel][order],
+                                (tn - tn[0]).astype(np.float64) * 1e-9) if tsel.size else None
+        return self.prepared[e]
+
+    def __call__(self, stamp_ns, epoch, block=BLOCK):
+        """Return the true state at these stamps (of these epochs), NaN where none."""
+        out = np.full((stamp_ns.size, self.truth[1].shape[1]), np.nan)
+        for lo in range(0, stamp_ns.size, block):
+            eb = epoch[lo:lo + block]
+            for e in np.unique(eb):
+                prepared = self._epoch(e)
+                if prepared is not None:
+                    sel = lo + np.flatnonzero(eb == e)
+                    _truth_rows(out, sel, stamp_ns[sel], *prepared)
+        return out
+
+
+class StateError:
+    """
+    The error ``x_hat - x_true`` of a replay, computed for the rows asked for.
+
+    Never held whole: ``error[rows]`` (a slice, mask or index array) computes those rows
+    (each row alone, so any rows give the values of the whole array); ``np.asarray``
+    gives the whole array for a caller that wants it.
+
+    """
+
+    def __init__(self, rep, truth):
+        self.x_hat, self.stamp_ns, self.epoch = rep.x_hat, rep.stamp_ns, rep.epoch
+        self.truth = TruthAt(truth)
+        self.shape = rep.x_hat.shape
+        self.ndim = 2
+
+    def __len__(self):
+        return self.shape[0]
+
+    def __getitem__(self, rows):
+        x_true = self.truth(self.stamp_ns[rows], self.epoch[rows])
+        return np.subtract(self.x_hat[rows], x_true, out=x_true)   # in place: no copy
+
+    def __array__(self, dtype=None, copy=None):
+        whole = self[:]
+        return whole if dtype is None else whole.astype(dtype)
+
+
+class _Seconds:
+    """A replay's stamps in seconds (``ns * 1e-9``), converted for the rows asked for."""
+
+    def __init__(self, stamp_ns):
+        self.stamp_ns = stamp_ns
+        self.size = stamp_ns.size
+
+    def __getitem__(self, rows):
+        return self.stamp_ns[rows].astype(np.float64) * 1e-9
 
 
 def _truth_rows(out, sel, ns, tn, tv, x):
@@ -152,17 +207,17 @@ def _matched_norm2(error, block=BLOCK):
     Return the rows of ``error`` with every state finite, and their squared norms.
 
     A block of rows at a time (each norm is summed over its own row, so the values do
-    not depend on the block): no whole copies of the matched errors and their squares.
+    not depend on the block): no whole copies of the errors, the matched ones and
+    their squares.
 
     """
-    ok = np.all(np.isfinite(error), axis=1)
-    norm2 = np.empty(int(ok.sum()))
-    done = 0
+    ok = np.zeros(len(error), dtype=bool)
+    norm2 = []
     for lo in range(0, ok.size, block):
-        e = error[lo:lo + block][ok[lo:lo + block]]
-        norm2[done:done + e.shape[0]] = np.sum(e ** 2, axis=1)
-        done += e.shape[0]
-    return ok, norm2
+        e = error[lo:lo + block]
+        ok[lo:lo + e.shape[0]] = fine = np.all(np.isfinite(e), axis=1)
+        norm2.append(np.sum(e[fine] ** 2, axis=1))
+    return ok, np.concatenate(norm2) if norm2 else np.zeros(0)
 
 
 def score_variant(result, vr):
@@ -170,13 +225,12 @@ def score_variant(result, vr):
     rep = vr.replay
     plant = result.vehicle.plant
     if result.truth is not None and len(rep):
-        x_true = truth_at(result.truth, rep.stamp_ns, rep.epoch)
-        vr.error = np.subtract(rep.x_hat, x_true, out=x_true)     # in place: no copy
-        del x_true
+        vr.error = StateError(rep, result.truth)       # computed block by block
         tol = np.array([result.tolerance[s] for s in plant.state_names])
-        metrics = state_metrics(rep.t, vr.error, rep.epoch, tol)
+        metrics = state_metrics(_Seconds(rep.stamp_ns), vr.error, rep.epoch, tol)
         vr.states = dict(zip(plant.state_names, metrics))
         ok, norm2 = _matched_norm2(vr.error)
+        vr.matched = ok
         vr.summary['matched'] = int(ok.sum())
         vr.summary['error_rms'] = float(np.sqrt(np.mean(norm2))) if ok.any() else math.nan
         settles = [m['settling_time'] for m in metrics]

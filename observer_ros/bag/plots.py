@@ -61,13 +61,13 @@ def write_plots(result, out):
         for c, (name, vr) in enumerate(result.variants.items()):
             if vr.error is None:
                 continue
-            ok = np.all(np.isfinite(vr.error), axis=1)
+            ok = np.flatnonzero(vr.matched)         # the matched rows, decimated first
+            ok = ok[decimate(ok.size, PLOT_MAX_POINTS)]
             norm = np.linalg.norm(vr.error[ok], axis=1)
             ts = (vr.replay.stamp_ns[ok] - t0) * 1e-9
-            d = decimate(norm.size, PLOT_MAX_POINTS)
             style = {'ls': '--', 'color': '0.4'} if name == 'live' else \
                 {'color': colors[c % len(colors)]}
-            ax.semilogy(ts[d], np.maximum(norm[d], 1e-16), label=name, **style)
+            ax.semilogy(ts, np.maximum(norm, 1e-16), label=name, **style)
         ax.set_xlabel('time since the start of the bag [s]')
         ax.set_ylabel('|x_hat - x|')
         ax.set_title('estimation error norm')

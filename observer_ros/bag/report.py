@@ -240,7 +240,7 @@ def write_results_bag(result, path, limit):
         rep = vr.replay
         topics.append((f'/eval/{name}/state/estimate', rep.stamp_ns, rep.x_hat, names))
         if vr.error is not None:        # the matched rows, taken once decimated
-            ok = np.flatnonzero(np.all(np.isfinite(vr.error), axis=1))
+            ok = np.flatnonzero(vr.matched)
             topics.append((f'/eval/{name}/state/error', rep.stamp_ns, vr.error, names, ok))
     with CrcWriter(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         for topic, ns, values, comp, *rows in topics:

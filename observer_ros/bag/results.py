@@ -41,7 +41,9 @@ class VariantResult:
     outputs: Dict[str, dict] = field(default_factory=dict)
     summary: Dict[str, object] = field(default_factory=dict)
     sensors: Dict[str, dict] = field(default_factory=dict)
-    error: Optional[np.ndarray] = None       # (N, n) x_hat - x_true; NaN where unmatched
+    # (N, n) x_hat - x_true, NaN where unmatched: a metrics.StateError, rows on demand
+    error: Optional[object] = None
+    matched: Optional[np.ndarray] = None     # (N,) bool: rows with every state finite
 
     @property
     def t(self):
