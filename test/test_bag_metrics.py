@@ -8,9 +8,10 @@ copies it used to make (error, matched error, squares: about 100 bytes per estim
 
 """
 
-from types import SimpleNamespace
 import tracemalloc
+from types import SimpleNamespace
 
+from bag_synth import CONFIG
 import numpy as np
 from numpy.testing import assert_array_equal
 from observer_ros.bag.metrics import score_variant, StateError, truth_at
@@ -19,7 +20,6 @@ from observer_ros.bag.results import VariantResult
 from observer_ros.bag.running_metrics import blocked_state_metrics
 from observer_ros.vehicle import load_vehicle
 import pytest
-from bag_synth import CONFIG
 
 STATES = ('theta', 'w', 'q')
 
