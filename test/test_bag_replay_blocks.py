@@ -60,7 +60,13 @@ def _swap_commands(messages, every=7):
     return out
 
 
+SAMPLES = CONFIG.parent / 'bags' / 'samples'
+
+
 def _case(name, tmp):
+    if name.startswith('sample_'):           # the sample bags with their vehicles
+        bag = name[len('sample_'):]
+        return load_vehicle(CONFIG / f'{bag}.yaml'), SAMPLES / bag
     if name in ('late', 'two_stamped'):      # two sensors, received late or at their stamps
         veh = late_sensors.vehicle(tmp, 'full')
         msgs, truth = late_sensors.messages(veh)
@@ -91,8 +97,10 @@ def _case(name, tmp):
 
 
 CASES = ['sub', 'cart_shifted', 'two_sensors', 'two_stamped', 'lockstep_swapped',
-         'realtime_swapped', 'loop', 'reduced', 'late']
-BULK = ('sub', 'lockstep_swapped', 'reduced')   # mostly in bulk
+         'realtime_swapped', 'loop', 'reduced', 'late', 'sample_submarine',
+         'sample_cart_pendulum', 'sample_submarine_reduced']
+BULK = ('sub', 'lockstep_swapped', 'reduced', 'sample_submarine', 'sample_cart_pendulum',
+        'sample_submarine_reduced')                 # mostly in bulk
 
 
 @pytest.fixture(scope='module')
