@@ -88,6 +88,7 @@ def _case(name, tmp):
         'realtime_swapped': ('submarine', ['simulator.mode:=realtime'],
                              {'noise': True, 'seed': 3}, _swap_commands),
         'reduced': ('submarine_reduced', None, {'noise': True}, None),
+        'discrete': ('submarine_discrete', None, {'noise': True}, None),
     }[name]
     veh = load_vehicle(CONFIG / f'{base}.yaml', overrides=overrides)
     messages = simulate(veh, **kwargs)['messages']
@@ -97,10 +98,10 @@ def _case(name, tmp):
 
 
 CASES = ['sub', 'cart_shifted', 'two_sensors', 'two_stamped', 'lockstep_swapped',
-         'realtime_swapped', 'loop', 'reduced', 'late', 'sample_submarine',
+         'realtime_swapped', 'loop', 'reduced', 'discrete', 'late', 'sample_submarine',
          'sample_cart_pendulum', 'sample_submarine_reduced']
-BULK = ('sub', 'lockstep_swapped', 'reduced', 'sample_submarine', 'sample_cart_pendulum',
-        'sample_submarine_reduced')                 # mostly in bulk
+BULK = ('sub', 'lockstep_swapped', 'reduced', 'discrete', 'sample_submarine',
+        'sample_cart_pendulum', 'sample_submarine_reduced')     # mostly in bulk
 
 
 @pytest.fixture(scope='module')
@@ -154,7 +155,7 @@ def _runs(rec, veh, block):
                               block=block)
 
 
-@pytest.mark.parametrize('name', ['sub', 'cart_shifted', 'lockstep_swapped'])
+@pytest.mark.parametrize('name', ['sub', 'cart_shifted', 'lockstep_swapped', 'discrete'])
 def test_bag_runs_pieces_and_their_arrays_do_not_depend_on_the_block(cases, name,
                                                                      monkeypatch):
     veh, bag = cases(name)

@@ -641,7 +641,7 @@ def _key_ids(key_of, steps):
     return ids, np.array(list(key_index), dtype=float)
 
 
-def _steps(events, streams, cmd, est, jump, future_tolerance, mev, s0, s1):
+def _steps(events, streams, cmd, est, jump, future_tolerance, mev, s0, s1, keyed=True):
     """
     Return the steps s0..s1-1 between measurements s0..s1 (indices into ``mev``).
 
@@ -649,7 +649,9 @@ def _steps(events, streams, cmd, est, jump, future_tolerance, mev, s0, s1):
     each step's key id among ``keys`` (the distinct step keys of these steps, sorted;
     -1: no valid key), whether the step can be replayed in bulk, and the number of
     commands in the gap after each measurement s0..s1-1. Everything is local to the
-    steps asked for: a block of a long bag, or one piece of a run.
+    steps asked for: a block of a long bag, or one piece of a run. ``keyed=False``
+    (only ``step_ok`` wanted): a continuous plant's every positive step has a key (its
+    rounded length), so the keys are not computed (one call per distinct step length).
 
     """
     ev = mev[s0:s1 + 1]
@@ -668,10 +670,13 @@ def _steps(events, streams, cmd, est, jump, future_tolerance, mev, s0, s1):
     h = np.diff(tm)
     key_id = np.full(h.size, -1, dtype=np.int64)
     pos = h > 0
-    uniq, inv = np.unique(h[pos], return_inverse=True)
-    ids, keys = _key_ids(est.cache.key, uniq)
-    if ids.size:
-        key_id[pos] = ids[inv.reshape(-1)]
+    if not keyed and not est.plant.is_discrete:
+        key_id[pos], keys = 0, None
+    else:
+        uniq, inv = np.unique(h[pos], return_inverse=True)
+        ids, keys = _key_ids(est.cache.key, uniq)
+        if ids.size:
+            key_id[pos] = ids[inv.reshape(-1)]
     step_ok = (key_id >= 0) & ok[1:]
     gap_cmds = np.zeros(h.size, dtype=np.int64)
     e0 = int(ev[0])
@@ -711,7 +716,7 @@ class _Runs:
         prev = np.zeros(1, dtype=np.int8)           # the flag of the step before a block
         for s0 in range(0, M - 1, block):
             s1 = min(M - 1, s0 + block)
-            flags = self._steps(s0, s1)[3].astype(np.int8)
+            flags = self._steps(s0, s1, keyed=False)[3].astype(np.int8)
             d = np.diff(np.concatenate([prev, flags]))
             starts.append(np.flatnonzero(d == 1) + s0)
             ends.append(np.flatnonzero(d == -1) + s0)
@@ -731,8 +736,8 @@ class _Runs:
             for p0, p1 in zip(cuts, cuts[1:]):
                 self.pieces[int(mev[p0])] = (p0, p1)
 
-    def _steps(self, s0, s1):
-        return _steps(*self.args, self.mev, s0, s1)
+    def _steps(self, s0, s1, keyed=True):
+        return _steps(*self.args, self.mev, s0, s1, keyed)
 
     def _t(self, i):
         events, streams = self.args[:2]
