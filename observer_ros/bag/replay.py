@@ -233,6 +233,11 @@ def affine_scan(F, W, x0, steps=None, chunk=1 << 16):
     return X
 
 
+def _index_type(size):
+    """Return int32 for indices below ``size`` when they fit (half the memory), else int64."""
+    return np.int32 if size < (1 << 31) else np.int64
+
+
 class _Events:
     """
     The recording's measurements and commands merged into the order the node used.
@@ -276,7 +281,7 @@ class _Events:
         size = max((int(st.seq[sel].max()) + 1 for _, st, sel in sources if sel.size),
                    default=0)
         kind = np.full(size, -2, dtype=np.int8)     # -2: no event at this position
-        idx = np.empty(size, dtype=np.int64)
+        idx = np.empty(size, dtype=_index_type(size))
         for k, stream, sel in sources:
             at = stream.seq[sel]
             kind[at] = k
@@ -706,12 +711,11 @@ class _Runs:
     def __init__(self, events, streams, cmd, est, jump, future_tolerance, block=None):
         self.args = (events, streams, cmd, est, jump, future_tolerance)
         self.pieces = {}
-        mev = np.flatnonzero(events.kind >= 0)      # event indices of measurements
-        self.mev = mev
+        block = block or RUN_BLOCK
+        mev = self.mev = _measurement_events(events.kind, block)
         M = mev.size
         if M < MIN_RUN + 1:
             return
-        block = block or RUN_BLOCK
         starts, ends = [], []                       # of the stretches of good steps
         prev = np.zeros(1, dtype=np.int8)           # the flag of the step before a block
         for s0 in range(0, M - 1, block):
@@ -762,6 +766,19 @@ class _Runs:
                 'step_class': key_id * len(streams) + msens, 'keys': keys,
                 'a': 0, 'b': p1 - p0, 'rest': self.mev.size - p0,
                 'commands': int(gap_cmds.sum()), 'last_event': int(mev[-1])}
+
+
+def _measurement_events(kind, block):
+    """Return the event indices of the measurements (kind >= 0), found a block at a time."""
+    blocks = range(0, kind.size, block)
+    count = sum(int(np.count_nonzero(kind[e0:e0 + block] >= 0)) for e0 in blocks)
+    mev = np.empty(count, dtype=_index_type(kind.size))
+    done = 0
+    for e0 in blocks:
+        found = np.flatnonzero(kind[e0:e0 + block] >= 0)
+        mev[done:done + found.size] = found + e0
+        done += found.size
+    return mev
 
 
 def _find_runs(events, streams, cmd, est, jump, future_tolerance, block=None):
