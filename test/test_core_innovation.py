@@ -109,3 +109,21 @@ def test_other_observers_use_the_sensor_noise():
     quiet = InnovationMonitor([('enc', [0.0])], kalman=False, window=10)
     quiet.add('enc', [1.0])
     assert quiet.health('enc').samples == 0
+
+
+def test_one_output_is_whitened_as_by_cholesky():
+    # a single output skips the Cholesky factorisation (per message in the node): the
+    # same figures as whiten(); a non-positive S is not counted, as whiten() refuses it
+    rng = np.random.default_rng(5)
+    fast = InnovationMonitor([('gyro', [0.1])], kalman=True, window=10)
+    E = []
+    for _ in range(10):
+        r, S = rng.normal(size=1), np.array([[rng.uniform(0.5, 2.0)]])
+        fast.add('gyro', r, S)
+        E.append(whiten(r, S))
+    fast.add('gyro', [1.0], np.array([[0.0]]))
+    fast.add('gyro', [1.0], np.array([[-1.0]]))
+    h = fast.health('gyro')
+    assert h.samples == 10
+    assert h.nis_mean == pytest.approx(float(np.mean(np.sum(np.array(E) ** 2, axis=1))),
+                                       rel=1e-12)

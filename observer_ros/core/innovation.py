@@ -228,11 +228,17 @@ class InnovationMonitor:
                 if inv is None:
                     return
                 e = np.multiply(residual, inv)
+            elif len(S) == 1 and len(residual) == 1:    # one output: no Cholesky
+                s = float(S[0][0])
+                if not s > 0.0:
+                    return
+                e = np.multiply(residual, 1.0 / math.sqrt(s))
             else:
                 e = whiten(residual, S)
-        except (ValueError, np.linalg.LinAlgError):
+        except (ValueError, TypeError, np.linalg.LinAlgError):
             return
-        if e.shape != buf.shape[1:] or not math.isfinite(float(e @ e)):
+        # plain floats: cheaper than numpy's reductions on a few elements (per message)
+        if e.shape != buf.shape[1:] or not all(map(math.isfinite, e.tolist())):
             return
         k = self._count[name]
         buf[k % self._window] = e

@@ -24,6 +24,7 @@ of ``state/estimate`` or ``control/u`` is reported as an ERROR naming the topic.
 
 """
 
+import math
 import time
 
 from diagnostic_msgs.msg import DiagnosticStatus
@@ -196,8 +197,9 @@ class ObserverNode(ObserverHealth, VehicleNode):
             return
         rows = self._rows[sensor.name]
         history = self.history
-        late = history.t is not None and t < history.t
-        if not late and history.t is not None and t - history.t > self._max_gap:
+        head = history.t
+        late = head is not None and t < head
+        if not late and head is not None and t - head > self._max_gap:
             self._long_gap(sensor, t, y, rows)
         skipped = getattr(self.estimator, 'unverified_corrections', 0)
         try:
@@ -211,7 +213,9 @@ class ObserverNode(ObserverHealth, VehicleNode):
             reason = next(reversed(self.estimator.gain_failures.values()))
             self._reject('unverified_gain_corrections',
                          f'{sensor.topic}: correction skipped (prediction only): {reason}')
-        if not np.isfinite(x_hat).all():
+        # plain floats from here on: numpy's reductions cost more on a few elements
+        x_hat = x_hat.tolist()
+        if not all(map(math.isfinite, x_hat)):
             # Never publish a NaN: restart from the initial estimate.
             self._reset_estimator('numerical_resets', f'{sensor.topic}: estimate not finite',
                                   t)
@@ -226,9 +230,9 @@ class ObserverNode(ObserverHealth, VehicleNode):
         # measurement is answered with the estimate at the newest stamp, now revised.
         if late:
             self.count('late_measurements')
-            self._publish_estimate(history.t, sensor.frame_id, history.head_tag)
+            self._publish_estimate(history.t, sensor.frame_id, history.head_tag, x_hat)
         else:
-            self._publish_estimate(t, sensor.frame_id, stamp)
+            self._publish_estimate(t, sensor.frame_id, stamp, x_hat)
         self._publish_covariance()
         residual = history.residual
         if residual is not None:
