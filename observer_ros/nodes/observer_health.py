@@ -83,6 +83,7 @@ class ObserverHealth:
         C = self.vehicle.plant.C[list(rows)]
         x0 = x0 + np.linalg.pinv(C) @ (np.asarray(y, dtype=float) - C @ x0)
         self.history.reset(x0, None)
+        self._health.restart()              # a new initial transient
         self._envelope.reset()
 
     def _health_status(self, now, level, message, values):
