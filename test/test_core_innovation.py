@@ -32,9 +32,17 @@ def test_ljung_box_agrees_with_the_evaluation():
     x = np.random.default_rng(1).normal(size=400)
     x[1:] += 0.5 * x[:-1]                       # correlated
     q, p = ljung_box(x, lags=20)
-    ref = whiteness(x, lags=20)
+    ref = whiteness(x, lags=20)                 # one formula: the evaluation calls ours
     assert q == pytest.approx(ref['ljung_box_q'], rel=1e-12)
     assert p == pytest.approx(ref['ljung_box_p'], rel=1e-9, abs=1e-300)
+    # against the textbook statistic: numpy's correlation and scipy's chi-square
+    d = x - x.mean()
+    full = np.correlate(d, d, mode='full')[d.size - 1:]
+    rho = full[1:21] / full[0]
+    assert_allclose(ref['acf'], rho, rtol=1e-12)
+    want = 400 * 402 * np.sum(rho ** 2 / (400 - np.arange(1, 21)))
+    assert q == pytest.approx(want, rel=1e-12)
+    assert p == pytest.approx(scipy.stats.chi2.sf(want, 20), rel=1e-9, abs=1e-300)
     assert p < 1e-3
     _, p_white = ljung_box(np.random.default_rng(2).normal(size=400), lags=20)
     assert p_white > 1e-3

@@ -43,7 +43,8 @@ from scipy.special import chdtrc, chdtri
 
 from .health import settling_time
 
-__all__ = ['InnovationMonitor', 'SensorHealth', 'whiten', 'ljung_box', 'nis_bounds',
+__all__ = ['InnovationMonitor', 'SensorHealth', 'whiten', 'ljung_box', 'ljung_box_acf',
+           'nis_bounds',
            'sequence_health', 'transient_time', 'WINDOW', 'LAGS', 'ALPHA', 'OTHER_MARGIN']
 
 #: Residuals per sensor in a window.
@@ -137,12 +138,8 @@ def ljung_box(x, lags=LAGS):
     """
     Ljung-Box statistic of a sequence (mean removed) and its p-value.
 
-    Parameters
-    ----------
-    x : (N,) array_like
-        The sequence.
-    lags : int
-        Largest lag k (at most N // 4).
+    The sequence x and the largest lag (at most N // 4) are those of
+    :func:`ljung_box_acf`.
 
     Returns
     -------
@@ -152,16 +149,40 @@ def ljung_box(x, lags=LAGS):
         Chi-square survival of q with k degrees of freedom (small: not white).
 
     """
+    q, p, _ = ljung_box_acf(x, lags)
+    return q, p
+
+
+def ljung_box_acf(x, lags=LAGS):
+    """
+    Return :func:`ljung_box`'s q and p and the autocorrelations they come from.
+
+    Parameters
+    ----------
+    x : (N,) array_like
+        The sequence.
+    lags : int
+        Largest lag k (at most N // 4).
+
+    Returns
+    -------
+    q, p : float
+        The statistic and its chi-square p-value, as :func:`ljung_box` (NaN when
+        undefined: fewer than 4 samples, a constant).
+    acf : (k,) ndarray
+        ``rho_j``, j = 1..k, mean removed, normalised by lag 0; empty when undefined.
+
+    """
     x = np.asarray(x, dtype=float)
     N = x.size
     k = min(int(lags), N // 4)
     d = x - x.mean() if N else x
     denom = float(d @ d)
     if k < 1 or not denom > 0.0 or not math.isfinite(denom):
-        return math.nan, math.nan
+        return math.nan, math.nan, np.zeros(0)
     rho = np.array([float(d[:-j] @ d[j:]) / denom for j in range(1, k + 1)])
     q = float(N * (N + 2) * np.sum(rho ** 2 / (N - np.arange(1, k + 1))))
-    return q, float(chdtrc(k, q))
+    return q, float(chdtrc(k, q)), rho
 
 
 @dataclass
