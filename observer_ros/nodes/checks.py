@@ -27,7 +27,8 @@ OWN_PARAMETER_RANGES = {
     'start_time': (0.0, 1e9, True),                  # s
     'wait_for_subscribers': (0, 1000, False),
 }
-BOOL_PARAMETERS = ('publish_array', 'publish_clock', 'wait_for_recorder', 'exit_when_done')
+BOOL_PARAMETERS = ('publish_array', 'publish_clock', 'wait_for_recorder', 'exit_when_done',
+                   'delay_compensation')
 
 
 def own_parameter_problem(params):

@@ -12,6 +12,14 @@ inside ``controller.u_min``/``u_max``, or it is not sent (the safe command inste
 ERROR on /diagnostics). A second publisher of ``control/u`` or ``state/estimate`` is
 reported as an ERROR naming the topic.
 
+In realtime (``simulator.mode: realtime``, parameter ``delay_compensation``), an estimate
+that comes after the plant has moved on (a newer stamp on one of the vehicle's sensor
+topics, which the node reads for their stamps only) is predicted with the model over the
+steps it missed, and its command stamped with the time it takes effect
+(core/delay_compensation.py): the cart's loop tolerates less than a millisecond of
+unmodelled delay. One later than ``observer.history_length`` gets no command
+(``too_late_estimates``): the plant keeps the one in force.
+
 """
 
 from diagnostic_msgs.msg import DiagnosticStatus
@@ -21,9 +29,11 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from .checks import changed_pole_problem, divergence_envelopes, own_parameter_problem
-from .common import (checked_stamp, joint_state, LATCHED_QOS, run_node, SAFE_COMMAND_FRAME,
-                     STATE_PUB_QOS, STATE_QOS, TOPICS, vector_from_joint_state, VehicleNode)
+from .common import (checked_stamp, joint_state, LATCHED_QOS, MESSAGE_CLASSES, run_node,
+                     SAFE_COMMAND_FRAME, SENSOR_QOS, stamp_to_sec, STATE_PUB_QOS, STATE_QOS,
+                     TOPICS, vector_from_joint_state, VehicleNode)
 from ..core.compensator import design_vehicle
+from ..core.delay_compensation import DelayCompensation
 from ..core.errors import ObserverError
 from ..core.health import SettleCheck, settling_time
 from ..core.safe_command import SafeCommand
@@ -92,6 +102,8 @@ class CompensatorNode(VehicleNode):
             ('diagnostics_period', 1.0, 's (wall) between /diagnostics reports'),
             ('clock_jump_tolerance', 0.5, 's: an estimate this far back means the clock '
              'restarted'),
+            ('delay_compensation', True, 'realtime: predict a late estimate to the time its '
+             'command takes effect, and stamp the command with it'),
         ))
         self._apply(self.vehicle, design_vehicle(self.vehicle))
         self._last_estimate_time = None      # node clock when the last good x_hat came
@@ -105,6 +117,7 @@ class CompensatorNode(VehicleNode):
         self._safe_timer = None
         self._refused = None                 # why the last command was not sent
         self._duplicates = []                # other publishers of our topics
+        self._max_steps_late = 0             # since the last report (delay compensation)
         self._cmd_pub = self.create_publisher(JointState, TOPICS['command'], STATE_PUB_QOS)
         self._array_pub = None
         if self.param('publish_array'):
@@ -114,6 +127,13 @@ class CompensatorNode(VehicleNode):
         self._publish_reference()
         self._sub = self.create_subscription(
             JointState, TOPICS['estimate'], self._on_estimate, STATE_QOS)
+        # realtime: the newest sensor stamp is the plant's time (how late an estimate is)
+        self._sensor_time = {}
+        self._sensor_subs = [self.create_subscription(
+            MESSAGE_CLASSES[s.msg_type], s.topic,
+            lambda msg, name=s.name: self._on_sensor(name, msg), SENSOR_QOS)
+            for s in self.vehicle.sensors
+            if self.delay is not None and hasattr(MESSAGE_CLASSES[s.msg_type], 'header')]
         self.add_on_set_parameters_callback(self._on_set_parameters)
         period = min(self.vehicle.controller.stale_timeout / 2.0, 0.1)
         self._watchdog = self.wall_timer(period, self._on_watchdog)
@@ -141,6 +161,9 @@ class CompensatorNode(VehicleNode):
                                     vehicle.plant.is_discrete)
         self.settle_check = SettleCheck(self.safe.Ad, self.safe.Bd, self.safe.dt,
                                         self.x_envelope.file_scale)
+        realtime = vehicle.simulator.mode == 'realtime'
+        self.delay = DelayCompensation(self.safe.Ad, self.safe.Bd, self.safe.dt,
+                                       vehicle.observer.history_length) if realtime else None
 
     def _law(self, x_hat):
         return control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
@@ -185,12 +208,17 @@ class CompensatorNode(VehicleNode):
                 self._recovering = True
                 self._inside_since = None
             return
-        if self._recovering:
-            self._recover(t, x_hat, msg.header.stamp)
+        steps = self._steps_late(t)
+        if steps is None:
+            self.count('too_late_estimates')    # the plant keeps the command in force
             return
+        if self._recovering:
+            self._recover(t, x_hat, msg.header.stamp, steps)
+            return
+        t_apply, x_apply, stamp = self._at_application(t, x_hat, msg.header.stamp, steps)
         with np.errstate(all='ignore'):     # an overflow gives inf/NaN: caught below
             u_law = control_law(self.K, x_hat, self.x_d, self.Kd)    # before the limits
-            u = control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
+            u = control_law(self.K, x_apply, self.x_d, self.Kd, self.u_min, self.u_max)
         # an overflowing law is the command gate's (refused, or saturated by the limits)
         problem = None if not np.isfinite(u_law).all() else (
             self.x_envelope.check(t, x_hat) or self.u_envelope.check(t, u_law))
@@ -203,11 +231,34 @@ class CompensatorNode(VehicleNode):
             return
         self._diverging = None
         self._stop_safe_timer()
-        if self._publish(u, t, msg.header.stamp):   # the estimate's stamp, to the ns
-            self.safe.trusted(t, x_hat, u)
+        if self._publish(u, t_apply, stamp):    # on time: the estimate's stamp, to the ns
+            self.safe.trusted(t_apply, x_apply, u)
             self.count('commands')
 
-    def _recover(self, t, x_hat, stamp):
+    def _on_sensor(self, name, msg):
+        t = stamp_to_sec(msg.header.stamp)
+        if t < self._sensor_time.get(name, t) - self.param('clock_jump_tolerance'):
+            self._sensor_time.clear()       # a clock that started over
+        self._sensor_time[name] = t
+
+    def _steps_late(self, t):
+        """Return the steps the estimate stamped t is late (0 without compensation)."""
+        if self.delay is None or not self.param('delay_compensation'):
+            return 0
+        now = max(self._sensor_time.values()) if self._sensor_time else None
+        return self.delay.steps_late(now, t)
+
+    def _at_application(self, t, x_hat, stamp, steps):
+        """Return (time, estimate, stamp) at which a command answering x_hat takes effect."""
+        if not steps:
+            return t, x_hat, stamp
+        self.count('delay_compensated_commands')
+        self._max_steps_late = max(self._max_steps_late, steps)
+        t_apply = t + steps * self.safe.dt
+        with np.errstate(all='ignore'):
+            return t_apply, self.delay.predict(x_hat, t, steps), None
+
+    def _recover(self, t, x_hat, stamp, steps=0):
         """
         Close the loop on the estimate after an outage, even beyond the envelope.
 
@@ -217,9 +268,10 @@ class CompensatorNode(VehicleNode):
         reported as ERROR (``diverging``); once x_hat and u are strictly inside the
         envelope (:meth:`Envelope.inside`) for an observer settling time, it is armed again.
         """
+        t_apply, x_apply, stamp = self._at_application(t, x_hat, stamp, steps)
         with np.errstate(all='ignore'):
             u_law = control_law(self.K, x_hat, self.x_d, self.Kd)
-            u = control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
+            u = control_law(self.K, x_apply, self.x_d, self.Kd, self.u_min, self.u_max)
         # back only when strictly inside both bounds for an observer settling time: the
         # envelope's check lets values beyond the bound pass while they do not grow, and
         # a loop reopened by a divergence safe command in mid-recovery diverges for good
@@ -239,8 +291,8 @@ class CompensatorNode(VehicleNode):
                     else 'beyond the envelope')
             self._diverging = f'{problem} (recovering after an outage: closing the loop)'
             self.count('recovery_commands')
-        if self._publish(u, t, stamp):
-            self.safe.trusted(t, x_hat, u)
+        if self._publish(u, t_apply, stamp):
+            self.safe.trusted(t_apply, x_apply, u)
             self.count('commands')
 
     def _clock_restarted(self, t):
@@ -251,6 +303,8 @@ class CompensatorNode(VehicleNode):
         self._resyncing = False
         self._recovering = False
         self.safe.reset()
+        if self.delay is not None:
+            self.delay.reset()
         self.x_envelope.reset()
         self.u_envelope.reset()
 
@@ -279,6 +333,8 @@ class CompensatorNode(VehicleNode):
 
     def _send(self, u, t, stamp=None, frame_id=''):
         self.safe.sent(u)
+        if self.delay is not None:
+            self.delay.sent(t, u)
         self._cmd_pub.publish(joint_state(self.vehicle.plant.input_names, u, t,
                                           frame_id=frame_id, stamp=stamp))
         if self._array_pub is not None:
@@ -364,7 +420,9 @@ class CompensatorNode(VehicleNode):
         return SetParametersResult(successful=True)
 
     def _on_diagnostics(self):
-        values = {'u': np.array2string(self.safe.last_command)}
+        values = {'u': np.array2string(self.safe.last_command),
+                  'max_steps_predicted': self._max_steps_late}
+        self._max_steps_late = 0
         self._duplicates = self.duplicate_publishers((TOPICS['command'], TOPICS['estimate']))
         refused, self._refused = self._refused, None
         if self._duplicates:
