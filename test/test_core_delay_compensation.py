@@ -45,7 +45,7 @@ def test_prediction_is_the_zoh_response_to_the_commands_in_force():
 
 def test_lateness_is_the_plant_time_past_the_stamp_and_stamps_never_go_back():
     _, Ad, Bd = cart()
-    comp = DelayCompensation(Ad, Bd, DT, max_delay=0.25)
+    comp = DelayCompensation(Ad, Bd, DT, max_delay=0.25, lead=0)
     assert comp.steps_late(1.0, 1.0) == 0
     assert comp.steps_late(1.04, 1.0) == 4
     assert comp.steps_late(1.044, 1.0) == 4 and comp.steps_late(1.046, 1.0) == 5
@@ -58,6 +58,16 @@ def test_lateness_is_the_plant_time_past_the_stamp_and_stamps_never_go_back():
     assert comp.steps_late(1.06, 1.02) == 4
     comp.reset()
     assert comp.steps_late(1.02, 1.02) == 0
+    # a lead of one step: every command has a whole step to reach the plant
+    lead = DelayCompensation(Ad, Bd, DT, lead=1)
+    assert lead.steps_late(1.0, 1.0) == 1 and lead.steps_late(1.03, 1.0) == 4
+    assert lead.steps_late(1.3, 1.0) is None
+    # an estimate predicted ahead of the plant (through a command stamped ahead): to the
+    # plant's time plus the lead, not to its own stamp plus the lead
+    two = DelayCompensation(Ad, Bd, DT, lead=2)
+    assert two.steps_late(1.0, 1.01) == 1 and two.steps_late(1.0, 1.03) == 0
+    two.sent(1.05, [0.0])
+    assert two.steps_late(1.0, 1.01) == 4
 
 
 def _loop(compensate, stalls, steps=800):
@@ -76,7 +86,7 @@ def _loop(compensate, stalls, steps=800):
     x_d, K = np.asarray(c.reference, float), design.K
     Kd = np.zeros_like(K)
     history = History(make_estimator(vehicle.plant, vehicle.observer), 0.25)
-    comp = DelayCompensation(Ad, Bd, DT)
+    comp = DelayCompensation(Ad, Bd, DT, lead=0)     # answered within the step
     x, u_plant = np.array(vehicle.simulator.initial_state, float), np.zeros(1)
     waiting, until = [], None           # estimates not yet answered; the stall's end
     worst = []

@@ -41,12 +41,16 @@ class DelayCompensation:
         The step, s: commands take effect on its grid.
     max_delay : float
         Seconds: a later estimate is not predicted (None from :meth:`steps_late`).
+    lead : int
+        Steps added to the lateness: the command's own way to the plant (computing it,
+        the transport, the plant's next step). With 0 a command computed just before the
+        plant steps comes late; with 1 it has a whole step.
 
     """
 
-    def __init__(self, Ad, Bd, dt, max_delay=0.25):
+    def __init__(self, Ad, Bd, dt, max_delay=0.25, lead=1):
         self.Ad, self.Bd = np.asarray(Ad, float), np.asarray(Bd, float)
-        self.dt, self.max_delay = float(dt), float(max_delay)
+        self.dt, self.max_delay, self.lead = float(dt), float(max_delay), int(lead)
         self._sent = collections.deque()        # (stamp, u), stamps increasing
         self._keep = int(np.ceil(max_delay / self.dt)) + 4
 
@@ -56,23 +60,24 @@ class DelayCompensation:
 
     def steps_late(self, now, t):
         """
-        Return the steps from the estimate stamped t to the plant's time ``now``.
+        Return the steps to predict the estimate stamped t: to the plant's time plus ``lead``.
 
         Parameters
         ----------
         now : float or None
             The plant's time when the estimate arrived, on the stamps' time base (None:
-            not known, no prediction).
+            not known: from t).
         t : float
-            The estimate's stamp, s.
+            The estimate's stamp, s (after the plant's time when the observer predicted it
+            through a command already stamped ahead: then fewer steps, never below 0).
 
         Returns
         -------
         int or None
-            Steps to predict: rounded to the nearest step, and at least enough that the
-            command is not stamped before the newest one sent (the plant would not apply
-            it). 0 when ``now`` is unknown or on another time base (more than
-            100 ``max_delay`` away); None when the estimate is later than ``max_delay``.
+            Steps to ``now + lead`` steps, to the nearest step, and at least enough that
+            the command is not stamped before the newest one sent (the plant would not
+            apply it). ``now`` on another time base (more than 100 ``max_delay`` away)
+            counts as unknown. None when the estimate is later than ``max_delay``.
 
         """
         late = 0.0 if now is None else now - t
@@ -80,11 +85,11 @@ class DelayCompensation:
             late = 0.0                          # another time base: nothing to compare
         if late > self.max_delay:
             return None
-        steps = max(int(np.floor(late / self.dt + 0.5)), 0)
+        steps = int(np.floor(late / self.dt + 0.5)) + self.lead
         if self._sent:
             newest = self._sent[-1][0]
             steps = max(steps, int(np.ceil((newest - t) / self.dt - 0.25)))
-        return steps
+        return max(steps, 0)
 
     def sent(self, t, u):
         """Note the command u sent, in force from its stamp t on."""

@@ -104,6 +104,8 @@ class CompensatorNode(VehicleNode):
              'restarted'),
             ('delay_compensation', True, 'realtime: predict a late estimate to the time its '
              'command takes effect, and stamp the command with it'),
+            ('command_lead_steps', 2, 'realtime, delay_compensation: steps a command is '
+             'stamped ahead of the plant\'s time (its way to the plant)'),
         ))
         self._apply(self.vehicle, design_vehicle(self.vehicle))
         self._last_estimate_time = None      # node clock when the last good x_hat came
@@ -162,8 +164,9 @@ class CompensatorNode(VehicleNode):
         self.settle_check = SettleCheck(self.safe.Ad, self.safe.Bd, self.safe.dt,
                                         self.x_envelope.file_scale)
         realtime = vehicle.simulator.mode == 'realtime'
-        self.delay = DelayCompensation(self.safe.Ad, self.safe.Bd, self.safe.dt,
-                                       vehicle.observer.history_length) if realtime else None
+        self.delay = DelayCompensation(
+            self.safe.Ad, self.safe.Bd, self.safe.dt, vehicle.observer.history_length,
+            self.param('command_lead_steps')) if realtime else None
 
     def _law(self, x_hat):
         return control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
@@ -394,6 +397,9 @@ class CompensatorNode(VehicleNode):
         if problem is not None:
             self.count('parameter_changes_refused')
             return SetParametersResult(successful=False, reason=problem)
+        for p in params:
+            if p.name == 'command_lead_steps' and self.delay is not None:
+                self.delay.lead = int(p.value)
         changed = [p for p in params if p.name.startswith('controller.')]
         if not changed:
             return SetParametersResult(successful=True)
