@@ -28,8 +28,7 @@ OWN_PARAMETER_RANGES = {
     'wait_for_subscribers': (0, 1000, False),
     'command_lead_steps': (0, 100, False),
 }
-BOOL_PARAMETERS = ('publish_array', 'publish_clock', 'wait_for_recorder', 'exit_when_done',
-                   'delay_compensation')
+BOOL_PARAMETERS = ('publish_array', 'publish_clock', 'wait_for_recorder', 'exit_when_done')
 
 
 def own_parameter_problem(params):

@@ -12,7 +12,7 @@ inside ``controller.u_min``/``u_max``, or it is not sent (the safe command inste
 ERROR on /diagnostics). A second publisher of ``control/u`` or ``state/estimate`` is
 reported as an ERROR naming the topic.
 
-In realtime (``simulator.mode: realtime``, parameter ``delay_compensation``), an estimate
+With ``controller.delay_compensation`` in realtime (``simulator.mode: realtime``), an estimate
 that comes after the plant has moved on (a newer stamp on one of the vehicle's sensor
 topics, which the node reads for their stamps only) is predicted with the model over the
 steps it missed, and its command stamped with the time it takes effect
@@ -105,9 +105,7 @@ class CompensatorNode(VehicleNode):
             ('diagnostics_period', 1.0, 's (wall) between /diagnostics reports'),
             ('clock_jump_tolerance', 0.5, 's: an estimate this far back means the clock '
              'restarted'),
-            ('delay_compensation', True, 'realtime: predict a late estimate to the time its '
-             'command takes effect, and stamp the command with it'),
-            ('command_lead_steps', 2, 'realtime, delay_compensation: steps a command is '
+            ('command_lead_steps', 2, 'controller.delay_compensation: steps a command is '
              'stamped ahead of the plant\'s time (its way to the plant)'),
         ))
         self._apply(self.vehicle, design_vehicle(self.vehicle))
@@ -167,10 +165,11 @@ class CompensatorNode(VehicleNode):
                                     vehicle.plant.is_discrete)
         self.settle_check = SettleCheck(self.safe.Ad, self.safe.Bd, self.safe.dt,
                                         self.x_envelope.file_scale)
-        realtime = vehicle.simulator.mode == 'realtime'
+        # lock-step has no latency (the simulator waits for each answer): nothing to predict
+        compensate = c.delay_compensation and vehicle.simulator.mode == 'realtime'
         self.delay = DelayCompensation(
             self.safe.Ad, self.safe.Bd, self.safe.dt, vehicle.observer.history_length,
-            self.param('command_lead_steps')) if realtime else None
+            self.param('command_lead_steps')) if compensate else None
 
     def _law(self, x_hat):
         return control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
@@ -251,7 +250,7 @@ class CompensatorNode(VehicleNode):
 
     def _steps_late(self, t):
         """Return the steps the estimate stamped t is late (0 without compensation)."""
-        if self.delay is None or not self.param('delay_compensation'):
+        if self.delay is None:
             return 0
         now = max(self._sensor_time.values()) if self._sensor_time else None
         return self.delay.steps_late(now, t)
