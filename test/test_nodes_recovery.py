@@ -213,26 +213,18 @@ def test_compensator_reports_divergence_and_sends_the_safe_command(
         (stamp_to_sec(m.header.stamp), m.position[0]) for m in last]
 
 
-SUB_STATES = ['theta', 'w', 'q']
-
-
-def _outage_then_resync(listener, est):
-    """Let the estimate go stale, then end the resync (the recovery begins next)."""
-    est.publish(joint_state(SUB_STATES, [0.1, 0.0, 0.0], 5.0))
+def test_compensator_keeps_the_loop_closed_until_back_inside_after_an_outage(
+        compensator_setup):  # noqa: F811
+    proc, probe, listener, est = compensator_setup
+    names = ['theta', 'w', 'q']
+    est.publish(joint_state(names, [0.1, 0.0, 0.0], 5.0))
     listener.wait_counter('compensator', 'commands', 1)
     listener.wait_counter('compensator', 'safe_commands', 1, 20.0)     # stale
     # back: the first estimate starts the resync, one past its deadline (10 observer
     # settling times, 67 s on the submarine) ends it and the recovery begins
-    est.publish(joint_state(SUB_STATES, [0.1, 0.0, 0.0], 6.0))
-    est.publish(joint_state(SUB_STATES, [0.1, 0.0, 0.0], 500.0))
+    est.publish(joint_state(names, [0.1, 0.0, 0.0], 6.0))
+    est.publish(joint_state(names, [0.1, 0.0, 0.0], 500.0))
     listener.wait_counter('compensator', 'resync_commands', 2, 20.0)
-
-
-def test_compensator_keeps_the_loop_closed_until_back_inside_after_an_outage(
-        compensator_setup):  # noqa: F811
-    proc, probe, listener, est = compensator_setup
-    names = SUB_STATES
-    _outage_then_resync(listener, est)
     # far beyond the envelope (theta bound 52 rad): shrinking once, then growing 6 times,
     # as the cart's estimate swings while the loop brings it back. Check() lets the
     # shrinking one pass; ending the recovery on it reopened the loop on the growth
@@ -253,21 +245,6 @@ def test_compensator_keeps_the_loop_closed_until_back_inside_after_an_outage(
         x *= 30.0
         est.publish(joint_state(names, [x, 0.0, 0.0], 607.0 + 0.05 * k))
     listener.wait_counter('compensator', 'divergence_safe_commands', 1, 20.0)
-
-
-def test_a_recovery_that_diverges_ends_on_the_safe_command(compensator_setup):  # noqa: F811
-    proc, probe, listener, est = compensator_setup
-    _outage_then_resync(listener, est)
-    # the recovery begins 1e4 out (theta) and the estimate grows past 1e3 times that
-    for k, x in enumerate([1e4, 1e5, 1e6, 2e7]):
-        est.publish(joint_state(SUB_STATES, [x, 0.0, 0.0], 500.05 + 0.05 * k))
-    listener.wait_counter('compensator', 'divergence_safe_commands', 1, 20.0)
-    assert listener.counter('compensator', 'recovery_commands') == 3
-    probe.spin_until(lambda: (s := listener.latest_status('compensator')) is not None
-                     and s.level == DiagnosticStatus.ERROR and 'grew' in s.message,
-                     20.0, 'a divergence ERROR naming the state')
-    assert 'theta' in listener.latest_status('compensator').message
-    assert proc.alive()
 
 
 def test_overloaded_observer_says_so(observer_setup):  # noqa: F811

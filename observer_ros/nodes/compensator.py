@@ -42,9 +42,6 @@ __all__ = ['CompensatorNode', 'command_problem', 'control_law', 'main']
 
 # After an outage, wait at most this many observer settling times for it to settle again.
 RESYNC_SETTLINGS = 10.0
-# A recovery whose estimate grows this many times past where it began (in the vehicle
-# file's scales) is a divergence, not a recovery: the safe command, ERROR.
-RECOVERY_GROWTH = 1e3
 
 
 def control_law(K, x_hat, x_d, Kd, u_min=None, u_max=None):
@@ -116,7 +113,6 @@ class CompensatorNode(VehicleNode):
         self._safe_mode = None               # how the last safe command was decided
         self._resyncing = False              # back from an outage, the observer settling
         self._recovering = False             # closing the loop again after an outage
-        self._recovery_start = None          # max |x_hat| / scale when it began
         self._inside_since = None            # recovering: stamp since inside the envelope
         self._safe_timer = None
         self._refused = None                 # why the last command was not sent
@@ -212,7 +208,6 @@ class CompensatorNode(VehicleNode):
             if self.settle_check.settled(t, x_hat, self.safe.last_command):
                 self._resyncing = False
                 self._recovering = True
-                self._recovery_start = None
                 self._inside_since = None
             return
         steps = self._steps_late(t)
@@ -274,22 +269,7 @@ class CompensatorNode(VehicleNode):
         for seconds), and only the closed loop brings it back. Beyond the envelope this is
         reported as ERROR (``diverging``); once x_hat and u are strictly inside the
         envelope (:meth:`Envelope.inside`) for an observer settling time, it is armed again.
-        An estimate RECOVERY_GROWTH times further out than where the recovery began ends
-        it: a divergence (the safe command, ERROR naming the state).
         """
-        scaled = np.abs(x_hat) / self.x_envelope.file_scale
-        if self._recovery_start is None:
-            self._recovery_start = max(float(np.max(scaled)), 1.0)
-        if not np.max(scaled) <= RECOVERY_GROWTH * self._recovery_start:   # NaN too
-            i = int(np.nanargmax(np.where(np.isfinite(scaled), scaled, np.inf)))
-            problem = (f'x_hat {self.vehicle.plant.state_names[i]} = {x_hat[i]:.3g} grew '
-                       f'{RECOVERY_GROWTH:g}-fold while recovering after an outage')
-            self.get_logger().error(f'diverging: {problem}; safe command')
-            self._recovering = False
-            self._diverging = problem
-            self.count('divergence_safe_commands')
-            self._publish_safe(t, stamp)
-            return
         t_apply, x_apply, stamp = self._at_application(t, x_hat, stamp, steps)
         with np.errstate(all='ignore'):
             u_law = control_law(self.K, x_hat, self.x_d, self.Kd)
