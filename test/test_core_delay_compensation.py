@@ -6,12 +6,13 @@ from pathlib import Path
 import control
 import numpy as np
 from numpy.testing import assert_allclose
-from observer_ros.core.compensator import design_vehicle
-from observer_ros.core.delay_compensation import DelayCompensation
+from observer_ros.core.compensator import design_vehicle, format_report
+from observer_ros.core.delay_compensation import DelayCompensation, loop_delay_margin
 from observer_ros.core.estimators import History, make_estimator
 from observer_ros.core.model import zoh_matrices
 from observer_ros.nodes.compensator import control_law
 from observer_ros.vehicle import load_vehicle
+import pytest
 
 CART = Path(__file__).resolve().parents[1] / 'config' / 'cart_pendulum.yaml'
 DT = 0.01
@@ -125,3 +126,35 @@ def test_the_loop_survives_a_stalling_observer_only_with_compensation():
     assert with_comp[-1] < 0.05, with_comp          # converged to x_d
     assert max(with_comp) < 1.5, with_comp
     assert without[-1] > 1e3 * with_comp[-1], (without, with_comp)    # diverged
+
+
+def test_the_carts_delay_margin_is_where_a_pade_delay_destabilises_the_loop():
+    vehicle, _, _ = cart()
+    design = design_vehicle(vehicle)
+    A, B, C = vehicle.plant.A, vehicle.plant.B, vehicle.plant.C
+    plant = control.ss(A, B, C, 0)
+    tau, w = loop_delay_margin(plant, design.compensator)
+    assert tau == pytest.approx(0.576e-3, rel=0.01) and w == pytest.approx(19.7, rel=0.01)
+
+    def worst_pole(delay):
+        num, den = control.pade(delay, 12)
+        loop = control.feedback(plant, design.compensator * control.tf(num, den))
+        return np.max(control.poles(loop).real)
+    assert worst_pole(0.97 * tau) < 0.0 < worst_pole(1.03 * tau)
+    # the stable submarine's loop has far more
+    sub = load_vehicle(CART.parent / 'submarine.yaml')
+    tau_sub, _ = loop_delay_margin(control.ss(sub.plant.A, sub.plant.B, sub.plant.C, 0),
+                                   design_vehicle(sub).compensator)
+    assert tau_sub > 100 * tau
+
+
+def test_the_design_report_gives_the_delay_margin_and_says_when_it_is_below_a_sample():
+    vehicle, _, _ = cart()
+    report = format_report(design_vehicle(vehicle), vehicle)
+    assert 'Delay margin at the plant input: 0.576 ms (at 19.7 rad/s)' in report, report
+    assert 'less than one sample (10 ms)' in report
+    assert 'controller.delay_compensation' in report
+    sub = load_vehicle(CART.parent / 'submarine.yaml')
+    report = format_report(design_vehicle(sub), sub)
+    assert 'Delay margin at the plant input: no gain crossover' in report
+    assert 'less than one sample' not in report

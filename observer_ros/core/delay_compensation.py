@@ -26,7 +26,7 @@ import collections
 
 import numpy as np
 
-__all__ = ['DelayCompensation']
+__all__ = ['DelayCompensation', 'loop_delay_margin']
 
 
 class DelayCompensation:
@@ -129,3 +129,43 @@ class DelayCompensation:
         for k in range(steps):
             x = self.Ad @ x + self.Bd @ self.in_force(t + k * self.dt)
         return x
+
+
+def loop_delay_margin(plant, compensator, w_min=1e-3, w_max=1e5, points=200001):
+    """
+    Return the delay at the plant input that makes the loop lose stability, and where.
+
+    The loop is broken at the plant input, L(s) = D(s) P(s) with ``u = -D(s) y``
+    (continuous time). At each gain crossover (|L(jw)| = 1) a delay tau lags L(jw) by
+    w tau; the smallest delay that brings one of them onto -1 is the margin (a closed-loop
+    pole then reaches the imaginary axis). Unlike a single phase margin this holds for a
+    conditionally stable loop with several crossovers.
+
+    Parameters
+    ----------
+    plant, compensator : control.StateSpace
+        P(s) (y from u) and D(s) (u = -D y), single input and output, continuous.
+    w_min, w_max : float
+        The frequency range searched, rad/s (log-spaced ``points``).
+
+    Returns
+    -------
+    tau : float
+        Seconds (inf when |L| never crosses 1).
+    w : float
+        The crossover frequency where it applies, rad/s (nan with tau inf).
+
+    """
+    w = np.logspace(np.log10(w_min), np.log10(w_max), points)
+    loop = (compensator * plant)(1j * w)
+    response = np.asarray(loop).reshape(-1)
+    mag = np.abs(response) - 1.0
+    best, where = np.inf, np.nan
+    for i in np.nonzero(np.sign(mag[:-1]) != np.sign(mag[1:]))[0]:
+        # the crossover between w[i] and w[i+1], interpolated in log |L|
+        f = mag[i] / (mag[i] - mag[i + 1])
+        wc = w[i] * (w[i + 1] / w[i]) ** f
+        lag = (np.angle(complex((compensator * plant)(1j * wc))) + np.pi) % (2 * np.pi)
+        if lag / wc < best:
+            best, where = lag / wc, wc
+    return float(best), float(where)
