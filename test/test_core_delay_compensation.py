@@ -73,7 +73,7 @@ def test_lateness_is_the_plant_time_past_the_stamp_and_stamps_never_go_back():
 
 def _loop(compensate, stalls, steps=800):
     """
-    The cart's sampled loop with the observer stalling; return max |x - x_d| per 100 steps.
+    Run the cart's sampled loop with the observer stalling; return max |x - x_d| per 100 steps.
 
     ``stalls`` maps a step k to s: the estimates of steps k .. k+s-1 all reach the
     compensator at step k+s (a busy observer catching up). Without compensation each is
@@ -119,7 +119,7 @@ def _loop(compensate, stalls, steps=800):
 def test_the_loop_survives_a_stalling_observer_only_with_compensation():
     # a 30 ms stall every 0.2 s. Without compensation the loop also diverged with 10 ms
     # stalls every 50 ms and 50 ms every 0.5 s; with it, none of these diverged
-    stalls = {k: 3 for k in range(40, 800, 20)}
+    stalls = dict.fromkeys(range(40, 800, 20), 3)
     assert max(_loop(True, {})) < 1.5       # the seed's response: 1 m step, settles ~7 s
     with_comp = _loop(True, stalls)
     without = _loop(False, stalls)

@@ -1158,7 +1158,7 @@ def _placement_lines(check):
 
 
 def _delay_margin_lines(design, vehicle):
-    """The loop's delay margin at the plant input (continuous, one input and output)."""
+    """Return the report's lines on the delay margin at the plant input (SISO, continuous)."""
     plant = None if vehicle is None else vehicle.plant
     if plant is None or design.discrete or design.compensator is None or \
             plant.m != 1 or plant.p != 1:

@@ -146,7 +146,9 @@ def loop_delay_margin(plant, compensator, w_min=1e-3, w_max=1e5, points=200001):
     plant, compensator : control.StateSpace
         P(s) (y from u) and D(s) (u = -D y), single input and output, continuous.
     w_min, w_max : float
-        The frequency range searched, rad/s (log-spaced ``points``).
+        The frequency range searched, rad/s.
+    points : int
+        How many log-spaced frequencies are evaluated.
 
     Returns
     -------

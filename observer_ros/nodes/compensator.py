@@ -103,7 +103,7 @@ class CompensatorNode(VehicleNode):
             ('clock_jump_tolerance', 0.5, 's: an estimate this far back means the clock '
              'restarted'),
             ('command_lead_steps', 2, 'controller.delay_compensation: steps a command is '
-             'stamped ahead of the plant\'s time (its way to the plant)'),
+             "stamped ahead of the plant's time (its way to the plant)"),
         ))
         self._apply(self.vehicle, design_vehicle(self.vehicle))
         self._last_estimate_time = None      # node clock when the last good x_hat came
