@@ -102,7 +102,7 @@ class CompensatorNode(VehicleNode):
             ('diagnostics_period', 1.0, 's (wall) between /diagnostics reports'),
             ('clock_jump_tolerance', 0.5, 's: an estimate this far back means the clock '
              'restarted'),
-            ('command_lead_steps', 2, 'controller.delay_compensation: steps a command is '
+            ('command_lead_steps', 3, 'controller.delay_compensation: steps a command is '
              "stamped ahead of the plant's time (its way to the plant)"),
         ))
         self._apply(self.vehicle, design_vehicle(self.vehicle))
@@ -125,15 +125,16 @@ class CompensatorNode(VehicleNode):
                 Float64MultiArray, TOPICS['command_array'], STATE_QOS)
         self._ref_pub = self.create_publisher(JointState, TOPICS['reference'], LATCHED_QOS)
         self._publish_reference()
-        self._sub = self.create_subscription(
-            JointState, TOPICS['estimate'], self._on_estimate, STATE_QOS)
-        # realtime: the newest sensor stamp is the plant's time (how late an estimate is)
+        # realtime: the newest sensor stamp is the plant's time (how late an estimate is);
+        # subscribed first, so that an executor takes a waiting sensor message first
         self._sensor_time = {}
         self._sensor_subs = [self.create_subscription(
             MESSAGE_CLASSES[s.msg_type], s.topic,
             lambda msg, name=s.name: self._on_sensor(name, msg), SENSOR_QOS)
             for s in self.vehicle.sensors
             if self.delay is not None and hasattr(MESSAGE_CLASSES[s.msg_type], 'header')]
+        self._sub = self.create_subscription(
+            JointState, TOPICS['estimate'], self._on_estimate, STATE_QOS)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         period = min(self.vehicle.controller.stale_timeout / 2.0, 0.1)
         self._watchdog = self.wall_timer(period, self._on_watchdog)
