@@ -114,15 +114,6 @@ def test_simulator_killed_and_restarted_converges_again(loop_of, vehicle):
     assert all(p.alive() for p in lp.procs.values())
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    'not reliable on the shared, loaded 2-core machine: 3 of 8 runs passed (44.6 to 56.9 s). '
-    'The pause leaves the cart 1.7e3 to 5.9e3 from x_d (the prediction runs open loop, '
-    'e^(3.28 t)); the compensator now keeps the loop closed until x_hat is back inside '
-    'its envelope, and the cart was back within 0.05 after 21 and 29 s of simulated time '
-    'in two traced runs. In 3 failed runs the state grew to 1e35..1e80 with the loop still '
-    'closed (no divergence safe command logged), and in 2 the cart diverged before the '
-    'pause, 2 to 3.5 s after the start: the loop is only conditionally stable (compensator '
-    'pole +96 rad/s) and loses it under the late and out-of-order messages of a loaded machine'))
 def test_paused_observer_loop_recovers_on_the_prediction(loop_of):
     lp = loop_of('cart_pendulum')
     lp.wait_converged(0, 6.0)

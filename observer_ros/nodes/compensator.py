@@ -312,7 +312,17 @@ class CompensatorNode(VehicleNode):
         self.u_envelope.reset()
 
     def _estimate_clock(self):
-        """Return now on the estimates' time base (their last stamp plus the time since)."""
+        """
+        Return now on the estimates' time base (their last stamp plus the time since).
+
+        With delay compensation: the plant's time (the newest sensor stamp) plus the lead,
+        when the command takes effect. A simulator slower than the wall clock (a loaded
+        machine) would otherwise get safe commands stamped ahead of it, which it holds
+        until their time, and which the observer's estimate would follow ahead of the
+        measurements.
+        """
+        if self.delay is not None and self._sensor_time:
+            return max(self._sensor_time.values()) + self.delay.lead * self.delay.dt
         if self._last_stamp is None:
             return self._now()
         sim = self.vehicle.simulator
