@@ -17,8 +17,8 @@ that comes after the plant has moved on (a newer stamp on one of the vehicle's s
 topics, which the node reads for their stamps only) is predicted with the model over the
 steps it missed, and its command stamped with the time it takes effect
 (core/delay_compensation.py): the cart's loop tolerates less than a millisecond of
-unmodelled delay. One later than ``observer.history_length`` gets no command
-(``too_late_estimates``): the plant keeps the one in force.
+unmodelled delay. One later than ``observer.history_length`` gets the safe command
+(``too_late_estimates``, ERROR on /diagnostics).
 
 """
 
@@ -118,6 +118,7 @@ class CompensatorNode(VehicleNode):
         self._refused = None                 # why the last command was not sent
         self._duplicates = []                # other publishers of our topics
         self._max_steps_late = 0             # since the last report (delay compensation)
+        self._too_late = 0                   # estimates too late to predict, since then
         self._cmd_pub = self.create_publisher(JointState, TOPICS['command'], STATE_PUB_QOS)
         self._array_pub = None
         if self.param('publish_array'):
@@ -191,10 +192,19 @@ class CompensatorNode(VehicleNode):
             self.get_logger().error(f'{err}; safe command', throttle_duration_sec=1.0)
             self._publish_safe(t, msg.header.stamp)
             return
-        if self._last_stamp is not None and \
-                self._last_stamp - t > self.param('clock_jump_tolerance'):
+        restarted = self._last_stamp is not None and \
+            self._last_stamp - t > self.param('clock_jump_tolerance')
+        if restarted:
             self._clock_restarted(t)
-        elif self._stale and np.isfinite(self.settle):
+        steps = self._steps_late(t)
+        if steps is None:
+            # too late to predict from, and no sign of a live estimate: the safe command
+            # (the prediction from the last trusted estimate, then the fallback), ERROR
+            self.count('too_late_estimates')
+            self._too_late += 1
+            self._publish_safe(self._estimate_clock())
+            return
+        if not restarted and self._stale and np.isfinite(self.settle):
             # back after an outage: the observer restarts or catches up; until it has
             # settled (its estimates follow the model again; at most RESYNC_SETTLINGS of
             # its settling times) the prediction keeps closing the loop
@@ -210,10 +220,6 @@ class CompensatorNode(VehicleNode):
                 self._resyncing = False
                 self._recovering = True
                 self._inside_since = None
-            return
-        steps = self._steps_late(t)
-        if steps is None:
-            self.count('too_late_estimates')    # the plant keeps the command in force
             return
         if self._recovering:
             self._recover(t, x_hat, msg.header.stamp, steps)
@@ -438,7 +444,10 @@ class CompensatorNode(VehicleNode):
     def _on_diagnostics(self):
         values = {'u': np.array2string(self.safe.last_command),
                   'max_steps_predicted': self._max_steps_late}
+        if self._sensor_time:
+            values['plant_time'] = f'{max(self._sensor_time.values()):.6f}'
         self._max_steps_late = 0
+        too_late, self._too_late = self._too_late, 0
         self._duplicates = self.duplicate_publishers((TOPICS['command'], TOPICS['estimate']))
         refused, self._refused = self._refused, None
         if self._duplicates:
@@ -446,6 +455,11 @@ class CompensatorNode(VehicleNode):
             message = f'more than one publisher: {", ".join(self._duplicates)}'
         elif refused:
             level, message = DiagnosticStatus.ERROR, refused
+        elif too_late:
+            level = DiagnosticStatus.ERROR
+            message = (f'{too_late} estimates later than observer.history_length '
+                       f'({self.vehicle.observer.history_length:g} s): safe command '
+                       f'({self._safe_mode})')
         elif self._diverging is not None:
             level, message = DiagnosticStatus.ERROR, f'diverging: {self._diverging}'
         elif self._stale:
