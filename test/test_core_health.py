@@ -33,6 +33,34 @@ def test_envelope_flags_growth_and_names_the_component():
     assert env.check(0.0, [0.5, 1.0]) is None
 
 
+def test_envelope_after_learning_judges_as_during_it():
+    # after the learning seconds check() compares plain floats (the per-message fast
+    # path): the same verdicts as the numpy path on the same values, NaN and growth included
+    rng = np.random.default_rng(4)
+    values = list(rng.normal(scale=[1.0, 50.0, 3.0], size=(300, 3)))
+    values[120] = np.array([np.nan, 0.0, 0.0])
+    values += [np.array([0.0, 1e5 * 1.5 ** k, 0.0]) for k in range(8)]       # diverging
+    values += [np.array([0.1, 0.2, 0.3])] * 3 + [np.array([0.0, 0.0, -np.inf])]
+    learnt = Envelope(['a', 'b', 'c'], [1.0, 2.0, 3.0], 'x_hat')
+    for k in range(100):                                # 4 s: learning over
+        assert learnt.check(0.04 * k, np.ones(3)) is None
+    assert learnt._fixed_bound is not None
+    fast = [learnt.check(10.0 + 0.01 * k, v) for k, v in enumerate(values)]
+    slow = []
+    reference = Envelope(['a', 'b', 'c'], [1.0, 2.0, 3.0], 'x_hat')
+    for k in range(100):
+        reference.check(0.04 * k, np.ones(3))
+    for k, v in enumerate(values):
+        reference._fixed_bound = None                   # never the fast path
+        slow.append(reference.check(10.0 + 0.01 * k, v))
+    assert fast == slow
+    assert fast[120] is not None and 'a = nan' in fast[120]
+    assert any(r is not None and 'x_hat b' in r for r in fast[300:308])
+    assert fast[-1] is not None and fast[-2] is None
+    # a list is judged as an array is
+    assert learnt.check(20.0, [0.1, 0.2, 0.3]) is None
+
+
 def test_envelope_inside_is_strict_where_check_lets_a_shrinking_excursion_pass():
     # what the compensator's recovery after an outage waits for: a value far beyond the
     # bound but shrinking passes check() (not growing), and is still not inside

@@ -32,9 +32,17 @@ def test_ljung_box_agrees_with_the_evaluation():
     x = np.random.default_rng(1).normal(size=400)
     x[1:] += 0.5 * x[:-1]                       # correlated
     q, p = ljung_box(x, lags=20)
-    ref = whiteness(x, lags=20)
+    ref = whiteness(x, lags=20)                 # one formula: the evaluation calls ours
     assert q == pytest.approx(ref['ljung_box_q'], rel=1e-12)
     assert p == pytest.approx(ref['ljung_box_p'], rel=1e-9, abs=1e-300)
+    # against the textbook statistic: numpy's correlation and scipy's chi-square
+    d = x - x.mean()
+    full = np.correlate(d, d, mode='full')[d.size - 1:]
+    rho = full[1:21] / full[0]
+    assert_allclose(ref['acf'], rho, rtol=1e-12)
+    want = 400 * 402 * np.sum(rho ** 2 / (400 - np.arange(1, 21)))
+    assert q == pytest.approx(want, rel=1e-12)
+    assert p == pytest.approx(scipy.stats.chi2.sf(want, 20), rel=1e-9, abs=1e-300)
     assert p < 1e-3
     _, p_white = ljung_box(np.random.default_rng(2).normal(size=400), lags=20)
     assert p_white > 1e-3
@@ -109,3 +117,21 @@ def test_other_observers_use_the_sensor_noise():
     quiet = InnovationMonitor([('enc', [0.0])], kalman=False, window=10)
     quiet.add('enc', [1.0])
     assert quiet.health('enc').samples == 0
+
+
+def test_one_output_is_whitened_as_by_cholesky():
+    # a single output skips the Cholesky factorisation (per message in the node): the
+    # same figures as whiten(); a non-positive S is not counted, as whiten() refuses it
+    rng = np.random.default_rng(5)
+    fast = InnovationMonitor([('gyro', [0.1])], kalman=True, window=10)
+    E = []
+    for _ in range(10):
+        r, S = rng.normal(size=1), np.array([[rng.uniform(0.5, 2.0)]])
+        fast.add('gyro', r, S)
+        E.append(whiten(r, S))
+    fast.add('gyro', [1.0], np.array([[0.0]]))
+    fast.add('gyro', [1.0], np.array([[-1.0]]))
+    h = fast.health('gyro')
+    assert h.samples == 10
+    assert h.nis_mean == pytest.approx(float(np.mean(np.sum(np.array(E) ** 2, axis=1))),
+                                       rel=1e-12)

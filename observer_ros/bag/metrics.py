@@ -12,6 +12,7 @@ import numpy as np
 
 from .replay import innovation_health
 from .running_metrics import BLOCK, blocked_state_metrics
+from ..core.innovation import ljung_box_acf
 
 __all__ = ['DEFAULT_TOLERANCE', 'STEADY_FRACTION', 'WHITENESS_LAGS', 'truth_at',
            'state_metrics', 'whiteness', 'tolerances', 'score_variant']
@@ -113,18 +114,10 @@ def whiteness(r, lags=WHITENESS_LAGS):
     out = {'samples': int(N), 'residual_rms': float(np.sqrt(np.mean(r * r))) if N else math.nan,
            'lags': 0, 'acf': [], 'ljung_box_q': math.nan, 'ljung_box_p': math.nan,
            'acf_outside': math.nan}
-    k = min(int(lags), N // 4)
-    if k < 1:
+    q, p, acf = ljung_box_acf(r, lags)          # the node's whiteness test (core.innovation)
+    if not acf.size:
         return out
-    d = r - r.mean()
-    denom = float(d @ d)
-    if denom <= 0.0 or not math.isfinite(denom):
-        return out
-    acf = np.array([float(d[:-j] @ d[j:]) / denom for j in range(1, k + 1)])
-    q = float(N * (N + 2) * np.sum(acf ** 2 / (N - np.arange(1, k + 1))))
-    from scipy.special import chdtrc      # chi-square survival function (light import)
-    p = float(chdtrc(k, q))
-    out.update(lags=k, acf=acf.tolist(), ljung_box_q=q, ljung_box_p=p,
+    out.update(lags=int(acf.size), acf=acf.tolist(), ljung_box_q=q, ljung_box_p=p,
                acf_outside=float(np.mean(np.abs(acf) > 1.96 / math.sqrt(N))))
     return out
 

@@ -62,9 +62,10 @@ import numpy as np
 
 from .errors import BagToolError
 from .step_maps import bulk_maps
+from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 from ..core.estimators import History, make_estimator
-from ..core.innovation import sequence_health, whiten
+from ..core.innovation import sequence_health, transient_time, whiten
 
 __all__ = ['Replay', 'replay', 'live_replay', 'epochs_of', 'affine_scan', 'innovation_health',
            'CLOCK_JUMP_TOLERANCE', 'FUTURE_TOLERANCE']
@@ -560,12 +561,20 @@ def innovation_health(rep):
     """
     if rep.whitened is None:
         return {}
-    plant = rep.vehicle.plant
+    veh = rep.vehicle
+    plant = veh.plant
+    # the initial transient of each epoch (the estimator restarts) is not judged
+    transient = transient_time(design_vehicle(veh).observer_poles, veh.sample_time,
+                               plant.is_discrete, rep.kalman)
+    t = rep.t
+    starts, first = np.unique(rep.epoch, return_index=True)
+    since = t - t[first][np.searchsorted(starts, rep.epoch)] if len(rep) else t
     out = {}
-    for k, s in enumerate(rep.vehicle.sensors):
+    for k, s in enumerate(veh.sensors):
         cols = list(plant.output_rows(s.outputs))
-        out[s.name] = sequence_health(s.name, rep.whitened[rep.sensor == k][:, cols],
-                                      rep.kalman)
+        mine = rep.sensor == k
+        out[s.name] = sequence_health(s.name, rep.whitened[mine][:, cols], rep.kalman,
+                                      since=since[mine], transient=transient)
     return out
 
 

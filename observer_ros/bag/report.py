@@ -103,15 +103,18 @@ def format_table(result):
                       f'{WHITENESS_LAGS}; p small = not white; acf_out ~0.05 if white)',
                   '', text_table(['variant', 'output', 'N', 'rms', 'LB_Q', 'LB_p',
                                   'acf_out'], rows)]
-    rows = [[name, sensor, h['samples'], fmt(h['nis_mean']), f"{h['windows_inconsistent']}/"
-             f"{h['windows']}", fmt(h['whiteness_p'], 3), 'ok' if h['consistent'] else 'WARN']
+    rows = [[name, sensor, h['samples'], h.get('transient', 0), fmt(h['nis_mean']),
+             f"{h['windows_inconsistent']}/{h['windows']}", fmt(h['whiteness_p'], 3),
+             'WARN' if not h['consistent'] else 'ok' if h['windows'] else 'unjudged']
             for name, vr in result.variants.items()
             for sensor, h in getattr(vr, 'sensors', {}).items()]
     if rows:
         lines += ['', 'innovation health per sensor (NIS and whiteness over windows of '
-                      f'{INNOVATION_WINDOW}, as the node judges them)',
-                  '', text_table(['variant', 'sensor', 'N', 'NIS', 'bad_windows', 'white_p',
-                                  'health'], rows)]
+                      f'{INNOVATION_WINDOW}, as the node judges them; the initial transient '
+                      'of observers other than Kalman, one settling time of the slowest '
+                      'pole, is not judged)',
+                  '', text_table(['variant', 'sensor', 'N', 'transient', 'NIS',
+                                  'bad_windows', 'white_p', 'health'], rows)]
     return '\n'.join(lines)
 
 

@@ -87,6 +87,7 @@ class Envelope:
         self._seen = np.zeros_like(self.scale)
         self._beyond = 0            # consecutive growing values beyond the bound
         self._last_ratio = 0.0
+        self._fixed_bound = None    # the bound as floats, once learning is over
 
     @property
     def bound(self):
@@ -120,6 +121,13 @@ class Envelope:
             Names the component, its value and the bound.
 
         """
+        fixed = self._fixed_bound
+        if fixed is not None and not self._beyond:
+            # learnt, and nothing beyond: plain floats, about 1 us per call on a 3-vector
+            # against 6-7 us for the numpy below; a NaN fails <= and goes on below
+            values = value.tolist() if isinstance(value, np.ndarray) else value
+            if all(abs(v) <= b for v, b in zip(values, fixed)):
+                return None
         mag = np.abs(np.asarray(value, dtype=float))
         bound = self.bound
         ratio = np.where(np.isfinite(mag), mag / bound, np.inf)
@@ -139,6 +147,8 @@ class Envelope:
         if t - self._t0 <= self.learn:
             np.maximum(self._seen, np.minimum(mag, ENVELOPE_LEARN_CAP * self.scale),
                        out=self._seen)
+        elif fixed is None and len(mag) == len(self.scale):
+            self._fixed_bound = bound.tolist()
         return None
 
 

@@ -25,6 +25,13 @@ estimation error) when the mean NIS is above :data:`OTHER_MARGIN` times the uppe
 a residual several times the sensor's noise. The node reports this on /diagnostics, the
 evaluation over a whole bag (:func:`sequence_health`).
 
+The initial transient is not judged (:func:`transient_time`): while the estimate of an
+observer other than Kalman converges, the estimation error dominates its residuals (the
+submarine's 30 deg initial error gives a gyro NIS of 52 in its first window, against about
+1 once converged), and S leaves that error out. Its residuals are judged from one settling
+time of the observer's slowest pole after the estimator starts (or restarts). A Kalman
+filter's S = C P C^T + R carries the estimation error through P: judged from the start.
+
 """
 
 from dataclasses import dataclass
@@ -34,8 +41,11 @@ import numpy as np
 import scipy.linalg
 from scipy.special import chdtrc, chdtri
 
-__all__ = ['InnovationMonitor', 'SensorHealth', 'whiten', 'ljung_box', 'nis_bounds',
-           'sequence_health', 'WINDOW', 'LAGS', 'ALPHA', 'OTHER_MARGIN']
+from .health import settling_time
+
+__all__ = ['InnovationMonitor', 'SensorHealth', 'whiten', 'ljung_box', 'ljung_box_acf',
+           'nis_bounds',
+           'sequence_health', 'transient_time', 'WINDOW', 'LAGS', 'ALPHA', 'OTHER_MARGIN']
 
 #: Residuals per sensor in a window.
 WINDOW = 50
@@ -50,6 +60,32 @@ ALPHA = 1e-3
 #: Observers other than Kalman whiten by the sensor noise only: their NIS is flagged only
 #: above this many times the chi-square bound.
 OTHER_MARGIN = 10.0
+
+
+def transient_time(poles, dt, discrete=False, kalman=False):
+    """
+    Return the seconds after an estimator starts during which its residuals are not judged.
+
+    Parameters
+    ----------
+    poles : array_like of complex
+        The observer's poles (its error dynamics): s-plane, or z-plane if ``discrete``.
+    dt : float
+        The sample time, s (for discrete poles).
+    discrete : bool
+        Whether the poles are discrete.
+    kalman : bool
+        A Kalman filter (its S carries the estimation error): 0.
+
+    Returns
+    -------
+    seconds : float
+        The settling time of the slowest pole (:func:`observer_ros.core.health.settling_time`,
+        its decay to 2 %); ``inf`` when a pole does not decay (never judged: the estimate
+        never converges, so its residuals say nothing about the sensor).
+
+    """
+    return 0.0 if kalman else float(settling_time(poles, dt, discrete))
 
 
 def whiten(residual, S):
@@ -102,12 +138,8 @@ def ljung_box(x, lags=LAGS):
     """
     Ljung-Box statistic of a sequence (mean removed) and its p-value.
 
-    Parameters
-    ----------
-    x : (N,) array_like
-        The sequence.
-    lags : int
-        Largest lag k (at most N // 4).
+    The sequence x and the largest lag (at most N // 4) are those of
+    :func:`ljung_box_acf`.
 
     Returns
     -------
@@ -117,16 +149,40 @@ def ljung_box(x, lags=LAGS):
         Chi-square survival of q with k degrees of freedom (small: not white).
 
     """
+    q, p, _ = ljung_box_acf(x, lags)
+    return q, p
+
+
+def ljung_box_acf(x, lags=LAGS):
+    """
+    Return :func:`ljung_box`'s q and p and the autocorrelations they come from.
+
+    Parameters
+    ----------
+    x : (N,) array_like
+        The sequence.
+    lags : int
+        Largest lag k (at most N // 4).
+
+    Returns
+    -------
+    q, p : float
+        The statistic and its chi-square p-value, as :func:`ljung_box` (NaN when
+        undefined: fewer than 4 samples, a constant).
+    acf : (k,) ndarray
+        ``rho_j``, j = 1..k, mean removed, normalised by lag 0; empty when undefined.
+
+    """
     x = np.asarray(x, dtype=float)
     N = x.size
     k = min(int(lags), N // 4)
     d = x - x.mean() if N else x
     denom = float(d @ d)
     if k < 1 or not denom > 0.0 or not math.isfinite(denom):
-        return math.nan, math.nan
+        return math.nan, math.nan, np.zeros(0)
     rho = np.array([float(d[:-j] @ d[j:]) / denom for j in range(1, k + 1)])
     q = float(N * (N + 2) * np.sum(rho ** 2 / (N - np.arange(1, k + 1))))
-    return q, float(chdtrc(k, q))
+    return q, float(chdtrc(k, q)), rho
 
 
 @dataclass
@@ -141,6 +197,8 @@ class SensorHealth:
     whiteness_p: float           # smallest Ljung-Box p over the components
     consistent: bool             # False: a WARN naming the sensor
     problem: str = ''            # what is wrong, naming the sensor
+    transient: int = 0           # residuals of the initial transient, not judged
+    converging: bool = False     # still in the initial transient (none judged yet)
 
     def as_dict(self):
         """Return the figures as a plain dict."""
@@ -180,33 +238,49 @@ class InnovationMonitor:
         The residuals come with S = C P C^T + R (a Kalman filter): both tests apply.
     window, lags, alpha
         See :data:`WINDOW`, :data:`LAGS`, :data:`ALPHA`.
+    transient : float
+        Seconds after the first residual (or :meth:`restart`) whose residuals are not
+        judged (:func:`transient_time`); they need the time ``t`` given to :meth:`add`.
 
     """
 
-    def __init__(self, sensors, kalman, window=WINDOW, lags=LAGS, alpha=ALPHA):
+    def __init__(self, sensors, kalman, window=WINDOW, lags=LAGS, alpha=ALPHA,
+                 transient=0.0):
         if int(window) < 8:
             raise ValueError(f'window must be at least 8; got {window!r}')
+        if not float(transient) >= 0.0:
+            raise ValueError(f'transient must be >= 0 s; got {transient!r}')
         self._window = int(window)
         self._lags = int(lags)
         self._alpha = float(alpha)
         self._kalman = bool(kalman)
+        self._transient = float(transient)
         self._std = {}
         self._inv_std = {}              # None where a noise_std is 0 (cannot whiten)
         self._buf = {}
         self._count = {}
+        self._skipped = {}              # residuals of the transient, per sensor
         for name, std in sensors:
             std = np.asarray(std, dtype=float).reshape(-1)
             self._std[name] = std
             self._inv_std[name] = 1.0 / std if np.all(std > 0.0) else None
             self._buf[name] = np.full((self._window, std.size), np.nan)
+        self.restart()
+
+    def restart(self):
+        """Forget the residuals: the estimator restarted (a new initial transient)."""
+        self._judge_from = None if self._transient > 0.0 else -math.inf
+        for name, buf in self._buf.items():
+            buf.fill(math.nan)
             self._count[name] = 0
+            self._skipped[name] = 0
 
     @property
     def window(self):
         """Return the number of residuals per window."""
         return self._window
 
-    def add(self, name, residual, S=None):
+    def add(self, name, residual, S=None, t=None):
         """
         Add one residual of a sensor.
 
@@ -219,8 +293,18 @@ class InnovationMonitor:
         S : (p, p) array_like, optional
             Its covariance (Kalman); default ``diag(noise_std^2)``. A residual that
             cannot be whitened (a zero noise_std, a non-finite value) is not counted.
+        t : float, optional
+            Its stamp, s: residuals in the first ``transient`` seconds are not judged
+            (without t every residual is).
 
         """
+        if t is not None:
+            judge_from = self._judge_from
+            if judge_from is None:
+                judge_from = self._judge_from = t + self._transient
+            if t < judge_from:
+                self._skipped[name] += 1
+                return
         buf = self._buf[name]
         try:
             if S is None:
@@ -228,11 +312,17 @@ class InnovationMonitor:
                 if inv is None:
                     return
                 e = np.multiply(residual, inv)
+            elif len(S) == 1 and len(residual) == 1:    # one output: no Cholesky
+                s = float(S[0][0])
+                if not s > 0.0:
+                    return
+                e = np.multiply(residual, 1.0 / math.sqrt(s))
             else:
                 e = whiten(residual, S)
-        except (ValueError, np.linalg.LinAlgError):
+        except (ValueError, TypeError, np.linalg.LinAlgError):
             return
-        if e.shape != buf.shape[1:] or not math.isfinite(float(e @ e)):
+        # plain floats: cheaper than numpy's reductions on a few elements (per message)
+        if e.shape != buf.shape[1:] or not all(map(math.isfinite, e.tolist())):
             return
         k = self._count[name]
         buf[k % self._window] = e
@@ -254,20 +344,36 @@ class InnovationMonitor:
 
         """
         count = self._count[name]
+        skipped = self._skipped[name]
         if count < self._window:
             p = self._std[name].size
             low, high = nis_bounds(self._window, p, self._alpha)
-            return SensorHealth(name, count, math.nan, low, high, math.nan, True)
+            return SensorHealth(name, count, math.nan, low, high, math.nan, True,
+                                transient=skipped, converging=self.converging)
         k = count % self._window
         E = np.roll(self._buf[name], -k, axis=0)       # oldest first
-        return _judge(name, E, self._kalman, self._lags, self._alpha, count)
+        h = _judge(name, E, self._kalman, self._lags, self._alpha, count)
+        h.transient = skipped
+        return h
+
+    @property
+    def converging(self):
+        """Tell whether the residuals are still those of the initial transient."""
+        return self._judge_from is None or (
+            self._judge_from > -math.inf and not any(self._count.values()))
+
+    @property
+    def transient(self):
+        """Seconds of the initial transient that are not judged."""
+        return self._transient
 
     def report(self):
         """Return the health of every sensor (list of :class:`SensorHealth`)."""
         return [self.health(name) for name in self._std]
 
 
-def sequence_health(name, E, kalman, window=WINDOW, lags=LAGS, alpha=ALPHA):
+def sequence_health(name, E, kalman, window=WINDOW, lags=LAGS, alpha=ALPHA, since=None,
+                    transient=0.0):
     """
     Health of a sensor over a whole run: its windows judged as the node judges them.
 
@@ -281,23 +387,35 @@ def sequence_health(name, E, kalman, window=WINDOW, lags=LAGS, alpha=ALPHA):
         See :class:`InnovationMonitor`.
     window, lags, alpha
         See :class:`InnovationMonitor`.
+    since : (N,) array_like, optional
+        Seconds from the estimator's (re)start to each residual: those before
+        ``transient`` (:func:`transient_time`) are not judged, as the node does not.
+    transient : float
+        See ``since``.
 
     Returns
     -------
     figures : dict
-        ``samples``, ``nis_mean`` (all residuals), ``nis_low`` and ``nis_high`` (bounds
+        ``samples`` (judged), ``transient`` (residuals of the initial transient, not
+        judged), ``nis_mean`` (judged residuals), ``nis_low`` and ``nis_high`` (bounds
         of a window mean), ``windows`` (consecutive, non-overlapping),
         ``windows_inconsistent``, ``whiteness_p`` (smallest over the windows),
         ``consistent`` (every window) and ``problem`` (the first inconsistent window's).
 
     """
     E = np.asarray(E, dtype=float)
+    skipped = 0
+    if since is not None and transient > 0.0 and E.size:
+        keep = ~(np.asarray(since, dtype=float) < transient)
+        skipped = int(np.count_nonzero(~keep))
+        E = E[keep]
     E = E[np.all(np.isfinite(E), axis=1)] if E.size else E.reshape(0, max(E.shape[-1:] or [1]))
     N = E.shape[0]
     p = E.shape[1] if E.ndim == 2 else 1
     low, high = nis_bounds(window, p, alpha)
-    out = {'samples': int(N), 'nis_mean': float(np.mean(np.sum(E * E, axis=1))) if N else
-           math.nan, 'nis_low': low, 'nis_high': high, 'windows': N // window,
+    out = {'samples': int(N), 'transient': skipped,
+           'nis_mean': float(np.mean(np.sum(E * E, axis=1))) if N else math.nan,
+           'nis_low': low, 'nis_high': high, 'windows': N // window,
            'windows_inconsistent': 0, 'whiteness_p': math.nan, 'consistent': True,
            'problem': ''}
     ps = []

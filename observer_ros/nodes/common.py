@@ -27,7 +27,7 @@ from std_msgs.msg import Float64
 from .command_line import check_command_line, program_name
 from .parameters import declare_parameters
 from ..core.errors import ObserverError
-from ..timeutil import sec_to_stamp_parts, stamp_to_sec
+from ..timeutil import ns_to_sec, sec_to_stamp_parts, stamp_to_sec
 from ..vehicle import vehicle_from_parameters
 
 __all__ = ['VEHICLE_SECTIONS', 'SAFE_COMMAND_FRAME', 'SENSOR_QOS', 'SENSOR_SUB_QOS',
@@ -137,7 +137,7 @@ def checked_stamp(stamp, topic):
     if sec == 0:
         raise ObserverError(f'{topic}: header.stamp {sec} s {nanosec} ns is in the first '
                             'second (an unset stamp)')
-    return stamp_to_sec(stamp)
+    return ns_to_sec(sec * 1_000_000_000 + nanosec)     # stamp_to_sec without reading again
 
 
 def max_components(names):

@@ -13,7 +13,6 @@ from diagnostic_msgs.msg import DiagnosticStatus
 import numpy as np
 
 from .checks import state_scale
-from .common import stamp_to_sec
 from ..core.health import Envelope, ENVELOPE_FACTOR, LoadMeter, max_prediction_gap
 
 __all__ = ['DIVERGENCE_HOLD', 'ObserverHealth']
@@ -44,7 +43,8 @@ class ObserverHealth:
         last = self._last_stamp.get(sensor.name)
         if last is None or not self._stamped[sensor.name]:
             return 0
-        gap = stamp_to_sec(msg.header.stamp) - last
+        stamp = msg.header.stamp        # float seconds are exact enough to count periods
+        gap = stamp.sec - last + stamp.nanosec * 1e-9
         period = self._periods[sensor.name]
         return max(int(round(gap / period)) - 1, 0) if gap < 100.0 * period else 0
 
@@ -83,6 +83,7 @@ class ObserverHealth:
         C = self.vehicle.plant.C[list(rows)]
         x0 = x0 + np.linalg.pinv(C) @ (np.asarray(y, dtype=float) - C @ x0)
         self.history.reset(x0, None)
+        self._health.restart()              # a new initial transient
         self._envelope.reset()
 
     def _health_status(self, now, level, message, values):

@@ -24,6 +24,7 @@ of ``state/estimate`` or ``control/u`` is reported as an ERROR naming the topic.
 
 """
 
+import math
 import time
 
 from diagnostic_msgs.msg import DiagnosticStatus
@@ -38,7 +39,7 @@ from .observer_health import ObserverHealth
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 from ..core.estimators import History, make_estimator
-from ..core.innovation import InnovationMonitor
+from ..core.innovation import InnovationMonitor, transient_time
 from ..sensors import extract_measurement
 
 __all__ = ['ObserverNode', 'covariance_names', 'main']
@@ -120,8 +121,7 @@ class ObserverNode(ObserverHealth, VehicleNode):
         # every message goes through the history (late ones at their stamps); the
         # estimator is read (x_hat, t) but only the history changes it
         self.history = History(self.estimator, vehicle.observer.history_length)
-        self._health = InnovationMonitor([(s.name, s.noise_std) for s in vehicle.sensors],
-                                         kalman=vehicle.observer.kind == 'kalman')
+        self._health = _innovation_monitor(vehicle, design)
         self.vehicle = vehicle
         # each sensor's rows of C, looked up once rather than per message
         self._rows = {s.name: vehicle.plant.output_rows(s.outputs) for s in vehicle.sensors}
@@ -155,8 +155,7 @@ class ObserverNode(ObserverHealth, VehicleNode):
             estimator.reset(self.estimator.x_hat, self.estimator.t)
         self.vehicle, self.design, self.estimator = vehicle, design, estimator
         self.history = History(estimator, vehicle.observer.history_length)
-        self._health = InnovationMonitor([(s.name, s.noise_std) for s in vehicle.sensors],
-                                         kalman=vehicle.observer.kind == 'kalman')
+        self._health = _innovation_monitor(vehicle, design)
         self.get_logger().info(f'observer redesigned: poles {_poles(design.observer_poles)}')
         self.count('parameter_changes_applied')
         return SetParametersResult(successful=True)
@@ -196,8 +195,9 @@ class ObserverNode(ObserverHealth, VehicleNode):
             return
         rows = self._rows[sensor.name]
         history = self.history
-        late = history.t is not None and t < history.t
-        if not late and history.t is not None and t - history.t > self._max_gap:
+        head = history.t
+        late = head is not None and t < head
+        if not late and head is not None and t - head > self._max_gap:
             self._long_gap(sensor, t, y, rows)
         skipped = getattr(self.estimator, 'unverified_corrections', 0)
         try:
@@ -211,7 +211,9 @@ class ObserverNode(ObserverHealth, VehicleNode):
             reason = next(reversed(self.estimator.gain_failures.values()))
             self._reject('unverified_gain_corrections',
                          f'{sensor.topic}: correction skipped (prediction only): {reason}')
-        if not np.isfinite(x_hat).all():
+        # plain floats from here on: numpy's reductions cost more on a few elements
+        x_hat = x_hat.tolist()
+        if not all(map(math.isfinite, x_hat)):
             # Never publish a NaN: restart from the initial estimate.
             self._reset_estimator('numerical_resets', f'{sensor.topic}: estimate not finite',
                                   t)
@@ -226,13 +228,13 @@ class ObserverNode(ObserverHealth, VehicleNode):
         # measurement is answered with the estimate at the newest stamp, now revised.
         if late:
             self.count('late_measurements')
-            self._publish_estimate(history.t, sensor.frame_id, history.head_tag)
+            self._publish_estimate(history.t, sensor.frame_id, history.head_tag, x_hat)
         else:
-            self._publish_estimate(t, sensor.frame_id, stamp)
+            self._publish_estimate(t, sensor.frame_id, stamp, x_hat)
         self._publish_covariance()
         residual = history.residual
         if residual is not None:
-            self._health.add(sensor.name, residual, history.innovation_covariance)
+            self._health.add(sensor.name, residual, history.innovation_covariance, t)
         if residual is not None and self._res_pub.get_subscription_count():
             self._res_pub.publish(joint_state(sensor.outputs, residual, t, sensor.frame_id,
                                               stamp))
@@ -330,6 +332,7 @@ class ObserverNode(ObserverHealth, VehicleNode):
     def _reset_estimator(self, counter, reason, t=None):
         """Reset the estimator to its initial estimate: always logged and counted."""
         self.history.reset(None, t)         # the estimator, and its history forgotten
+        self._health.restart()              # a new initial transient
         self.count(counter)
         self.count('estimator_resets')
         self.get_logger().warning(f'{reason}; estimator reset to its initial estimate',
@@ -448,12 +451,24 @@ class ObserverNode(ObserverHealth, VehicleNode):
         for h in self._health.report():
             level = DiagnosticStatus.OK if h.consistent else DiagnosticStatus.WARN
             text = h.problem or (f'{h.name}: consistent' if h.samples >= self._health.window
+                                 else f'{h.name}: estimate converging (residuals judged '
+                                 f'from {self._health.transient:.3g} s on)' if h.converging
                                  else f'{h.name}: {h.samples} residuals, window not full')
             out.append((f'innovation/{h.name}', level, text, {
-                'samples': h.samples, 'nis_mean': f'{h.nis_mean:.4g}',
+                'samples': h.samples, 'transient_samples': h.transient,
+                'nis_mean': f'{h.nis_mean:.4g}',
                 'nis_bounds': f'{h.nis_low:.4g}..{h.nis_high:.4g}',
                 'whiteness_p': f'{h.whiteness_p:.3g}'}))
         return out
+
+
+def _innovation_monitor(vehicle, design):
+    """Return the innovation monitor of a design: its initial transient not judged."""
+    return InnovationMonitor(
+        [(s.name, s.noise_std) for s in vehicle.sensors],
+        kalman=vehicle.observer.kind == 'kalman',
+        transient=transient_time(design.observer_poles, vehicle.sample_time,
+                                 vehicle.plant.is_discrete, vehicle.observer.kind == 'kalman'))
 
 
 def covariance_names(state_names):

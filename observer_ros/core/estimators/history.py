@@ -369,13 +369,14 @@ class History:
         entries = self._entries
         horizon = self._est.t - self._length
         last = len(entries) - 1       # the newest entry is kept whatever its stamp
-        drop = 0
-        while drop < last and entries[drop].t < horizon:     # usually none or one
-            drop += 1
-        # the state after the last dropped entry becomes the base, so drop up to a
-        # checkpoint: fewer for the horizon, more for the number of messages
-        while drop > 0 and entries[drop - 1].state is None:
-            drop -= 1
+        # the state after the last dropped entry becomes the base, so drop up to the
+        # newest checkpoint older than the horizon: fewer for the horizon, more for the
+        # number of messages (below)
+        drop = j = 0
+        while j < last and entries[j].t < horizon:     # at most CHECKPOINT_EVERY or so
+            if entries[j].state is not None:
+                drop = j + 1
+            j += 1
         if len(entries) - drop > self._max:
             drop = len(entries) - self._max
             while drop < last and entries[drop - 1].state is None:

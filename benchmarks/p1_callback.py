@@ -1,0 +1,102 @@
+# benchmarks/p1_callback.py: P1's per-message work without DDS, one code version against another.
+"""
+CPU per message of the observer node's measurement callback, in process, per code version.
+
+P1 (``p1_latency.py``) measures the whole DDS round trip, where this callback is about a
+tenth of the time and the load of the machine moves the figures by more than a change of
+the callback does. Here each version (a directory holding an ``observer_ros`` package:
+a ``git archive`` of a commit) runs in its own process: it builds the ``ObserverNode`` of
+``config/submarine.yaml`` in realtime mode (not spun: no timers, no subscribers) and calls
+its ``_on_measurement`` with Imu messages stamped 4 ms apart (250 Hz, the P1 rate) with
+a few microseconds of jitter, in the past of the clock. After a warm-up of 500 messages
+(the first gains and 2 s of the envelope's learning), ``--reps`` blocks of ``--count``
+messages are timed with ``time.process_time``. The versions are alternated, ``--rounds``
+times. Printed per version: the smallest block (the least disturbed by other processes)
+and the median, in microseconds of CPU per message.
+
+Usage: ``python benchmarks/p1_callback.py NAME=DIR [NAME=DIR ...]``.
+
+"""
+
+import argparse
+import os
+from pathlib import Path
+import statistics
+import subprocess
+import sys
+
+DRIVER = """
+import os, sys, time, warnings
+warnings.filterwarnings('ignore')
+import rclpy
+from builtin_interfaces.msg import Time
+from sensor_msgs.msg import Imu
+from observer_ros.nodes.observer_node import ObserverNode
+count, reps, config = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3]
+rclpy.init(args=['--ros-args', '--params-file', config, '-p', 'simulator.mode:=realtime',
+                 '-r', '__ns:=/p1_callback'])
+node = ObserverNode()
+sensor = next(s for s in node.vehicle.sensors if s.topic.endswith('imu/data'))
+msg = Imu()
+msg.header.frame_id = 'base_link_frd'
+msg.orientation.w = 1.0
+msg.orientation_covariance[0] = -1.0
+msg.linear_acceleration_covariance[0] = -1.0
+msg.angular_velocity_covariance[4] = 1e-6
+t0 = time.time_ns() - (500 + count * reps + 1000) * 4_000_000
+def one(i):
+    ns = t0 + i * 4_000_000 + (i * 7919 % 1000) * 1000
+    msg.header.stamp = Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+    msg.angular_velocity.y = 0.001 * ((i % 200) - 100) / 100.0
+    node._on_measurement(sensor, msg)
+for i in range(500):
+    one(i)
+for rep in range(reps):
+    c0 = time.process_time()
+    for i in range(500 + rep * count, 500 + (rep + 1) * count):
+        one(i)
+    print((time.process_time() - c0) / count * 1e6)
+node.destroy_node()
+rclpy.try_shutdown()
+"""
+
+
+def _blocks(directory, count, reps):
+    """Run the driver on one version; return its blocks' CPU per message (us)."""
+    env = dict(os.environ, PYTHONPATH=str(directory), ROS_DOMAIN_ID='48')
+    config = Path(directory) / 'config' / 'submarine.yaml'
+    out = subprocess.run([sys.executable, '-W', 'ignore', '-c', DRIVER, str(count), str(reps),
+                          str(config)], env=env, cwd=str(directory), capture_output=True,
+                         text=True, check=True).stdout
+    return [float(line) for line in out.split()]
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
+    parser.add_argument('versions', nargs='+', metavar='NAME=DIR')
+    parser.add_argument('--count', type=int, default=1000, help='messages per block')
+    parser.add_argument('--reps', type=int, default=15, help='blocks per run')
+    parser.add_argument('--rounds', type=int, default=4, help='runs of each version')
+    args = parser.parse_args(argv)
+    versions = [v.split('=', 1) for v in args.versions]
+    for name, directory in versions:
+        if not (Path(directory) / 'observer_ros').is_dir():
+            print(f'error: {name}: {directory} holds no observer_ros package', file=sys.stderr)
+            return 2
+    print(f'load average at start: {os.getloadavg()[0]:.2f}')
+    blocks = {name: [] for name, _ in versions}
+    for r in range(args.rounds):
+        for name, directory in (versions if r % 2 == 0 else versions[::-1]):
+            got = _blocks(directory, args.count, args.reps)
+            blocks[name] += got
+            print(f'  round {r + 1} {name:>10}: min {min(got):.1f} us, median '
+                  f'{statistics.median(got):.1f} us per message', flush=True)
+    for name, got in blocks.items():
+        print(f'CALLBACK {name}: min {min(got):.1f} us, median {statistics.median(got):.1f} us '
+              f'of CPU per message ({len(got)} blocks of {args.count})')
+    print(f'load average at end: {os.getloadavg()[0]:.2f}')
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

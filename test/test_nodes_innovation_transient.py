@@ -1,0 +1,72 @@
+# test_nodes_innovation_transient: the demo's own design is not WARN on /diagnostics.
+"""
+The observer node given the submarine's closed loop (``make demo``) over DDS.
+
+The gyro messages and commands of test_core_innovation_transient's simulation: while the
+estimate converges from its 30 deg error the node says so, then the gyro is consistent
+(it was a WARN before the transient was discounted); a bias after that is named.
+"""
+
+from observer_ros.nodes.common import joint_state, SENSOR_QOS, STATE_QOS
+from observer_ros.timeutil import ns_to_sec
+import pytest
+from ros_helpers import CONFIG, Probe, Proc
+from sensor_msgs.msg import Imu, JointState
+from test_core_innovation_transient import _run, NOISE, submarine  # noqa: F401
+from test_nodes_faults import Listener
+from test_nodes_late import _gyro, _health, _level
+
+OK, WARN = 0, 1
+
+
+def _value(status, key):
+    return next((kv.value for kv in status.values if kv.key == key), None)
+
+
+@pytest.mark.parametrize('fault', [{}, {'bias': 10 * NOISE}], ids=['correct', 'bias'])
+def test_the_demo_design_is_consistent_after_its_transient(submarine, fault,  # noqa: F811
+                                                           tmp_path):
+    monitor, _, _, _ = _run(submarine, steps=350, onset=300, **fault)
+    expected = monitor.health('gyro')
+    proc = Proc('observer_node', CONFIG / 'submarine.yaml', 'simulator.mode:=realtime',
+                'diagnostics_period:=0.2', log_dir=tmp_path)
+    probe = Probe()
+    try:
+        listener = Listener(probe)
+        node = probe.node
+        gyro = node.create_publisher(Imu, 'imu/data', SENSOR_QOS)
+        command = node.create_publisher(JointState, 'control/u', STATE_QOS)
+        for pub in (gyro, command):
+            probe.spin_until(lambda: pub.get_subscription_count() >= 1, 30.0, 'matched')
+        listener.wait_matched('state/estimate', '/diagnostics')
+        listener.wait_alive('observer')
+        answered = 0
+        for topic, _, ns, msg in _run.messages:
+            if topic == 'imu/data':                  # the bag's message, as rclpy's
+                gyro.publish(_gyro(ns, msg.angular_velocity.y))
+                answered += 1
+                probe.spin_until(lambda: len(listener.estimates) >= answered, 10.0,
+                                 f'the answer to the gyro stamped {ns}')
+            elif topic == 'control/u':
+                command.publish(joint_state(['delta'], msg.position, ns_to_sec(ns)))
+            if answered == 100 and topic == 'control/u':         # 5 s: still converging
+                probe.spin_until(lambda: (s := _health(listener, 'gyro')) is not None and
+                                 _value(s, 'transient_samples') == '100', 10.0,
+                                 'the status after 100 gyro messages')
+                status = _health(listener, 'gyro')
+                assert _level(status) == OK
+                assert 'estimate converging' in status.message, status.message
+        probe.spin_until(lambda: (s := _health(listener, 'gyro')) is not None and
+                         _value(s, 'samples') == str(expected.samples), 10.0,
+                         'the status after the last gyro message')
+        status = _health(listener, 'gyro')
+        assert _value(status, 'transient_samples') == str(expected.transient)
+        if fault:
+            assert _level(status) == WARN
+            assert status.message.startswith('gyro: residuals too large'), status.message
+        else:
+            assert _level(status) == OK
+            assert status.message == 'gyro: consistent'
+    finally:
+        probe.close()
+    assert proc.stop() == 0, proc.output()
