@@ -155,13 +155,18 @@ def test_compensator_predicts_a_late_estimate_to_when_its_command_applies(tmp_pa
         x_hat = np.array([0.01, 0.2, -0.03, 0.1])
 
         def plant_time_is(t):
+            """Publish the encoder stamped t (best effort: again) until the node has it."""
+            sent = [0.0]
+
             def seen():
+                if time.monotonic() - sent[0] > 0.5:
+                    enc.publish(joint_state(['cart'], [0.2], t))
+                    sent[0] = time.monotonic()
                 s = listener.latest_status('compensator')
                 return s is not None and any(kv.key == 'plant_time' and float(kv.value) == t
                                              for kv in s.values)
             probe.spin_until(seen, 20.0, f'the compensator at plant time {t}')
         # the plant is at 10.05 (its encoder's stamp) when the estimate of 10.0 comes
-        enc.publish(joint_state(['cart'], [0.2], 10.05))
         plant_time_is(10.05)
         est.publish(joint_state(names, x_hat, 10.0))
         probe.spin_until(lambda: listener.commands, 20.0, 'the command')
@@ -176,7 +181,6 @@ def test_compensator_predicts_a_late_estimate_to_when_its_command_applies(tmp_pa
         np.testing.assert_allclose(msg.position, expected, rtol=1e-9)
         assert not np.allclose(expected, K @ (vehicle.controller.reference - x_hat), rtol=1e-3)
         # an estimate later than observer.history_length (0.25 s): the safe command, ERROR
-        enc.publish(joint_state(['cart'], [0.2], 10.5))
         plant_time_is(10.5)
         est.publish(joint_state(names, x_hat, 10.1))
         listener.wait_counter('compensator', 'too_late_estimates', 1, 20.0)
