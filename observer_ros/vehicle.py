@@ -135,6 +135,9 @@ KNOWN_KEYS = _keys(
     KeySpec('controller.stale_timeout', DOUBLE, 's, > 0', default=0.5, minimum=0.0),
     KeySpec('controller.predict_timeout', DOUBLE, 's, >= 0: predict-and-hold before the '
             'safe_command fallback', default=0.0, minimum=0.0),
+    KeySpec('controller.delay_compensation', BOOL, 'realtime: predict a late estimate to '
+            'when its command takes effect, and stamp the command with that time',
+            default=False),
     KeySpec('simulator.rate_hz', DOUBLE, 'Hz, > 0; a discrete model runs at '
             '1/sample_time', default=100.0, minimum=0.0),
     KeySpec('simulator.initial_state', DOUBLE_ARRAY, 'x(0) (n); default zeros'),
@@ -875,9 +878,10 @@ def _read_controller(check, plant, discrete):
     safe = check.string('controller.safe_command')
     stale = check.double('controller.stale_timeout', positive=True)
     predict = check.double('controller.predict_timeout', minimum=0.0)
+    delay = check.boolean('controller.delay_compensation')
     return ControllerSpec(poles=poles, K=K, lqr_Q=Q, lqr_R=R, reference=reference, Kd=Kd,
                           u_min=u_min, u_max=u_max, safe_command=safe, stale_timeout=stale,
-                          predict_timeout=predict)
+                          predict_timeout=predict, delay_compensation=delay)
 
 
 def _read_observer(check, plant, discrete, sensors, simulator, warnings):
@@ -1036,6 +1040,7 @@ def vehicle_to_parameters(vehicle):
     flat['controller.safe_command'] = c.safe_command
     flat['controller.stale_timeout'] = float(c.stale_timeout)
     flat['controller.predict_timeout'] = float(c.predict_timeout)
+    flat['controller.delay_compensation'] = bool(c.delay_compensation)
     sim = vehicle.simulator
     if not plant.is_discrete:
         flat['simulator.rate_hz'] = float(sim.rate_hz)

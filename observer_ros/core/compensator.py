@@ -21,6 +21,7 @@ from ._lazy import control
 from .analysis import (controllability_report, ControllabilityReport, format_complex,
                        observability_report, ObservabilityReport, stability_margin,
                        unobservable_eigenvalues)
+from .delay_compensation import loop_delay_margin
 from .design import (controller_gain, kalman_gain, lqr_gain, observer_gain,
                      pole_placement_error, reduced_order_observer, ReducedOrderDesign)
 from .errors import (DesignError, DimensionError, NotDetectableError, ObserverDesignWarning,
@@ -1156,6 +1157,28 @@ def _placement_lines(check):
             f'{check.bound[w]:.2g}']
 
 
+def _delay_margin_lines(design, vehicle):
+    """Return the report's lines on the delay margin at the plant input (SISO, continuous)."""
+    plant = None if vehicle is None else vehicle.plant
+    if plant is None or design.discrete or design.compensator is None or \
+            plant.m != 1 or plant.p != 1:
+        return []
+    try:
+        tau, wc = loop_delay_margin(control.ss(plant.A, plant.B, plant.C, plant.D),
+                                    design.compensator, points=20001)
+    except Exception:   # noqa: BLE001 - the report must not fail on the printout
+        return []
+    if not np.isfinite(tau):
+        return ['Delay margin at the plant input: no gain crossover (none needed)']
+    lines = [f'Delay margin at the plant input: {tau * 1e3:.3g} ms (at {wc:.3g} rad/s)']
+    dt = vehicle.sample_time
+    if tau < dt:
+        lines.append(f'  less than one sample ({dt * 1e3:g} ms): a realtime loop needs '
+                     'controller.delay_compensation (a command that misses its step '
+                     'destabilises it)')
+    return lines
+
+
 def format_report(design, vehicle=None):
     """
     Console report of a VehicleDesign (what ``observer-design`` prints).
@@ -1237,6 +1260,7 @@ def format_report(design, vehicle=None):
                      + f' (closed-loop matrix off by {design.separation_error:.2g}; '
                      f'rounding allows {design.separation_allowed:.2g})')
         lines.append(f'Compensator poles: {_poles_line(design.compensator_poles)}')
+        lines.extend(_delay_margin_lines(design, vehicle))
         lines.append('Compensator D(s), u = -D(s) y:' if not design.discrete else
                      'Compensator D(z), u = -D(z) y:')
         try:

@@ -74,6 +74,7 @@ class ControllerSpec:
     safe_command: str = 'zero'               # zero | hold
     stale_timeout: float = 0.5
     predict_timeout: float = 0.0             # s of predict-and-hold before safe_command
+    delay_compensation: bool = False         # realtime: predict to when u takes effect
 
 
 @dataclass(frozen=True)

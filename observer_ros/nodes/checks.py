@@ -26,6 +26,7 @@ OWN_PARAMETER_RANGES = {
     'diagnostics_period': (0.01, 3600.0, False),     # s
     'start_time': (0.0, 1e9, True),                  # s
     'wait_for_subscribers': (0, 1000, False),
+    'command_lead_steps': (0, 100, False),
 }
 BOOL_PARAMETERS = ('publish_array', 'publish_clock', 'wait_for_recorder', 'exit_when_done')
 

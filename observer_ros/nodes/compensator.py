@@ -12,6 +12,14 @@ inside ``controller.u_min``/``u_max``, or it is not sent (the safe command inste
 ERROR on /diagnostics). A second publisher of ``control/u`` or ``state/estimate`` is
 reported as an ERROR naming the topic.
 
+With ``controller.delay_compensation`` in realtime (``simulator.mode: realtime``), an estimate
+that comes after the plant has moved on (a newer stamp on one of the vehicle's sensor
+topics, which the node reads for their stamps only) is predicted with the model over the
+steps it missed, and its command stamped with the time it takes effect
+(core/delay_compensation.py): the cart's loop tolerates less than a millisecond of
+unmodelled delay. One later than ``observer.history_length`` gets the safe command
+(``too_late_estimates``, ERROR on /diagnostics).
+
 """
 
 from diagnostic_msgs.msg import DiagnosticStatus
@@ -21,9 +29,11 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from .checks import changed_pole_problem, divergence_envelopes, own_parameter_problem
-from .common import (checked_stamp, joint_state, LATCHED_QOS, run_node, SAFE_COMMAND_FRAME,
-                     STATE_PUB_QOS, STATE_QOS, TOPICS, vector_from_joint_state, VehicleNode)
+from .common import (checked_stamp, joint_state, LATCHED_QOS, MESSAGE_CLASSES, run_node,
+                     SAFE_COMMAND_FRAME, SENSOR_QOS, stamp_to_sec, STATE_PUB_QOS, STATE_QOS,
+                     TOPICS, vector_from_joint_state, VehicleNode)
 from ..core.compensator import design_vehicle
+from ..core.delay_compensation import DelayCompensation
 from ..core.errors import ObserverError
 from ..core.health import SettleCheck, settling_time
 from ..core.safe_command import SafeCommand
@@ -92,6 +102,8 @@ class CompensatorNode(VehicleNode):
             ('diagnostics_period', 1.0, 's (wall) between /diagnostics reports'),
             ('clock_jump_tolerance', 0.5, 's: an estimate this far back means the clock '
              'restarted'),
+            ('command_lead_steps', 3, 'controller.delay_compensation: steps a command is '
+             "stamped ahead of the plant's time (its way to the plant)"),
         ))
         self._apply(self.vehicle, design_vehicle(self.vehicle))
         self._last_estimate_time = None      # node clock when the last good x_hat came
@@ -105,6 +117,8 @@ class CompensatorNode(VehicleNode):
         self._safe_timer = None
         self._refused = None                 # why the last command was not sent
         self._duplicates = []                # other publishers of our topics
+        self._max_steps_late = 0             # since the last report (delay compensation)
+        self._too_late = 0                   # estimates too late to predict, since then
         self._cmd_pub = self.create_publisher(JointState, TOPICS['command'], STATE_PUB_QOS)
         self._array_pub = None
         if self.param('publish_array'):
@@ -112,6 +126,14 @@ class CompensatorNode(VehicleNode):
                 Float64MultiArray, TOPICS['command_array'], STATE_QOS)
         self._ref_pub = self.create_publisher(JointState, TOPICS['reference'], LATCHED_QOS)
         self._publish_reference()
+        # realtime: the newest sensor stamp is the plant's time (how late an estimate is);
+        # subscribed first, so that an executor takes a waiting sensor message first
+        self._sensor_time = {}
+        self._sensor_subs = [self.create_subscription(
+            MESSAGE_CLASSES[s.msg_type], s.topic,
+            lambda msg, name=s.name: self._on_sensor(name, msg), SENSOR_QOS)
+            for s in self.vehicle.sensors
+            if self.delay is not None and hasattr(MESSAGE_CLASSES[s.msg_type], 'header')]
         self._sub = self.create_subscription(
             JointState, TOPICS['estimate'], self._on_estimate, STATE_QOS)
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -141,6 +163,11 @@ class CompensatorNode(VehicleNode):
                                     vehicle.plant.is_discrete)
         self.settle_check = SettleCheck(self.safe.Ad, self.safe.Bd, self.safe.dt,
                                         self.x_envelope.file_scale)
+        # lock-step has no latency (the simulator waits for each answer): nothing to predict
+        compensate = c.delay_compensation and vehicle.simulator.mode == 'realtime'
+        self.delay = DelayCompensation(
+            self.safe.Ad, self.safe.Bd, self.safe.dt, vehicle.observer.history_length,
+            self.param('command_lead_steps')) if compensate else None
 
     def _law(self, x_hat):
         return control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
@@ -165,10 +192,19 @@ class CompensatorNode(VehicleNode):
             self.get_logger().error(f'{err}; safe command', throttle_duration_sec=1.0)
             self._publish_safe(t, msg.header.stamp)
             return
-        if self._last_stamp is not None and \
-                self._last_stamp - t > self.param('clock_jump_tolerance'):
+        restarted = self._last_stamp is not None and \
+            self._last_stamp - t > self.param('clock_jump_tolerance')
+        if restarted:
             self._clock_restarted(t)
-        elif self._stale and np.isfinite(self.settle):
+        steps = self._steps_late(t)
+        if steps is None:
+            # too late to predict from, and no sign of a live estimate: the safe command
+            # (the prediction from the last trusted estimate, then the fallback), ERROR
+            self.count('too_late_estimates')
+            self._too_late += 1
+            self._publish_safe(self._estimate_clock())
+            return
+        if not restarted and self._stale and np.isfinite(self.settle):
             # back after an outage: the observer restarts or catches up; until it has
             # settled (its estimates follow the model again; at most RESYNC_SETTLINGS of
             # its settling times) the prediction keeps closing the loop
@@ -186,11 +222,12 @@ class CompensatorNode(VehicleNode):
                 self._inside_since = None
             return
         if self._recovering:
-            self._recover(t, x_hat, msg.header.stamp)
+            self._recover(t, x_hat, msg.header.stamp, steps)
             return
+        t_apply, x_apply, stamp = self._at_application(t, x_hat, msg.header.stamp, steps)
         with np.errstate(all='ignore'):     # an overflow gives inf/NaN: caught below
             u_law = control_law(self.K, x_hat, self.x_d, self.Kd)    # before the limits
-            u = control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
+            u = control_law(self.K, x_apply, self.x_d, self.Kd, self.u_min, self.u_max)
         # an overflowing law is the command gate's (refused, or saturated by the limits)
         problem = None if not np.isfinite(u_law).all() else (
             self.x_envelope.check(t, x_hat) or self.u_envelope.check(t, u_law))
@@ -203,11 +240,34 @@ class CompensatorNode(VehicleNode):
             return
         self._diverging = None
         self._stop_safe_timer()
-        if self._publish(u, t, msg.header.stamp):   # the estimate's stamp, to the ns
-            self.safe.trusted(t, x_hat, u)
+        if self._publish(u, t_apply, stamp):    # on time: the estimate's stamp, to the ns
+            self.safe.trusted(t_apply, x_apply, u)
             self.count('commands')
 
-    def _recover(self, t, x_hat, stamp):
+    def _on_sensor(self, name, msg):
+        t = stamp_to_sec(msg.header.stamp)
+        if t < self._sensor_time.get(name, t) - self.param('clock_jump_tolerance'):
+            self._sensor_time.clear()       # a clock that started over
+        self._sensor_time[name] = t
+
+    def _steps_late(self, t):
+        """Return the steps the estimate stamped t is late (0 without compensation)."""
+        if self.delay is None:
+            return 0
+        now = max(self._sensor_time.values()) if self._sensor_time else None
+        return self.delay.steps_late(now, t)
+
+    def _at_application(self, t, x_hat, stamp, steps):
+        """Return (time, estimate, stamp) at which a command answering x_hat takes effect."""
+        if not steps:
+            return t, x_hat, stamp
+        self.count('delay_compensated_commands')
+        self._max_steps_late = max(self._max_steps_late, steps)
+        t_apply = t + steps * self.safe.dt
+        with np.errstate(all='ignore'):
+            return t_apply, self.delay.predict(x_hat, t, steps), None
+
+    def _recover(self, t, x_hat, stamp, steps=0):
         """
         Close the loop on the estimate after an outage, even beyond the envelope.
 
@@ -217,9 +277,10 @@ class CompensatorNode(VehicleNode):
         reported as ERROR (``diverging``); once x_hat and u are strictly inside the
         envelope (:meth:`Envelope.inside`) for an observer settling time, it is armed again.
         """
+        t_apply, x_apply, stamp = self._at_application(t, x_hat, stamp, steps)
         with np.errstate(all='ignore'):
             u_law = control_law(self.K, x_hat, self.x_d, self.Kd)
-            u = control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
+            u = control_law(self.K, x_apply, self.x_d, self.Kd, self.u_min, self.u_max)
         # back only when strictly inside both bounds for an observer settling time: the
         # envelope's check lets values beyond the bound pass while they do not grow, and
         # a loop reopened by a divergence safe command in mid-recovery diverges for good
@@ -239,8 +300,8 @@ class CompensatorNode(VehicleNode):
                     else 'beyond the envelope')
             self._diverging = f'{problem} (recovering after an outage: closing the loop)'
             self.count('recovery_commands')
-        if self._publish(u, t, stamp):
-            self.safe.trusted(t, x_hat, u)
+        if self._publish(u, t_apply, stamp):
+            self.safe.trusted(t_apply, x_apply, u)
             self.count('commands')
 
     def _clock_restarted(self, t):
@@ -251,11 +312,23 @@ class CompensatorNode(VehicleNode):
         self._resyncing = False
         self._recovering = False
         self.safe.reset()
+        if self.delay is not None:
+            self.delay.reset()
         self.x_envelope.reset()
         self.u_envelope.reset()
 
     def _estimate_clock(self):
-        """Return now on the estimates' time base (their last stamp plus the time since)."""
+        """
+        Return now on the estimates' time base (their last stamp plus the time since).
+
+        With delay compensation: the plant's time (the newest sensor stamp) plus the lead,
+        when the command takes effect. A simulator slower than the wall clock (a loaded
+        machine) would otherwise get safe commands stamped ahead of it, which it holds
+        until their time, and which the observer's estimate would follow ahead of the
+        measurements.
+        """
+        if self.delay is not None and self._sensor_time:
+            return max(self._sensor_time.values()) + self.delay.lead * self.delay.dt
         if self._last_stamp is None:
             return self._now()
         sim = self.vehicle.simulator
@@ -279,6 +352,8 @@ class CompensatorNode(VehicleNode):
 
     def _send(self, u, t, stamp=None, frame_id=''):
         self.safe.sent(u)
+        if self.delay is not None:
+            self.delay.sent(t, u)
         self._cmd_pub.publish(joint_state(self.vehicle.plant.input_names, u, t,
                                           frame_id=frame_id, stamp=stamp))
         if self._array_pub is not None:
@@ -338,6 +413,9 @@ class CompensatorNode(VehicleNode):
         if problem is not None:
             self.count('parameter_changes_refused')
             return SetParametersResult(successful=False, reason=problem)
+        for p in params:
+            if p.name == 'command_lead_steps' and self.delay is not None:
+                self.delay.lead = int(p.value)
         changed = [p for p in params if p.name.startswith('controller.')]
         if not changed:
             return SetParametersResult(successful=True)
@@ -364,7 +442,12 @@ class CompensatorNode(VehicleNode):
         return SetParametersResult(successful=True)
 
     def _on_diagnostics(self):
-        values = {'u': np.array2string(self.safe.last_command)}
+        values = {'u': np.array2string(self.safe.last_command),
+                  'max_steps_predicted': self._max_steps_late}
+        if self._sensor_time:
+            values['plant_time'] = f'{max(self._sensor_time.values()):.6f}'
+        self._max_steps_late = 0
+        too_late, self._too_late = self._too_late, 0
         self._duplicates = self.duplicate_publishers((TOPICS['command'], TOPICS['estimate']))
         refused, self._refused = self._refused, None
         if self._duplicates:
@@ -372,6 +455,11 @@ class CompensatorNode(VehicleNode):
             message = f'more than one publisher: {", ".join(self._duplicates)}'
         elif refused:
             level, message = DiagnosticStatus.ERROR, refused
+        elif too_late:
+            level = DiagnosticStatus.ERROR
+            message = (f'{too_late} estimates later than observer.history_length '
+                       f'({self.vehicle.observer.history_length:g} s): safe command '
+                       f'({self._safe_mode})')
         elif self._diverging is not None:
             level, message = DiagnosticStatus.ERROR, f'diverging: {self._diverging}'
         elif self._stale:

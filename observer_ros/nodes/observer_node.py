@@ -288,9 +288,12 @@ class ObserverNode(ObserverHealth, VehicleNode):
         """Handle stamps that go backwards, repeat, or lie far in the future."""
         last = self.history.t
         if last is not None and t < last:
-            if last - t > self.param('clock_jump_tolerance'):
+            # a jump is judged against the sensors' own stamps: a command stamped ahead
+            # (delay compensation) moves the estimate's time, and must never reset it
+            newest = max(self._last_stamp.values(), default=last)
+            if newest - t > self.param('clock_jump_tolerance'):
                 self._reset_estimator('clock_jumps', f'{sensor.topic}: clock jumped back '
-                                      f'{last - t:.3f} s')
+                                      f'{newest - t:.3f} s')
                 self._last_stamp.clear()
                 self._future_bound = None
                 self._envelope.reset()

@@ -13,8 +13,14 @@ start). Measurement noise comes from ``simulator.seed``. Two modes:
   waiting (re-sending the measurement with back-off): it never advances without the
   answer, which would make the run depend on the machine's speed (a 20-state observer
   designs its gains for several seconds at its first measurements).
-- ``realtime``: a wall-clock timer at ``rate_hz * realtime_factor``; each step applies
-  the latest command received. Late commands are counted.
+- ``realtime``: a wall-clock timer at ``rate_hz * realtime_factor``. A command's stamp is
+  the time it takes effect: one stamped at the current step or before applies from this
+  step, one stamped ahead (a compensator that predicted over its latency) waits for its
+  step, one older than the command in force is ignored (``out_of_order_commands``). A
+  command that arrives after its step is applied from the step it arrives at and counted
+  (``commands_applied_late``; /diagnostics gives ``applied_late_ms_max``): there the
+  plant held the previous command longer than its stamp says, which the observer cannot
+  know. Steps without a fresh command are counted (``late_commands``).
 
 Simulated time starts at ``start_time`` (1.0 s: ROS reads a zero stamp as unset).
 
@@ -98,7 +104,9 @@ class PlantSimulatorNode(VehicleNode):
         self._waiting_since = None
         self._started = False
         self._done = False
-        self._latest_cmd_stamp = None
+        self._latest_cmd_stamp = None       # stamp of the command in force
+        self._ahead = []                    # realtime: (stamp, u) waiting for their step
+        self._applied_late = []             # realtime: how late (s) late commands applied
         self._ready_since = None            # realtime: wall time of the first tick
         self._handshake_sent = None         # realtime: when step 0 last went out
         self._step_wall = None              # realtime: wall time the step's gyro went out
@@ -231,12 +239,7 @@ class PlantSimulatorNode(VehicleNode):
                 # before a restart): never applied
                 self.count('future_commands')
                 return
-            self.u = u
-            self._latest_cmd_stamp = stamp
-            if self._step_wall is not None and abs(stamp - self.t) <= 0.25 * self.dt:
-                # the answer to this step's measurements: the loop's round trip
-                self._loop_us.append((time.monotonic() - self._step_wall) * 1e6)
-                self._step_wall = None
+            self._realtime_command(u, stamp)
             return
         if not self._started or self._done:
             return
@@ -285,6 +288,39 @@ class PlantSimulatorNode(VehicleNode):
             self.exit_code = 0      # run_nodes stops spinning: a clean exit, no exception
 
     # -- realtime ---------------------------------------------------------------------------
+    def _realtime_command(self, u, stamp):
+        """Apply a command from its stamp: now, at its step ahead, or never (out of order)."""
+        tol = 0.25 * self.dt
+        if stamp < self._newest_command() - tol:
+            # older than a command already received: applying it would undo a newer one
+            self.count('out_of_order_commands')
+            return
+        if self._step_wall is not None and stamp >= self.t - tol:
+            # the answer to this step's measurements (at this step, or predicted ahead)
+            self._loop_us.append((time.monotonic() - self._step_wall) * 1e6)
+            self._step_wall = None
+        if stamp > self.t + tol:
+            self._ahead.append((stamp, u))
+            return
+        if stamp < self.t - tol:
+            self.count('commands_applied_late')
+            self._applied_late.append(self.t - stamp)
+        self.u = u
+        self._latest_cmd_stamp = stamp
+
+    def _newest_command(self):
+        """Return the newest stamp received: in force or waiting (-inf before any)."""
+        if self._ahead:
+            return self._ahead[-1][0]
+        return -np.inf if self._latest_cmd_stamp is None else self._latest_cmd_stamp
+
+    def _apply_due(self):
+        """Put in force the newest command waiting for this step (stamped at it or before)."""
+        due = [(s, u) for s, u in self._ahead if s <= self.t + 0.25 * self.dt]
+        if due:
+            self._latest_cmd_stamp, self.u = due[-1]
+            self._ahead = self._ahead[len(due):]
+
     def _realtime_step(self):
         if self._done:
             return
@@ -300,7 +336,7 @@ class PlantSimulatorNode(VehicleNode):
             # those steps are open_loop_steps, not late commands (benchmarks P2)
             if self._latest_cmd_stamp is None:
                 self.count('open_loop_steps')
-            elif abs(self._latest_cmd_stamp - self.t) > 0.25 * self.dt:
+            elif self._newest_command() < self.t - 0.25 * self.dt:
                 self.count('late_commands')
                 if self._step_wall is not None and time.monotonic() - self._step_wall < \
                         0.75 * self.dt / self.vehicle.simulator.realtime_factor:
@@ -308,6 +344,7 @@ class PlantSimulatorNode(VehicleNode):
                     # timer keeps its schedule after a late tick): its command had less time
                     self.count('late_commands_short_step')
             self._advance()
+            self._apply_due()
         self._started = True
         # the measurements first: they start the loop (the clock and the true state are for
         # the recorder and the evaluation, and would add two publishes to every loop)
@@ -336,8 +373,8 @@ class PlantSimulatorNode(VehicleNode):
         now = time.monotonic()
         if self._ready_since is None:
             self._ready_since = now
-        if self._latest_cmd_stamp is not None and \
-                abs(self._latest_cmd_stamp - self.t) <= 0.25 * self.dt:
+        # the answer to step 0: stamped at t_0, or ahead of it (a latency predicted over)
+        if self._newest_command() >= self.t - 0.25 * self.dt:
             return True
         waited = now - self._ready_since
         if waited > READY_WAIT * self.vehicle.simulator.command_timeout:
@@ -370,6 +407,9 @@ class PlantSimulatorNode(VehicleNode):
                           loop_us_p50=f'{np.percentile(loop, 50):.1f}',
                           loop_us_p99=f'{np.percentile(loop, 99):.1f}',
                           loop_us_max=f'{loop.max():.1f}')
+        if self._applied_late:
+            values['applied_late_ms_max'] = f'{1e3 * max(self._applied_late):.1f}'
+            self._applied_late = []
         self.publish_diagnostics(level, message, values)
 
 
