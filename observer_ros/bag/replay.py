@@ -65,7 +65,7 @@ from .step_maps import bulk_maps
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 from ..core.estimators import History, make_estimator
-from ..core.innovation import sequence_health, transient_time, whiten
+from ..core.innovation import sequence_health_blocks, transient_time, whiten
 
 __all__ = ['Replay', 'replay', 'live_replay', 'epochs_of', 'affine_scan', 'innovation_health',
            'CLOCK_JUMP_TOLERANCE', 'FUTURE_TOLERANCE']
@@ -82,6 +82,7 @@ MAX_GROWTH = 1e3               # unstable step maps: most growth to the end of t
 CHECK_RTOL = 1e-10             # bulk vs call, relative to the terms of the steps so far
 CHECK_CLASSES = 32             # step classes checked call by call (jittered: one per step)
 RUN_BLOCK = 1 << 17           # steps: the bulk stretches are found this many at a time
+HEALTH_BLOCK = 1 << 16        # estimates: the innovation health takes this many at a time
 _PROGRESS_EVERY = 1 << 15
 
 
@@ -592,16 +593,43 @@ def innovation_health(rep):
     # the initial transient of each epoch (the estimator restarts) is not judged
     transient = transient_time(design_vehicle(veh).observer_poles, veh.sample_time,
                                plant.is_discrete, rep.kalman)
-    t = rep.t
-    starts, first = np.unique(rep.epoch, return_index=True)
-    since = t - t[first][np.searchsorted(starts, rep.epoch)] if len(rep) else t
+    starts, t0 = _epoch_starts(rep) if transient > 0.0 else (None, None)
+    counts = np.zeros(len(veh.sensors), dtype=np.int64)
+    for b0 in range(0, len(rep), HEALTH_BLOCK):
+        sens = rep.sensor[b0:b0 + HEALTH_BLOCK]
+        counts += np.bincount(sens[sens >= 0], minlength=len(counts))[:len(counts)]
     out = {}
     for k, s in enumerate(veh.sensors):
         cols = list(plant.output_rows(s.outputs))
-        mine = rep.sensor == k
-        out[s.name] = sequence_health(s.name, rep.whitened[mine][:, cols], rep.kalman,
-                                      since=since[mine], transient=transient)
+        out[s.name] = sequence_health_blocks(s.name, _health_blocks(rep, k, cols, starts, t0),
+                                             rep.kalman, transient=transient,
+                                             rows=int(counts[k]))
     return out
+
+
+def _epoch_starts(rep):
+    """Return the epochs of a replay and the stamp (s) of each one's first row."""
+    first = {}
+    for b0 in range(0, len(rep), HEALTH_BLOCK):
+        ep, at = np.unique(rep.epoch[b0:b0 + HEALTH_BLOCK], return_index=True)
+        for e, i in zip(ep.tolist(), at.tolist()):
+            first.setdefault(e, b0 + i)
+    starts = np.array(sorted(first), dtype=rep.epoch.dtype)
+    idx = np.array([first[e] for e in starts.tolist()], dtype=np.int64)
+    return starts, rep.stamp_ns[idx].astype(np.float64) * 1e-9
+
+
+def _health_blocks(rep, k, cols, starts, t0):
+    """Yield sensor k's whitened residuals and their seconds since the epoch's start."""
+    for b0 in range(0, max(len(rep), 1), HEALTH_BLOCK):
+        b1 = b0 + HEALTH_BLOCK
+        mine = rep.sensor[b0:b1] == k
+        E = rep.whitened[b0:b1][mine][:, cols]
+        since = None
+        if starts is not None:
+            t = rep.stamp_ns[b0:b1][mine].astype(np.float64) * 1e-9
+            since = t - t0[np.searchsorted(starts, rep.epoch[b0:b1][mine])]
+        yield E, since
 
 
 def _has_late(events, streams, cmd, length, block=1 << 16):
