@@ -139,9 +139,9 @@ def test_bag_replay_in_blocks_equals_one_block(cases, name, monkeypatch):
             assert ref.counts['clock_jumps'] == 1
         for block in (7, 113):
             got = _replayed(rec, veh, monkeypatch, block, max_run)
-            for field in ('stamp_ns', 'x_hat', 'residual', 'whitened', 'epoch', 'seq',
-                          'sensor'):
+            for field in ('stamp_ns', 'x_hat', 'residual', 'epoch', 'seq', 'sensor'):
                 assert_array_equal(getattr(got, field), getattr(ref, field), err_msg=field)
+            assert_array_equal(got.whitened_rows(), ref.whitened_rows())
             assert got.counts == ref.counts
             assert got.bulk_steps == ref.bulk_steps
             assert got.warnings == ref.warnings
@@ -249,7 +249,7 @@ def _whole_health(rep):
     for k, s in enumerate(veh.sensors):
         cols = list(plant.output_rows(s.outputs))
         mine = rep.sensor == k
-        out[s.name] = sequence_health(s.name, rep.whitened[mine][:, cols], rep.kalman,
+        out[s.name] = sequence_health(s.name, rep.whitened_rows()[mine][:, cols], rep.kalman,
                                       since=since[mine], transient=transient)
     return out
 
@@ -277,7 +277,7 @@ def test_bag_innovation_health_of_a_kalman_filter_and_of_no_rows(tmp_path, monke
     assert innovation_health(rep) == _whole_health(rep)
     empty = copy.copy(rep)
     for field in ('stamp_ns', 'x_hat', 'residual', 'whitened', 'epoch', 'seq', 'sensor'):
-        setattr(empty, field, getattr(rep, field)[:0])
+        setattr(empty, field, getattr(rep, field)[:0])       # a Kalman filter's whitened
     got = innovation_health(empty)
     assert got.keys() == _whole_health(empty).keys()
     for name, figures in got.items():
@@ -291,7 +291,7 @@ def _tiled(rep, size):
     big = copy.copy(rep)
     span = int(rep.stamp_ns[-1] - rep.stamp_ns[0]) + 10**7
     big.stamp_ns = np.concatenate([rep.stamp_ns + i * span for i in range(reps)])
-    for field in ('whitened', 'epoch', 'sensor'):
+    for field in ('residual', 'epoch', 'sensor'):
         setattr(big, field, np.concatenate([getattr(rep, field)] * reps))
     return big
 
@@ -313,3 +313,19 @@ def test_bag_innovation_health_memory_per_estimate(cases):
     _health_peak(small)                     # the first call's one-off allocations
     grow = (_health_peak(large) - _health_peak(small)) / (len(large) - len(small))
     assert grow < 12.0, grow
+
+
+def test_bag_replay_outputs_are_held_once_in_narrow_types(cases):
+    # an observer other than Kalman: the whitened residuals are residual / noise_std,
+    # computed for the rows asked for, not held next to the residuals
+    veh, bag = cases('two_sensors')
+    rep = replay(read_recording(bag, veh), veh)
+    assert not rep.kalman and rep.whitened is None
+    std = np.full(veh.plant.p, np.nan)
+    for s in veh.sensors:
+        std[list(veh.plant.output_rows(s.outputs))] = s.noise_std
+    assert_array_equal(rep.whitened_rows(), rep.residual / std)
+    assert_array_equal(rep.whitened_rows(5, 40), rep.whitened_rows()[5:40])
+    assert np.isfinite(rep.whitened_rows()).any()
+    assert set(np.unique(rep.sensor).tolist()) == {0, 1}
+    assert (rep.sensor.dtype, rep.seq.dtype, rep.epoch.dtype) == (np.int8, np.int32, np.int32)

@@ -110,10 +110,12 @@ class Replay:
     overrides: Tuple[str, ...] = ()
     bulk_steps: int = 0
     warnings: list = field(default_factory=list)
-    # residuals whitened by their covariance (Kalman: C P C^T + R; else noise_std), as
-    # residual; None for the live estimate (core.innovation)
+    # residuals whitened by their covariance (Kalman: C P C^T + R), as residual; None
+    # for the live estimate and for the other observers, whose whitened residual is
+    # residual / noise_std (per output, NaN where 0): :meth:`whitened_rows`
     whitened: Optional[np.ndarray] = None
     kalman: bool = False
+    noise_std: Optional[np.ndarray] = None
 
     @property
     def t(self):
@@ -123,6 +125,14 @@ class Replay:
     def __len__(self):
         """Return the number of estimates."""
         return int(self.stamp_ns.size)
+
+    def whitened_rows(self, start=0, stop=None):
+        """Return the whitened residuals of rows ``start:stop`` (None: the live estimate)."""
+        if self.whitened is not None:
+            return self.whitened[start:stop]
+        if self.noise_std is not None:
+            return self.residual[start:stop] / self.noise_std
+        return None
 
 
 def epochs_of(stamp_ns, tolerance=CLOCK_JUMP_TOLERANCE):
@@ -439,9 +449,10 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
     out_r = np.full((n_meas, plant.p), np.nan)
     kalman = est.kind == 'kalman'
     out_e = np.full((n_meas, plant.p), np.nan) if kalman else None
-    out_epoch = np.zeros(n_meas, dtype=np.int64)
-    out_seq = np.zeros(n_meas, dtype=np.int64)
-    out_sensor = np.zeros(n_meas, dtype=np.int64)
+    # the narrowest exact types: epochs and bag positions fit the events' index type
+    out_epoch = np.zeros(n_meas, dtype=_index_type(len(events)))
+    out_seq = np.zeros(n_meas, dtype=_index_type(int(events.seq.max()) + 1 if len(events) else 0))
+    out_sensor = np.zeros(n_meas, dtype=np.int8 if len(sensors) < 128 else np.int16)
     runs = {}
     warnings = []
     if not exact and _bulk_capable(est) and not _has_late(events, streams, cmd, history.length):
@@ -549,17 +560,17 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
     # late measurements were used at their stamps: the rows in stamp order (per epoch)
     order = np.lexsort((out_ns[:m], out_epoch[:m])) if counts['late_measurements'] else \
         slice(None)
-    if not kalman:      # whitened by the sensors' noise_std (NaN where it is 0)
+    std = None
+    if not kalman:      # whitened by the sensors' noise_std (NaN where it is 0), on demand
         std = np.full(plant.p, np.nan)
         for s, r in zip(sensors, rows_idx):
             std[r] = np.where(np.asarray(s.noise_std) > 0.0, s.noise_std, np.nan)
-        out_e = out_r / std
     return Replay(name=name, vehicle=vehicle, stamp_ns=out_ns[:m][order],
                   x_hat=out_x[:m][order], residual=out_r[:m][order],
                   epoch=out_epoch[:m][order], seq=out_seq[:m][order],
                   sensor=out_sensor[:m][order], counts=counts, overrides=tuple(overrides),
-                  bulk_steps=bulk_steps, warnings=warnings, whitened=out_e[:m][order],
-                  kalman=kalman)
+                  bulk_steps=bulk_steps, warnings=warnings,
+                  whitened=out_e[:m][order] if kalman else None, kalman=kalman, noise_std=std)
 
 
 def _put_whitened(out_e, m, cols, residual, S):
@@ -586,7 +597,7 @@ def innovation_health(rep):
         Sensor name -> :func:`observer_ros.core.innovation.sequence_health` figures.
 
     """
-    if rep.whitened is None:
+    if rep.whitened is None and rep.noise_std is None:
         return {}
     veh = rep.vehicle
     plant = veh.plant
@@ -624,7 +635,7 @@ def _health_blocks(rep, k, cols, starts, t0):
     for b0 in range(0, max(len(rep), 1), HEALTH_BLOCK):
         b1 = b0 + HEALTH_BLOCK
         mine = rep.sensor[b0:b1] == k
-        E = rep.whitened[b0:b1][mine][:, cols]
+        E = rep.whitened_rows(b0, b1)[mine][:, cols]
         since = None
         if starts is not None:
             t = rep.stamp_ns[b0:b1][mine].astype(np.float64) * 1e-9
