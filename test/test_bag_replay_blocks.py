@@ -18,8 +18,10 @@ import numpy as np
 from numpy.testing import assert_array_equal
 from observer_ros.bag import replay as replay_mod
 from observer_ros.bag.reader import read_recording
-from observer_ros.bag.replay import _Events, _find_runs, _has_late, replay
+from observer_ros.bag.replay import _Events, _find_runs, _has_late, innovation_health, replay
+from observer_ros.core.compensator import design_vehicle
 from observer_ros.core.estimators import make_estimator
+from observer_ros.core.innovation import sequence_health, transient_time
 from observer_ros.vehicle import load_vehicle
 import pytest
 from test_bag_late import _bag as late_bag
@@ -137,9 +139,9 @@ def test_bag_replay_in_blocks_equals_one_block(cases, name, monkeypatch):
             assert ref.counts['clock_jumps'] == 1
         for block in (7, 113):
             got = _replayed(rec, veh, monkeypatch, block, max_run)
-            for field in ('stamp_ns', 'x_hat', 'residual', 'whitened', 'epoch', 'seq',
-                          'sensor'):
+            for field in ('stamp_ns', 'x_hat', 'residual', 'epoch', 'seq', 'sensor'):
                 assert_array_equal(getattr(got, field), getattr(ref, field), err_msg=field)
+            assert_array_equal(got.whitened_rows(), ref.whitened_rows())
             assert got.counts == ref.counts
             assert got.bulk_steps == ref.bulk_steps
             assert got.warnings == ref.warnings
@@ -232,3 +234,98 @@ def test_bag_runs_of_no_events_are_none():
             return 0
     runs = _find_runs(_NoEvents(), [], None, est, 0.5, 10.0, block=7)
     assert not runs and runs.get(0) is None
+
+
+def _whole_health(rep):
+    """Return the innovation health from whole-replay arrays (the code before the blocks)."""
+    veh = rep.vehicle
+    plant = veh.plant
+    transient = transient_time(design_vehicle(veh).observer_poles, veh.sample_time,
+                               plant.is_discrete, rep.kalman)
+    t = rep.t
+    starts, first = np.unique(rep.epoch, return_index=True)
+    since = t - t[first][np.searchsorted(starts, rep.epoch)] if len(rep) else t
+    out = {}
+    for k, s in enumerate(veh.sensors):
+        cols = list(plant.output_rows(s.outputs))
+        mine = rep.sensor == k
+        out[s.name] = sequence_health(s.name, rep.whitened_rows()[mine][:, cols], rep.kalman,
+                                      since=since[mine], transient=transient)
+    return out
+
+
+@pytest.mark.parametrize('name', ['sub', 'two_sensors', 'loop', 'late', 'discrete',
+                                  'sample_submarine', 'sample_cart_pendulum'])
+def test_bag_innovation_health_in_blocks_equals_the_whole_arrays(cases, name, monkeypatch):
+    veh, bag = cases(name)
+    rep = replay(read_recording(bag, veh), veh)
+    ref = _whole_health(rep)
+    assert sum(f['windows'] for f in ref.values()) > 0 or name == 'late'
+    if name in ('sub', 'loop'):
+        assert ref['gyro']['transient'] > 0            # the initial transient is left out
+    for block in (1, 7, 113, WHOLE):
+        monkeypatch.setattr(replay_mod, 'HEALTH_BLOCK', block)
+        assert innovation_health(rep) == ref, block
+
+
+def test_bag_innovation_health_of_a_kalman_filter_and_of_no_rows(tmp_path, monkeypatch):
+    veh = load_vehicle(CONFIG / 'aircraft_lateral.yaml')
+    rep = replay(read_recording(write_bag(tmp_path / 'air', simulate(veh, noise=True)[
+        'messages']), veh), veh)
+    assert rep.kalman and len(rep)
+    monkeypatch.setattr(replay_mod, 'HEALTH_BLOCK', 5)
+    assert innovation_health(rep) == _whole_health(rep)
+    empty = copy.copy(rep)
+    for field in ('stamp_ns', 'x_hat', 'residual', 'whitened', 'epoch', 'seq', 'sensor'):
+        setattr(empty, field, getattr(rep, field)[:0])       # a Kalman filter's whitened
+    got = innovation_health(empty)
+    assert got.keys() == _whole_health(empty).keys()
+    for name, figures in got.items():
+        ref = _whole_health(empty)[name]
+        assert figures['samples'] == 0 and figures['nis_high'] == ref['nis_high']
+
+
+def _tiled(rep, size):
+    """Return the replay repeated (stamps shifted on) to at least ``size`` estimates."""
+    reps = -(-size // len(rep))
+    big = copy.copy(rep)
+    span = int(rep.stamp_ns[-1] - rep.stamp_ns[0]) + 10**7
+    big.stamp_ns = np.concatenate([rep.stamp_ns + i * span for i in range(reps)])
+    for field in ('residual', 'epoch', 'sensor'):
+        setattr(big, field, np.concatenate([getattr(rep, field)] * reps))
+    return big
+
+
+def _health_peak(rep):
+    tracemalloc.start()
+    innovation_health(rep)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    return peak
+
+
+def test_bag_innovation_health_memory_per_estimate(cases):
+    # the whole-replay code held about 60-85 bytes per estimate (stamps, times since the
+    # epoch's start, the sensor's rows copied twice); now the judged rows' NIS (8 bytes)
+    veh, bag = cases('sample_submarine')
+    rep = replay(read_recording(bag, veh), veh)
+    small, large = _tiled(rep, 200_000), _tiled(rep, 600_000)
+    _health_peak(small)                     # the first call's one-off allocations
+    grow = (_health_peak(large) - _health_peak(small)) / (len(large) - len(small))
+    assert grow < 12.0, grow
+
+
+def test_bag_replay_outputs_are_held_once_in_narrow_types(cases):
+    # an observer other than Kalman: the whitened residuals are residual / noise_std,
+    # computed for the rows asked for, not held next to the residuals
+    veh, bag = cases('two_sensors')
+    rep = replay(read_recording(bag, veh), veh)
+    assert not rep.kalman and rep.whitened is None
+    std = np.full(veh.plant.p, np.nan)
+    for s in veh.sensors:
+        std[list(veh.plant.output_rows(s.outputs))] = s.noise_std
+    assert_array_equal(rep.whitened_rows(), rep.residual / std)
+    assert_array_equal(rep.whitened_rows(5, 40), rep.whitened_rows()[5:40])
+    assert np.isfinite(rep.whitened_rows()).any()
+    assert set(np.unique(rep.sensor).tolist()) == {0, 1}
+    assert (rep.sensor.dtype, rep.seq.dtype, rep.epoch.dtype) == (np.int8, np.int32, np.int32)

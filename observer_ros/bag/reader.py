@@ -58,6 +58,7 @@ VEHICLE_TOPICS = {
 
 _STORAGE_SUFFIXES = {'.mcap': 'mcap', '.db3': 'sqlite3'}
 _FLUSH = 1 << 16            # decode a topic's raw messages every this many (bounds memory)
+_INT32_LIMIT = 1 << 31
 _PROGRESS_EVERY = 1 << 16   # call the progress callback every this many messages
 
 
@@ -906,13 +907,23 @@ class Recording:
 
 
 class _Accumulator:
-    """Raw messages of one topic, decoded in chunks while the bag is read."""
+    """
+    Raw messages of one topic, decoded in chunks while the bag is read.
 
-    def __init__(self, topic, msgtype, names, fields, mode, fallback):
+    The decoded columns go straight into arrays sized by the topic's message count in
+    the bag's index (grown if the bag has more), not into parts joined at the end: a
+    stream is held once, not twice, while it is read.
+    """
+
+    def __init__(self, topic, msgtype, names, fields, mode, fallback, expected=0,
+                 seq_dtype=np.int64):
         self.topic, self.msgtype, self.names = topic, msgtype, tuple(names)
         self.fields, self.mode, self.fallback = tuple(fields), mode, fallback
         self.raws, self.logs, self.seqs = [], [], []
-        self.parts = []
+        self.expected, self.seq_dtype = int(expected), seq_dtype
+        self.cols = None            # seq, log, stamp (None: no header), values, valid
+        self.n = self.bulk = 0
+        self.first_error = ''
 
     def add(self, raws, logs, seqs):
         """Take a batch: raw messages (list), receive times and bag positions (arrays)."""
@@ -927,32 +938,58 @@ class _Accumulator:
         self.flush()
         dec = decode_packed(flat, starts, lengths, self.msgtype, self.fields, self.mode,
                             self.fallback)
-        self.parts.append((seqs, logs, dec))
+        self._put(seqs, logs, dec)
 
     def flush(self):
         if not self.raws:
             return
         dec = decode_messages(self.raws, self.msgtype, self.fields, self.mode, self.fallback)
-        self.parts.append((np.concatenate(self.seqs), np.concatenate(self.logs), dec))
+        self._put(np.concatenate(self.seqs), np.concatenate(self.logs), dec)
         self.raws, self.logs, self.seqs = [], [], []
+
+    def _put(self, seqs, logs, dec):
+        n = len(seqs)
+        if n and self.seq_dtype != np.int64 and seqs[-1] >= _INT32_LIMIT:   # bad index
+            self.seq_dtype = np.int64
+            if self.cols is not None:
+                self.cols[0] = self.cols[0].astype(np.int64)
+        if self.cols is None:
+            size = max(self.expected, n)
+            self.cols = [np.empty(size, dtype=self.seq_dtype), np.empty(size, dtype=np.int64),
+                         None if dec.stamp_ns is None else np.empty(size, dtype=np.int64),
+                         np.empty((size, len(self.fields))), np.empty(size, dtype=bool)]
+        elif self.n + n > self.cols[0].shape[0]:        # more than the index said
+            size = max(2 * self.cols[0].shape[0], self.n + n)
+            self.cols = [None if c is None else _resized(c, size) for c in self.cols]
+        stamps = logs if self.cols[2] is None else dec.stamp_ns
+        for col, part in zip(self.cols, (seqs, logs, stamps, dec.values, dec.valid)):
+            if col is not None:
+                col[self.n:self.n + n] = part
+        self.n += n
+        self.bulk += dec.bulk
+        self.first_error = self.first_error or dec.first_error
 
     def stream(self):
         self.flush()
-        if not self.parts:
+        if self.cols is None:
             empty = np.zeros(0, dtype=np.int64)
             return Stream(self.topic, self.msgtype, self.names, empty, empty, empty,
                           np.zeros((0, len(self.fields))), np.zeros(0, dtype=bool),
                           self.msgtype != FLOAT64)
-        seq = np.concatenate([p[0] for p in self.parts])
-        log = np.concatenate([p[1] for p in self.parts])
-        decs = [p[2] for p in self.parts]
-        has_header = decs[0].stamp_ns is not None
-        stamp = np.concatenate([d.stamp_ns for d in decs]) if has_header else log.copy()
-        first_error = next((d.first_error for d in decs if d.first_error), '')
-        return Stream(self.topic, self.msgtype, self.names, seq, log, stamp,
-                      np.concatenate([d.values for d in decs]),
-                      np.concatenate([d.valid for d in decs]), has_header, first_error,
-                      sum(d.bulk for d in decs))
+        cols = [c if c is None or c.shape[0] == self.n else c[:self.n].copy()
+                for c in self.cols]
+        seq, log, stamp, values, valid = cols
+        has_header = stamp is not None
+        # without a header the stamp is the receive time: the same array, not a copy
+        return Stream(self.topic, self.msgtype, self.names, seq, log,
+                      stamp if has_header else log, values, valid, has_header,
+                      self.first_error, self.bulk)
+
+
+def _resized(col, size):
+    out = np.empty((size,) + col.shape[1:], dtype=col.dtype)
+    out[:col.shape[0]] = col
+    return out
 
 
 def _sensor_fallback(bag, sensor):
@@ -1022,6 +1059,11 @@ def read_recording(path, vehicle, namespace=None, progress=None, vectors=True):
     with BagReader(path) as bag:
         info = bag.info
         topics = resolve_topics(info, vehicle, namespace)
+        # a message's bag position fits int32 in any bag of fewer than 2^31 messages
+        seq_dtype = np.int32 if info.message_count < _INT32_LIMIT else np.int64
+
+        def sizes(topic):
+            return info.topics.get(topic, (None, 0))[1], seq_dtype
         accs = {}
         for sensor in vehicle.sensors:
             topic = topics.sensors[sensor.name]
@@ -1033,7 +1075,7 @@ def read_recording(path, vehicle, namespace=None, progress=None, vectors=True):
                     f'{info.ros_distro or "(not recorded)"})')
             accs[topic] = (f'sensor:{sensor.name}', _Accumulator(
                 topic, sensor.msg_type, sensor.outputs, sensor.fields, 'sensor',
-                _sensor_fallback(bag, sensor)))
+                _sensor_fallback(bag, sensor), *sizes(topic)))
         if vectors:
             vector_names = {'truth': plant.state_names, 'estimate': plant.state_names,
                             'command': plant.input_names, 'residual': plant.output_names}
@@ -1049,7 +1091,7 @@ def read_recording(path, vehicle, namespace=None, progress=None, vectors=True):
                 mode = 'partial' if key == 'residual' else 'vector'
                 accs[topic] = (key, _Accumulator(
                     topic, JOINT_STATE, names, [f'position.{n}' for n in names], mode,
-                    _vector_fallback(bag, names, mode)))
+                    _vector_fallback(bag, names, mode), *sizes(topic)))
         total = sum(info.topics[t][1] for t in accs)
         by_conn = {}
         for conn in bag.connections(accs):

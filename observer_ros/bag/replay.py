@@ -65,7 +65,7 @@ from .step_maps import bulk_maps
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 from ..core.estimators import History, make_estimator
-from ..core.innovation import sequence_health, transient_time, whiten
+from ..core.innovation import sequence_health_blocks, transient_time, whiten
 
 __all__ = ['Replay', 'replay', 'live_replay', 'epochs_of', 'affine_scan', 'innovation_health',
            'CLOCK_JUMP_TOLERANCE', 'FUTURE_TOLERANCE']
@@ -82,6 +82,7 @@ MAX_GROWTH = 1e3               # unstable step maps: most growth to the end of t
 CHECK_RTOL = 1e-10             # bulk vs call, relative to the terms of the steps so far
 CHECK_CLASSES = 32             # step classes checked call by call (jittered: one per step)
 RUN_BLOCK = 1 << 17           # steps: the bulk stretches are found this many at a time
+HEALTH_BLOCK = 1 << 16        # estimates: the innovation health takes this many at a time
 _PROGRESS_EVERY = 1 << 15
 
 
@@ -109,10 +110,12 @@ class Replay:
     overrides: Tuple[str, ...] = ()
     bulk_steps: int = 0
     warnings: list = field(default_factory=list)
-    # residuals whitened by their covariance (Kalman: C P C^T + R; else noise_std), as
-    # residual; None for the live estimate (core.innovation)
+    # residuals whitened by their covariance (Kalman: C P C^T + R), as residual; None
+    # for the live estimate and for the other observers, whose whitened residual is
+    # residual / noise_std (per output, NaN where 0): :meth:`whitened_rows`
     whitened: Optional[np.ndarray] = None
     kalman: bool = False
+    noise_std: Optional[np.ndarray] = None
 
     @property
     def t(self):
@@ -122,6 +125,14 @@ class Replay:
     def __len__(self):
         """Return the number of estimates."""
         return int(self.stamp_ns.size)
+
+    def whitened_rows(self, start=0, stop=None):
+        """Return the whitened residuals of rows ``start:stop`` (None: the live estimate)."""
+        if self.whitened is not None:
+            return self.whitened[start:stop]
+        if self.noise_std is not None:
+            return self.residual[start:stop] / self.noise_std
+        return None
 
 
 def epochs_of(stamp_ns, tolerance=CLOCK_JUMP_TOLERANCE):
@@ -438,9 +449,10 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
     out_r = np.full((n_meas, plant.p), np.nan)
     kalman = est.kind == 'kalman'
     out_e = np.full((n_meas, plant.p), np.nan) if kalman else None
-    out_epoch = np.zeros(n_meas, dtype=np.int64)
-    out_seq = np.zeros(n_meas, dtype=np.int64)
-    out_sensor = np.zeros(n_meas, dtype=np.int64)
+    # the narrowest exact types: epochs and bag positions fit the events' index type
+    out_epoch = np.zeros(n_meas, dtype=_index_type(len(events)))
+    out_seq = np.zeros(n_meas, dtype=_index_type(int(events.seq.max()) + 1 if len(events) else 0))
+    out_sensor = np.zeros(n_meas, dtype=np.int8 if len(sensors) < 128 else np.int16)
     runs = {}
     warnings = []
     if not exact and _bulk_capable(est) and not _has_late(events, streams, cmd, history.length):
@@ -548,17 +560,17 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
     # late measurements were used at their stamps: the rows in stamp order (per epoch)
     order = np.lexsort((out_ns[:m], out_epoch[:m])) if counts['late_measurements'] else \
         slice(None)
-    if not kalman:      # whitened by the sensors' noise_std (NaN where it is 0)
+    std = None
+    if not kalman:      # whitened by the sensors' noise_std (NaN where it is 0), on demand
         std = np.full(plant.p, np.nan)
         for s, r in zip(sensors, rows_idx):
             std[r] = np.where(np.asarray(s.noise_std) > 0.0, s.noise_std, np.nan)
-        out_e = out_r / std
     return Replay(name=name, vehicle=vehicle, stamp_ns=out_ns[:m][order],
                   x_hat=out_x[:m][order], residual=out_r[:m][order],
                   epoch=out_epoch[:m][order], seq=out_seq[:m][order],
                   sensor=out_sensor[:m][order], counts=counts, overrides=tuple(overrides),
-                  bulk_steps=bulk_steps, warnings=warnings, whitened=out_e[:m][order],
-                  kalman=kalman)
+                  bulk_steps=bulk_steps, warnings=warnings,
+                  whitened=out_e[:m][order] if kalman else None, kalman=kalman, noise_std=std)
 
 
 def _put_whitened(out_e, m, cols, residual, S):
@@ -585,23 +597,50 @@ def innovation_health(rep):
         Sensor name -> :func:`observer_ros.core.innovation.sequence_health` figures.
 
     """
-    if rep.whitened is None:
+    if rep.whitened is None and rep.noise_std is None:
         return {}
     veh = rep.vehicle
     plant = veh.plant
     # the initial transient of each epoch (the estimator restarts) is not judged
     transient = transient_time(design_vehicle(veh).observer_poles, veh.sample_time,
                                plant.is_discrete, rep.kalman)
-    t = rep.t
-    starts, first = np.unique(rep.epoch, return_index=True)
-    since = t - t[first][np.searchsorted(starts, rep.epoch)] if len(rep) else t
+    starts, t0 = _epoch_starts(rep) if transient > 0.0 else (None, None)
+    counts = np.zeros(len(veh.sensors), dtype=np.int64)
+    for b0 in range(0, len(rep), HEALTH_BLOCK):
+        sens = rep.sensor[b0:b0 + HEALTH_BLOCK]
+        counts += np.bincount(sens[sens >= 0], minlength=len(counts))[:len(counts)]
     out = {}
     for k, s in enumerate(veh.sensors):
         cols = list(plant.output_rows(s.outputs))
-        mine = rep.sensor == k
-        out[s.name] = sequence_health(s.name, rep.whitened[mine][:, cols], rep.kalman,
-                                      since=since[mine], transient=transient)
+        out[s.name] = sequence_health_blocks(s.name, _health_blocks(rep, k, cols, starts, t0),
+                                             rep.kalman, transient=transient,
+                                             rows=int(counts[k]))
     return out
+
+
+def _epoch_starts(rep):
+    """Return the epochs of a replay and the stamp (s) of each one's first row."""
+    first = {}
+    for b0 in range(0, len(rep), HEALTH_BLOCK):
+        ep, at = np.unique(rep.epoch[b0:b0 + HEALTH_BLOCK], return_index=True)
+        for e, i in zip(ep.tolist(), at.tolist()):
+            first.setdefault(e, b0 + i)
+    starts = np.array(sorted(first), dtype=rep.epoch.dtype)
+    idx = np.array([first[e] for e in starts.tolist()], dtype=np.int64)
+    return starts, rep.stamp_ns[idx].astype(np.float64) * 1e-9
+
+
+def _health_blocks(rep, k, cols, starts, t0):
+    """Yield sensor k's whitened residuals and their seconds since the epoch's start."""
+    for b0 in range(0, max(len(rep), 1), HEALTH_BLOCK):
+        b1 = b0 + HEALTH_BLOCK
+        mine = rep.sensor[b0:b1] == k
+        E = rep.whitened_rows(b0, b1)[mine][:, cols]
+        since = None
+        if starts is not None:
+            t = rep.stamp_ns[b0:b1][mine].astype(np.float64) * 1e-9
+            since = t - t0[np.searchsorted(starts, rep.epoch[b0:b1][mine])]
+        yield E, since
 
 
 def _has_late(events, streams, cmd, length, block=1 << 16):

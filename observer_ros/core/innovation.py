@@ -44,8 +44,8 @@ from scipy.special import chdtrc, chdtri
 from .health import settling_time
 
 __all__ = ['InnovationMonitor', 'SensorHealth', 'whiten', 'ljung_box', 'ljung_box_acf',
-           'nis_bounds',
-           'sequence_health', 'transient_time', 'WINDOW', 'LAGS', 'ALPHA', 'OTHER_MARGIN']
+           'nis_bounds', 'sequence_health', 'sequence_health_blocks', 'transient_time',
+           'WINDOW', 'LAGS', 'ALPHA', 'OTHER_MARGIN']
 
 #: Residuals per sensor in a window.
 WINDOW = 50
@@ -403,30 +403,80 @@ def sequence_health(name, E, kalman, window=WINDOW, lags=LAGS, alpha=ALPHA, sinc
         ``consistent`` (every window) and ``problem`` (the first inconsistent window's).
 
     """
-    E = np.asarray(E, dtype=float)
+    return sequence_health_blocks(name, [(E, since)], kalman, window, lags, alpha, transient)
+
+
+def sequence_health_blocks(name, blocks, kalman, window=WINDOW, lags=LAGS, alpha=ALPHA,
+                           transient=0.0, rows=None):
+    """
+    Return :func:`sequence_health`'s figures of a run given a block of residuals at a time.
+
+    The figures are those of :func:`sequence_health` over the blocks' rows in order,
+    exactly: the windows run across the blocks, and the NIS mean is taken over every
+    judged row at once.
+
+    Parameters
+    ----------
+    name, kalman, window, lags, alpha, transient
+        See :func:`sequence_health`.
+    blocks : iterable of (E, since)
+        The run's whitened residuals ``(n, p)`` and their seconds since the estimator's
+        (re)start ``(n,)`` (or None), a block at a time; the first block gives p.
+    rows : int, optional
+        At least the number of rows of all the blocks: the judged rows' NIS is kept in
+        one array this long (8 bytes a row) instead of a list joined at the end.
+
+    Returns
+    -------
+    figures : dict
+        As :func:`sequence_health`.
+
+    """
     skipped = 0
-    if since is not None and transient > 0.0 and E.size:
-        keep = ~(np.asarray(since, dtype=float) < transient)
-        skipped = int(np.count_nonzero(~keep))
-        E = E[keep]
-    E = E[np.all(np.isfinite(E), axis=1)] if E.size else E.reshape(0, max(E.shape[-1:] or [1]))
-    N = E.shape[0]
-    p = E.shape[1] if E.ndim == 2 else 1
-    low, high = nis_bounds(window, p, alpha)
-    out = {'samples': int(N), 'transient': skipped,
-           'nis_mean': float(np.mean(np.sum(E * E, axis=1))) if N else math.nan,
-           'nis_low': low, 'nis_high': high, 'windows': N // window,
-           'windows_inconsistent': 0, 'whiteness_p': math.nan, 'consistent': True,
-           'problem': ''}
+    p = None
+    nis = np.empty(rows) if rows is not None else []
+    N = 0
+    rest = None                 # judged rows not yet in a full window
+    out = {'windows': 0, 'windows_inconsistent': 0, 'whiteness_p': math.nan,
+           'consistent': True, 'problem': ''}
     ps = []
-    for w in range(N // window):
-        h = _judge(name, E[w * window:(w + 1) * window], kalman, lags, alpha, N)
-        if math.isfinite(h.whiteness_p):
-            ps.append(h.whiteness_p)
-        if not h.consistent:
-            out['windows_inconsistent'] += 1
-            if out['consistent']:
-                out['consistent'], out['problem'] = False, h.problem
+    for E, since in blocks:
+        E = np.asarray(E, dtype=float)
+        if since is not None and transient > 0.0 and E.size:
+            keep = ~(np.asarray(since, dtype=float) < transient)
+            skipped += int(np.count_nonzero(~keep))
+            E = E[keep]
+        E = E[np.all(np.isfinite(E), axis=1)] if E.size else \
+            E.reshape(0, max(E.shape[-1:] or [1]))
+        if p is None:
+            p = E.shape[1] if E.ndim == 2 else 1
+        if not E.shape[0]:
+            continue
+        if rows is not None:
+            nis[N:N + E.shape[0]] = np.sum(E * E, axis=1)
+        else:
+            nis.append(np.sum(E * E, axis=1))
+        N += E.shape[0]
+        if rest is not None and rest.shape[0]:
+            E = np.concatenate([rest, E])
+        full = E.shape[0] // window
+        for w in range(full):
+            h = _judge(name, E[w * window:(w + 1) * window], kalman, lags, alpha, N)
+            if math.isfinite(h.whiteness_p):
+                ps.append(h.whiteness_p)
+            if not h.consistent:
+                out['windows_inconsistent'] += 1
+                if out['consistent']:
+                    out['consistent'], out['problem'] = False, h.problem
+        out['windows'] += full
+        rest = E[full * window:].copy()
+    nis = nis[:N] if rows is not None else (np.concatenate(nis) if nis else np.zeros(0))
+    low, high = nis_bounds(window, 1 if p is None else p, alpha)
+    out.update({'samples': int(N), 'transient': skipped,
+                'nis_mean': float(np.mean(nis)) if N else math.nan,
+                'nis_low': low, 'nis_high': high})
     if ps:
         out['whiteness_p'] = min(ps)
-    return out
+    return {k: out[k] for k in ('samples', 'transient', 'nis_mean', 'nis_low', 'nis_high',
+                                'windows', 'windows_inconsistent', 'whiteness_p',
+                                'consistent', 'problem')}
