@@ -12,7 +12,7 @@ import scipy.linalg
 from . import placement
 from .current_form import _CurrentForm
 from .steps import CACHE_SIZE, DT_DIGITS, GAIN_DIGITS
-from ..errors import DesignError, DimensionError, ObserverError
+from ..errors import DimensionError, ObserverError
 from ..model import as_matrix, as_poles
 
 __all__ = ['FullOrderEstimator']
@@ -97,11 +97,7 @@ class FullOrderEstimator(_CurrentForm):
                  measured_rows=None, dt_digits=DT_DIGITS, cache_size=CACHE_SIZE,
                  gain_digits=GAIN_DIGITS):
         super().__init__(plant, x0, t0, measured_rows, dt_digits, cache_size, gain_digits)
-        if (poles is None) == (gain is None):
-            raise DesignError('give exactly one of poles and gain for a full-order observer')
-        if method not in ('auto', 'place', 'acker'):
-            raise DesignError(f"method must be 'auto', 'place' or 'acker'; got {method!r}")
-        self._method = method
+        self._method = placement._design_choice(poles, gain, method, 'full-order observer')
         n, p = plant.n, plant.p
         C_m = plant.C[list(self._measured)]
         rank = placement._unobservable_check(plant.A, C_m, plant.is_discrete,

@@ -19,6 +19,15 @@ from ..verify import verify_placement
 QUICK_PLACE_TOL = 1e-10
 
 
+def _design_choice(poles, gain, method, what):
+    """Check a constructor's (poles or gain, method) choice; return the method."""
+    if (poles is None) == (gain is None):
+        raise DesignError(f'give exactly one of poles and gain for a {what}')
+    if method not in ('auto', 'place', 'acker'):
+        raise DesignError(f"method must be 'auto', 'place' or 'acker'; got {method!r}")
+    return method
+
+
 def _pick_poles(z, count):
     """
     Choose ``count`` of the desired z-plane poles ``z`` (conjugate pairs kept).

@@ -13,7 +13,7 @@ from . import placement
 from .current_form import _CurrentForm
 from .steps import CACHE_SIZE, DT_DIGITS, GAIN_DIGITS
 from ..design import reduced_coordinates
-from ..errors import DesignError, DimensionError, ObserverError
+from ..errors import DimensionError, ObserverError
 from ..model import as_matrix, as_poles
 
 __all__ = ['ReducedOrderEstimator']
@@ -87,11 +87,7 @@ class ReducedOrderEstimator(_CurrentForm):
                  measured_rows=None, dt_digits=DT_DIGITS, cache_size=CACHE_SIZE,
                  gain_digits=GAIN_DIGITS):
         super().__init__(plant, x0, t0, measured_rows, dt_digits, cache_size, gain_digits)
-        if (poles is None) == (gain is None):
-            raise DesignError('give exactly one of poles and gain for a reduced-order observer')
-        if method not in ('auto', 'place', 'acker'):
-            raise DesignError(f"method must be 'auto', 'place' or 'acker'; got {method!r}")
-        self._method = method
+        self._method = placement._design_choice(poles, gain, method, 'reduced-order observer')
         n = plant.n
         C_m = plant.C[list(self._measured)]
         pm = C_m.shape[0]
