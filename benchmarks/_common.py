@@ -19,7 +19,7 @@ import statistics
 import time
 
 __all__ = ['REPO', 'machine_info', 'summary', 'ratio_line', 'write_json', 'ros_env',
-           'common_parser', 'Timer', 'percentile']
+           'common_parser', 'Timer', 'percentile', 'gyro_imu']
 
 REPO = Path(__file__).resolve().parents[1]
 BENCH_DOMAIN_ID = '47'         # ROS_DOMAIN_ID of the benchmarks' DDS traffic (40..49)
@@ -55,6 +55,23 @@ def machine_info():
         'loadavg_at_start': list(os.getloadavg()),
         'date': time.strftime('%Y-%m-%d %H:%M:%S %Z'),
     }
+
+
+def gyro_imu():
+    """
+    Return the Imu message P1 sends: the submarine's rate gyro (q), orientation unset.
+
+    Only ``header.stamp`` and ``angular_velocity`` are set per message by the callers.
+
+    """
+    from sensor_msgs.msg import Imu      # not at the top: _common serves ROS-free tools too
+    msg = Imu()
+    msg.header.frame_id = 'base_link_frd'
+    msg.orientation.w = 1.0
+    msg.orientation_covariance[0] = -1.0
+    msg.linear_acceleration_covariance[0] = -1.0
+    msg.angular_velocity_covariance[4] = 1e-6
+    return msg
 
 
 def percentile(values, q):

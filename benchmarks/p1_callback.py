@@ -30,19 +30,15 @@ import os, sys, time, warnings
 warnings.filterwarnings('ignore')
 import rclpy
 from builtin_interfaces.msg import Time
-from sensor_msgs.msg import Imu
 from observer_ros.nodes.observer_node import ObserverNode
 count, reps, config = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3]
+sys.path.insert(0, sys.argv[4])    # benchmarks/ of this checkout: _common
+from _common import gyro_imu
 rclpy.init(args=['--ros-args', '--params-file', config, '-p', 'simulator.mode:=realtime',
                  '-r', '__ns:=/p1_callback'])
 node = ObserverNode()
 sensor = next(s for s in node.vehicle.sensors if s.topic.endswith('imu/data'))
-msg = Imu()
-msg.header.frame_id = 'base_link_frd'
-msg.orientation.w = 1.0
-msg.orientation_covariance[0] = -1.0
-msg.linear_acceleration_covariance[0] = -1.0
-msg.angular_velocity_covariance[4] = 1e-6
+msg = gyro_imu()
 t0 = time.time_ns() - (500 + count * reps + 1000) * 4_000_000
 def one(i):
     ns = t0 + i * 4_000_000 + (i * 7919 % 1000) * 1000
@@ -65,9 +61,10 @@ def _blocks(directory, count, reps):
     """Run the driver on one version; return its blocks' CPU per message (us)."""
     env = dict(os.environ, PYTHONPATH=str(directory), ROS_DOMAIN_ID='48')
     config = Path(directory) / 'config' / 'submarine.yaml'
+    bench = str(Path(__file__).resolve().parent)     # the driver's _common
     out = subprocess.run([sys.executable, '-W', 'ignore', '-c', DRIVER, str(count), str(reps),
-                          str(config)], env=env, cwd=str(directory), capture_output=True,
-                         text=True, check=True).stdout
+                          str(config), bench], env=env, cwd=str(directory),
+                         capture_output=True, text=True, check=True).stdout
     return [float(line) for line in out.split()]
 
 

@@ -30,7 +30,7 @@ import time
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import (common_parser, log, percentile, ratio_line, REPO,  # noqa: E402
+from _common import (common_parser, gyro_imu, log, percentile, ratio_line, REPO,  # noqa: E402
                      report, ros_env, summary)
 from _procs import node_command, start, stop_all  # noqa: E402
 
@@ -99,12 +99,7 @@ def run(smoke=False, rate=None, count=None, pairs=None, observer_pythonpath=None
         pubs[target] = node.create_publisher(Imu, f'{ns}/imu/data', SENSOR_QOS)
         subs[target] = node.create_subscription(JointState, f'{ns}/state/estimate',
                                                 on_estimate(target), STATE_QOS)
-    msg = Imu()
-    msg.header.frame_id = 'base_link_frd'
-    msg.orientation.w = 1.0
-    msg.orientation_covariance[0] = -1.0
-    msg.linear_acceleration_covariance[0] = -1.0
-    msg.angular_velocity_covariance[4] = 1e-6
+    msg = gyro_imu()
 
     def send(target, n, seconds_per=None):
         """Publish n messages to target at the rate; stamp = wall clock at publish."""
