@@ -118,6 +118,22 @@ def _wait_nodes(env, *names):
         assert time.monotonic() < deadline, f'nodes {names} not all up: {listed}'
 
 
+def _wait_subscribers(env, node, topic):
+    """Return the Subscribers section of `ros2 node info` once it lists `topic`.
+
+    The node's name is discovered before its endpoints (CI once saw `ros2 node info` print
+    empty sections for a node `ros2 node list` already showed): wait for discovery, with
+    the same deadline as every other wait, and return what was listed last.
+    """
+    deadline = time.monotonic() + WAIT
+    while True:
+        out = _ros2(env, f'ros2 node info {node}').stdout
+        start, end = out.find('Subscribers:'), out.find('Publishers:')
+        subscribers = out[start:end] if 0 <= start < end else out
+        if f'{topic}:' in subscribers or time.monotonic() > deadline:
+            return subscribers
+
+
 def _assert_stopped_cleanly(launch, nodes, code=None):
     code = launch.stop() if code is None else code
     out = launch.output()
@@ -208,11 +224,9 @@ def test_observer_launch_follows_the_remaps(ros2env, tmp_path):
         echo = _ros2(ros2env, 'ros2 topic echo --once /state/estimate sensor_msgs/msg/JointState')
         assert echo.returncode == 0 and 'position:' in echo.stdout, launch.output()[-3000:]
         _wait_nodes(ros2env, '/observer')
-        info = _ros2(ros2env, 'ros2 node info /observer')
-        subscribers = info.stdout[info.stdout.index('Subscribers:'):
-                                  info.stdout.index('Publishers:')]
-        assert re.search(r'/robot/imu: sensor_msgs/msg/Imu', subscribers), info.stdout
-        assert '/robot/cmd: sensor_msgs/msg/JointState' in subscribers, info.stdout
+        subscribers = _wait_subscribers(ros2env, '/observer', '/robot/imu')
+        assert re.search(r'/robot/imu: sensor_msgs/msg/Imu', subscribers), subscribers
+        assert '/robot/cmd: sensor_msgs/msg/JointState' in subscribers, subscribers
     finally:
         if pub is not None:
             os.killpg(pub.pid, signal.SIGINT)
