@@ -119,7 +119,8 @@ def _wait_nodes(env, *names):
 
 
 def _wait_subscribers(env, node, topic):
-    """Return the Subscribers section of `ros2 node info` once it lists `topic`.
+    """
+    Return the Subscribers section of `ros2 node info` once it lists `topic`.
 
     The node's name is discovered before its endpoints (CI once saw `ros2 node info` print
     empty sections for a node `ros2 node list` already showed): wait for discovery, with
