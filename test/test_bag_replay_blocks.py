@@ -1,6 +1,6 @@
 # test/test_bag_replay_blocks.py: the bulk stretches found a block at a time.
 """
-The replay finds its bulk stretches a block of steps at a time (``replay._Runs``).
+The replay finds its bulk stretches a block of steps at a time (``bulk_runs._Runs``).
 
 Any block size gives the same pieces and bit-identical estimates, residuals and
 counts as one block over the whole bag, on bags with several sensors, commands, truth,
@@ -16,9 +16,11 @@ from bag_synth import blank, CONFIG, JOINT_STATE, simulate, write_bag
 import late_sensors
 import numpy as np
 from numpy.testing import assert_array_equal
-from observer_ros.bag import replay as replay_mod
+from observer_ros.bag import bulk_runs, replay_health
+from observer_ros.bag.bulk_runs import _find_runs, _has_late
 from observer_ros.bag.reader import read_recording
-from observer_ros.bag.replay import _Events, _find_runs, _has_late, innovation_health, replay
+from observer_ros.bag.replay import innovation_health, replay
+from observer_ros.bag.replay_events import _Events
 from observer_ros.core.compensator import design_vehicle
 from observer_ros.core.estimators import make_estimator
 from observer_ros.core.innovation import sequence_health, transient_time
@@ -118,8 +120,8 @@ def cases(tmp_path_factory):
 
 
 def _replayed(rec, veh, monkeypatch, block, max_run):
-    monkeypatch.setattr(replay_mod, 'RUN_BLOCK', block)
-    monkeypatch.setattr(replay_mod, 'MAX_RUN', max_run)
+    monkeypatch.setattr(bulk_runs, 'RUN_BLOCK', block)
+    monkeypatch.setattr(bulk_runs, 'MAX_RUN', max_run)
     return replay(rec, veh)
 
 
@@ -127,7 +129,7 @@ def _replayed(rec, veh, monkeypatch, block, max_run):
 def test_bag_replay_in_blocks_equals_one_block(cases, name, monkeypatch):
     veh, bag = cases(name)
     rec = read_recording(bag, veh)
-    for max_run in (replay_mod.MAX_RUN, 100):
+    for max_run in (bulk_runs.MAX_RUN, 100):
         ref = _replayed(rec, veh, monkeypatch, WHOLE, max_run)
         if name == 'late':
             assert ref.counts['late_measurements'] > 0 and ref.bulk_steps == 0
@@ -162,7 +164,7 @@ def test_bag_runs_pieces_and_their_arrays_do_not_depend_on_the_block(cases, name
                                                                      monkeypatch):
     veh, bag = cases(name)
     rec = read_recording(bag, veh)
-    monkeypatch.setattr(replay_mod, 'MAX_RUN', 80)
+    monkeypatch.setattr(bulk_runs, 'MAX_RUN', 80)
     _, ref = _runs(rec, veh, WHOLE)
     assert ref.pieces
     if name == 'cart_shifted':
@@ -264,7 +266,7 @@ def test_bag_innovation_health_in_blocks_equals_the_whole_arrays(cases, name, mo
     if name in ('sub', 'loop'):
         assert ref['gyro']['transient'] > 0            # the initial transient is left out
     for block in (1, 7, 113, WHOLE):
-        monkeypatch.setattr(replay_mod, 'HEALTH_BLOCK', block)
+        monkeypatch.setattr(replay_health, 'HEALTH_BLOCK', block)
         assert innovation_health(rep) == ref, block
 
 
@@ -273,7 +275,7 @@ def test_bag_innovation_health_of_a_kalman_filter_and_of_no_rows(tmp_path, monke
     rep = replay(read_recording(write_bag(tmp_path / 'air', simulate(veh, noise=True)[
         'messages']), veh), veh)
     assert rep.kalman and len(rep)
-    monkeypatch.setattr(replay_mod, 'HEALTH_BLOCK', 5)
+    monkeypatch.setattr(replay_health, 'HEALTH_BLOCK', 5)
     assert innovation_health(rep) == _whole_health(rep)
     empty = copy.copy(rep)
     for field in ('stamp_ns', 'x_hat', 'residual', 'whitened', 'epoch', 'seq', 'sensor'):
