@@ -43,11 +43,13 @@ from typing import Dict, Optional, Tuple
 
 import numpy as np
 
+from . import bulk_runs
 from .bulk_replay import _bulk_run, affine_scan
 from .bulk_runs import _find_runs, _has_late
 from .errors import BagToolError
 from .replay_events import _Events, _index_type, _Rows, CLOCK_JUMP_TOLERANCE, epochs_of
 from .replay_health import innovation_health
+from .replay_outputs import ReplayOutputs
 from ..core.errors import ObserverError
 from ..core.estimators import History, make_estimator
 from ..core.innovation import whiten
@@ -133,7 +135,7 @@ def _bulk_capable(est):
 
 def replay(recording, vehicle, name='design', overrides=(), exact=False,
            clock_jump_tolerance=CLOCK_JUMP_TOLERANCE, future_tolerance=FUTURE_TOLERANCE,
-           progress=None):
+           progress=None, spill=None):
     """
     Replay a recording through the estimator of a vehicle configuration.
 
@@ -155,6 +157,11 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
         As the observer node's parameters; ``future_tolerance=None`` disables that check.
     progress : callable, optional
         ``progress(done, total)`` over the events.
+    spill : True or path, optional
+        Keep the output rows in temporary files (in this folder; True: the system's
+        temporary folder) a block at a time instead of in memory: the result's columns
+        are then :class:`~observer_ros.bag.replay_outputs.SpilledColumn` objects, read
+        on demand with the same values (:mod:`observer_ros.bag.replay_outputs`).
 
     Returns
     -------
@@ -192,15 +199,12 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
         cmd_t = cmd.stamp_ns
         cmd_u = cmd.values
     n_meas = int(sum(int((events.kind == k).sum()) for k in range(len(streams))))
-    out_ns = np.zeros(n_meas, dtype=np.int64)
-    out_x = np.zeros((n_meas, plant.n))
-    out_r = np.full((n_meas, plant.p), np.nan)
     kalman = est.kind == 'kalman'
-    out_e = np.full((n_meas, plant.p), np.nan) if kalman else None
     # the narrowest exact types: epochs and bag positions fit the events' index type
-    out_epoch = np.zeros(n_meas, dtype=_index_type(len(events)))
-    out_seq = np.zeros(n_meas, dtype=_index_type(int(events.seq.max()) + 1 if len(events) else 0))
-    out_sensor = np.zeros(n_meas, dtype=np.int8 if len(sensors) < 128 else np.int16)
+    out = ReplayOutputs(n_meas, plant.n, plant.p, kalman, _index_type(len(events)),
+                        _index_type(int(events.seq.max()) + 1 if len(events) else 0),
+                        np.int8 if len(sensors) < 128 else np.int16, spill=spill,
+                        ahead=bulk_runs.MAX_RUN + bulk_runs.MIN_RUN)
     runs = {}
     warnings = []
     if not exact and _bulk_capable(est) and not _has_late(events, streams, cmd, history.length):
@@ -269,32 +273,34 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
         if last is not None and t < last:
             counts['late_measurements'] += 1
             for r, x_r, res_r, S_r in history.revised:     # estimates the late one changed
-                out_x[r] = x_r
-                out_r[r, rows_idx[out_sensor[r]]] = res_r
-                if kalman:
-                    _put_whitened(out_e, r, rows_idx[out_sensor[r]], res_r, S_r)
+                out.revise(r, x_r, rows_idx[out.sensor_of(r)], res_r,
+                           _whitened(res_r, S_r) if kalman else None)
         last_stamp[k] = max(t, last_stamp.get(k, t))
         counts['measurements'] += 1
-        out_ns[m] = stamps[k][j]
-        out_x[m] = history.x_at_stamp
+        b = out.local(m)
+        out.ns[b] = stamps[k][j]
+        out.x[b] = history.x_at_stamp
         res = history.residual
         if res is not None:
-            out_r[m, rows_idx[k]] = res
+            out.r[b, rows_idx[k]] = res
             if kalman:
-                _put_whitened(out_e, m, rows_idx[k], res, history.innovation_covariance)
-        out_epoch[m] = epoch
-        out_seq[m] = sq
-        out_sensor[m] = k
+                w = _whitened(res, history.innovation_covariance)
+                if w is not None:
+                    out.e[b, rows_idx[k]] = w
+        out.epoch[b] = epoch
+        out.seq[b] = sq
+        out.sensor[b] = k
         m += 1
         run = runs.get(i)
         while run is not None:
+            b = out.local(m)
             done = _bulk_run(est, run, streams, cmd, rows, rows_idx,
-                             (out_ns, out_x, out_r, out_seq, out_sensor), m, warnings)
+                             (out.ns, out.x, out.r, out.seq, out.sensor), b, warnings)
             if done is None:             # check failed: replay everything call by call
                 runs = {}
                 break
             steps, i, last = done        # i: the event of the last measurement done
-            out_epoch[m:m + steps] = epoch
+            out.epoch[b:b + steps] = epoch
             m += steps
             bulk_steps += steps
             counts['measurements'] += steps
@@ -306,28 +312,27 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
     if progress is not None:
         progress(total, total)
     # late measurements were used at their stamps: the rows in stamp order (per epoch)
-    order = np.lexsort((out_ns[:m], out_epoch[:m])) if counts['late_measurements'] else \
-        slice(None)
+    cols = out.finish(m, sort=bool(counts['late_measurements']))
     std = None
     if not kalman:      # whitened by the sensors' noise_std (NaN where it is 0), on demand
         std = np.full(plant.p, np.nan)
         for s, r in zip(sensors, rows_idx):
             std[r] = np.where(np.asarray(s.noise_std) > 0.0, s.noise_std, np.nan)
-    return Replay(name=name, vehicle=vehicle, stamp_ns=out_ns[:m][order],
-                  x_hat=out_x[:m][order], residual=out_r[:m][order],
-                  epoch=out_epoch[:m][order], seq=out_seq[:m][order],
-                  sensor=out_sensor[:m][order], counts=counts, overrides=tuple(overrides),
-                  bulk_steps=bulk_steps, warnings=warnings,
-                  whitened=out_e[:m][order] if kalman else None, kalman=kalman, noise_std=std)
+    return Replay(name=name, vehicle=vehicle, stamp_ns=cols['ns'], x_hat=cols['x'],
+                  residual=cols['r'], epoch=cols['epoch'], seq=cols['seq'],
+                  sensor=cols['sensor'], counts=counts, overrides=tuple(overrides),
+                  bulk_steps=bulk_steps, warnings=warnings, whitened=cols['e'],
+                  kalman=kalman, noise_std=std)
 
 
-def _put_whitened(out_e, m, cols, residual, S):
+def _whitened(residual, S):
+    """Return a Kalman residual whitened by its covariance S (None: none to count)."""
     if S is None:           # a Kalman filter before its first covariance: not counted
-        return
+        return None
     try:
-        out_e[m, cols] = whiten(residual, S)
+        return whiten(residual, S)
     except (ValueError, np.linalg.LinAlgError):
-        pass
+        return None
 
 
 def live_replay(recording, vehicle, clock_jump_tolerance=CLOCK_JUMP_TOLERANCE):
