@@ -16,11 +16,11 @@ from bag_synth import blank, CONFIG, JOINT_STATE, simulate, write_bag
 import late_sensors
 import numpy as np
 from numpy.testing import assert_array_equal
-from observer_ros.bag import bulk_runs, replay_health
+from observer_ros.bag import bulk_runs, replay_events, replay_health
 from observer_ros.bag.bulk_runs import _find_runs, _has_late
 from observer_ros.bag.reader import read_recording
-from observer_ros.bag.replay import innovation_health, replay
-from observer_ros.bag.replay_events import _Events
+from observer_ros.bag.replay import epochs_of, innovation_health, replay
+from observer_ros.bag.replay_events import _epoch_cuts, _Events
 from observer_ros.core.compensator import design_vehicle
 from observer_ros.core.estimators import make_estimator
 from observer_ros.core.innovation import sequence_health, transient_time
@@ -331,3 +331,51 @@ def test_bag_replay_outputs_are_held_once_in_narrow_types(cases):
     assert np.isfinite(rep.whitened_rows()).any()
     assert set(np.unique(rep.sensor).tolist()) == {0, 1}
     assert (rep.sensor.dtype, rep.seq.dtype, rep.epoch.dtype) == (np.int8, np.int32, np.int32)
+
+
+def _reference_events(rec, veh):
+    """Return (seq, kind, idx) in the node's order, from the definitions, whole-bag."""
+    parts = []
+    for k, s in enumerate(veh.sensors):
+        st = rec.sensors[s.name]
+        ok = st.valid & ((st.stamp_ns != 0) if st.has_header else True)
+        sel = np.flatnonzero(ok)
+        parts.append((st.seq[sel], np.full(sel.size, k), sel, st.stamp_ns[sel]))
+    cmd = rec.command
+    if cmd is not None and veh.plant.m:
+        sel = np.flatnonzero(cmd.valid)
+        parts.append((cmd.seq[sel], np.full(sel.size, -1), sel, cmd.stamp_ns[sel]))
+    seq, kind, idx, stamp = (np.concatenate(c) for c in zip(*parts))
+    order = np.argsort(seq)
+    if veh.simulator.mode == 'lockstep':
+        stamp = stamp[order]
+        order = order[np.lexsort((seq[order], kind[order] < 0, stamp, epochs_of(stamp)))]
+    return seq[order], kind[order], idx[order]
+
+
+@pytest.mark.parametrize('name', CASES)
+def test_bag_events_merged_in_blocks_are_in_the_nodes_order(cases, name, monkeypatch):
+    veh, bag = cases(name)
+    rec = read_recording(bag, veh)
+    want = _reference_events(rec, veh)
+    for block in (1, 7, 113, replay_events.EVENT_BLOCK):
+        monkeypatch.setattr(replay_events, 'EVENT_BLOCK', block)
+        counts = dict.fromkeys(('zero_stamps', 'bad_messages', 'bad_commands'), 0)
+        events = _Events(rec, list(veh.sensors), veh.plant, counts,
+                         lockstep=veh.simulator.mode == 'lockstep')
+        for got, ref, field in zip((events.seq, events.kind, events.idx), want,
+                                   ('seq', 'kind', 'idx')):
+            assert_array_equal(got, ref, err_msg=f'{field}, block {block}')
+
+
+def test_bag_epoch_cuts_in_blocks_equal_epochs_of():
+    rng = np.random.default_rng(4)
+    for trial in range(20):
+        stamp = np.cumsum(rng.integers(-3, 10, size=200)) * 100_000_000
+        jumps = rng.integers(0, 200, size=trial % 5)
+        for j in jumps:
+            stamp[j:] -= int(rng.integers(0, 3)) * 10**9      # back by 0, 1 or 2 s
+        want = (np.flatnonzero(np.diff(epochs_of(stamp, 0.5))) + 1).tolist()
+        for block in (1, 2, 7, 64, 1000):
+            assert _epoch_cuts(stamp, 0.5, block) == want, (trial, block)
+    assert _epoch_cuts(np.zeros(0, dtype=np.int64), 0.5) == []
