@@ -87,6 +87,11 @@ def test_spilled_column_indexes_like_an_array(tmp_path, monkeypatch):
         col[23]
     with pytest.raises(IndexError):
         col[np.array([3, 30])]
+    empty = SpilledColumn(np.float64, (3,), tmp_path)
+    empty.append(whole[:0])                     # a replay that accepted no measurement
+    for key in (slice(None), (slice(None), 1), slice(None, None, 3), np.zeros(0, bool)):
+        assert_array_equal(empty[key], whole[:0][key], err_msg=repr(key))
+    assert np.asarray(empty).shape == (0, 3)
 
 
 def _written(result, out):

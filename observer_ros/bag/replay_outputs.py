@@ -73,6 +73,8 @@ class SpilledColumn:
     def append(self, rows):
         """Write rows after the last one."""
         rows = np.ascontiguousarray(rows, dtype=self.dtype)
+        if not rows.size:
+            return
         self.file.seek(self.rows * self.row_bytes)
         self.file.write(rows.data.cast('B'))
         self.rows += rows.shape[0]
