@@ -49,13 +49,14 @@ def _floats(values):
     return '[' + ', '.join(repr(float(x)) for x in np.ravel(values)) + ']'
 
 
-def simulate_noisy(v, q, seed, steps=STEPS, t0=1.0):
+def simulate_noisy(v, q, seed, steps=STEPS, t0=1.0, x0=None, noise_scale=1.0):
     """
     Return the messages of a closed loop with input noise of intensity q (see above).
 
-    The loop starts at rest (x = 0, where the observers start too): the vehicle files'
-    initial errors (the submarine's 30 degrees) would make the RMSE mostly a measure of
-    one transient, not of the noise.
+    The loop starts at rest (x = 0, where the observers start too) unless ``x0`` is
+    given: the vehicle files' initial errors (the submarine's 30 degrees) would make the
+    RMSE mostly a measure of one transient, not of the noise. ``noise_scale`` multiplies
+    the sensor's noise_std.
 
     """
     from bag_synth import blank
@@ -68,9 +69,9 @@ def simulate_noisy(v, q, seed, steps=STEPS, t0=1.0):
     design = design_vehicle(v)
     sensor = v.sensors[0]
     rows = plant.output_rows(sensor.outputs)
-    std = np.asarray(sensor.noise_std, float)
+    std = noise_scale * np.asarray(sensor.noise_std, float)
     rng = np.random.default_rng(seed)
-    x = np.zeros(plant.n)
+    x = np.zeros(plant.n) if x0 is None else np.asarray(x0, float).copy()
     u = np.zeros(plant.m)
     messages = []
     for k in range(steps + 1):
