@@ -53,7 +53,7 @@ class PoleSet:
     start: np.ndarray             # the parameters of the poles given to pole_set
 
     def poles(self, theta):
-        """Return the poles (z-plane for a discrete vehicle) of parameters ``theta``."""
+        """Return the poles of parameters ``theta`` (z-plane for a discrete vehicle)."""
         out, i = [], 0
         for kind in self.kinds:
             re = -(self.margin + math.exp(theta[i]))

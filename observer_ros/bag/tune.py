@@ -274,8 +274,9 @@ what it does:
 
 output (folder --out; default <first bag>_tune next to it; never overwritten without
 --force): tune.txt (also on stdout), tune.json, search.csv, autocovariance.png,
-search.png (pole_search.csv, pole_search.png), and the tuned vehicle file (default <out>/<vehicle>_tuned.yaml, --output;
-never overwritten). Compare it with the original:
+search.png (and pole_search.csv, pole_search.png of --search each-pole), and the tuned
+vehicle file (default <out>/<vehicle>_tuned.yaml, --output; never overwritten).
+Compare it with the original:
   observer-eval BAG --vehicle V.yaml --compare <out>/V_tuned.yaml
 
 exit status: 0 done; 2 the bags, the vehicle file or the arguments cannot be used, or

@@ -88,8 +88,8 @@ def _pole_lines(sr):
     head = ['eval', 'mean'] + [f'bag{i + 1}' for i in range(len(names))] + ['poles']
     rows = [[str(r[0])] + [fmt(c) for c in r[1:-1]] + [r[-1]] for r in sr.rows()]
     grid_best = min((m for m in sr.grid.mean if math.isfinite(m)), default=math.nan)
-    return [f'per-pole search (scipy.optimize Nelder-Mead, each real pole and each '
-            f'conjugate pair\'s real part and |imag|, from the poles times '
+    return ['per-pole search (scipy.optimize Nelder-Mead, each real pole and each '
+            "conjugate pair's real part and |imag|, from the poles times "
             f'{fmt(sr.start_scale)}): metric {sr.metric} (mean over the bags)', '',
             text_table(head, rows), '',
             f'best: evaluation {sr.best}, metric {fmt(sr.best_metric)} (best common scale '

@@ -50,7 +50,8 @@ from .errors import ObserverError
 from .model import as_matrix
 
 __all__ = ['ALSError', 'ALSResult', 'DEFAULT_LAGS', 'RANK_TOL', 'predictor_innovations',
-           'predictor_blocks', 'sample_autocovariances', 'model_autocovariances', 'autocovariance_sigma',
+           'predictor_blocks', 'sample_autocovariances', 'model_autocovariances',
+           'autocovariance_sigma',
            'process_noise_map', 'als_matrix', 'identify_noise', 'kalman_predictor_gain']
 
 DEFAULT_LAGS = 15
