@@ -114,8 +114,8 @@ def _regular_step(stamps, block):
     # middle one, or the mean of the two middle ones, converted as the steps were
     k = steps.size // 2
     steps.partition([k - 1, k] if steps.size % 2 == 0 else [k])
-    middle = [float(x) * 1e-9 for x in (steps[k - 1:k + 1] if steps.size % 2 == 0
-                                          else steps[k:k + 1])]
+    middle = steps[k - 1:k + 1] if steps.size % 2 == 0 else steps[k:k + 1]
+    middle = [float(x) * 1e-9 for x in middle]
     dt = float(np.mean(middle))
     del steps
     worst, where = -1.0, 0
