@@ -373,6 +373,7 @@ def test_observer_tune_entry_points_and_help(capsys):
     out = capsys.readouterr().out
     assert done.value.code == 0 and 'autocovariance least squares' in out
     assert '--compare' in out and '--input-noise' in out and '--refine' in out
+    assert 'each-pole' in out and '--evaluations' in out and '--workers' in out
 
 
 def test_sampled_data_in_blocks_is_the_whole_array_result():

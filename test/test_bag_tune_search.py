@@ -161,3 +161,11 @@ def test_per_pole_search_refusals(two_bags, tmp_path, capsys):
     fake.observer.poles = [-1.0, 0.5, -2.0]
     with pytest.raises(BagToolError, match='observer.poles: 0.5.* is not stable'):
         pole_set(fake)
+    # a discrete vehicle's z-plane poles are searched through s = log(z) / dt: the start
+    # gives them back, and any parameters give poles inside the unit circle
+    disc = load_vehicle(CONFIG / 'submarine_discrete.yaml')
+    space = pole_set(disc)
+    assert_allclose(_sorted(space.poles(space.start)), _sorted(disc.observer.poles),
+                    rtol=1e-12)
+    assert np.all(np.abs(space.poles(space.start + 5.0)) < 1.0)
+    assert np.all(np.abs(space.poles(space.start - 30.0)) < 1.0)
