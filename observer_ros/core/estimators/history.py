@@ -39,6 +39,7 @@ the other estimates live.
 
 """
 
+from collections import deque
 import math
 
 from .base import TimeOrderError
@@ -114,7 +115,7 @@ class History:
         self._since = 0                           # messages since the last checkpoint
         self._base = self._est.save_state()      # the state before the first entry
         self._dropped_t = -math.inf               # the newest stamp no longer kept
-        self._checkpoint_t = math.inf             # stamp of the oldest checkpoint kept
+        self._checkpoints = deque()               # the entries with a state, in order
         self._residual = None
         self._S = None
         self._x_at = None
@@ -209,7 +210,7 @@ class History:
         -------
         x_hat : ndarray
             The estimate at the newest stamp applied (t itself unless the measurement is
-            late).
+            late). Not to be modified: it may be :attr:`x_at_stamp` itself.
 
         Raises
         ------
@@ -220,19 +221,37 @@ class History:
 
         """
         est = self._est
-        rows = est.measured_rows if rows is None else tuple(rows)
-        t = est._as_time(t)
+        if rows is None:
+            rows = est.measured_rows
+        elif type(rows) is not tuple:
+            rows = tuple(rows)
         if self.revised:
             self.revised = []
         entries = self._entries
-        last = entries[-1] if entries else None
-        if last is not None and (last[_T] < t or (last[_T] == t and last[_KIND] == _MEASUREMENT)):
-            # in order (the estimator is at the last entry): the fast path
-            entry = _entry(t, _MEASUREMENT, y, rows, tag)
-            self._append(entry)
-            self._drop_old()
-        else:
-            entry = self._insert(_MEASUREMENT, t, y, rows, tag)
+        pending = self._pending
+        if entries and type(t) is float and (not pending or pending[0][_T] >= t):
+            last = entries[-1]
+            if last[_T] < t or (last[_T] == t and last[_KIND] == _MEASUREMENT):
+                # in order, nothing pending before it: the estimator is at the last entry
+                # and this is its step, an entry and a checkpoint every CHECKPOINT_EVERY
+                x = est.correct(t, y, rows)         # refuses a non-finite t
+                residual, S = est.last_residual()
+                since = self._since + 1
+                state = None
+                if since >= CHECKPOINT_EVERY:
+                    since, state = 0, est.save_state()
+                self._since = since
+                entry = [t, _MEASUREMENT, y, rows, tag, state, x, residual, S]
+                entries.append(entry)
+                checkpoints = self._checkpoints
+                if state is not None:
+                    checkpoints.append(entry)
+                if (checkpoints and checkpoints[0][_T] < t - self._length) or \
+                        len(entries) > self._max:
+                    self._drop_old()
+                self._residual, self._S, self._x_at = residual, S, x
+                return x
+        entry = self._insert(_MEASUREMENT, est._as_time(t), y, rows, tag)
         self._residual = entry[_RESIDUAL]
         self._S = entry[_S]
         self._x_at = entry[_X]
@@ -401,13 +420,14 @@ class History:
             entry[_RESIDUAL], entry[_S] = est.last_residual()
         else:
             est.set_input(entry[_T], entry[_VALUE])
-        if checkpoint is None:
+        since_counted = checkpoint is None
+        if since_counted:
             since = self._since + 1
             checkpoint = since >= CHECKPOINT_EVERY
             self._since = 0 if checkpoint else since
-            if checkpoint and self._checkpoint_t == math.inf:
-                self._checkpoint_t = entry[_T]
         entry[_STATE] = est.save_state() if checkpoint else None
+        if checkpoint and since_counted:
+            self._checkpoints.append(entry)        # a rewind lists them again at its end
 
     def _rewind(self, pos, entry):
         est = self._est
@@ -430,7 +450,7 @@ class History:
             # a bad message changes nothing (the states the entries before it got are
             # those they had: the same messages from the same checkpoint)
             est.restore_state(head)
-            self._find_checkpoint()
+            self._find_checkpoints()
             raise
         self.rewinds += 1
         later = entries[pos:]
@@ -445,35 +465,41 @@ class History:
         self._since = count % CHECKPOINT_EVERY
         self.reapplied += len(later) + pos - start
         entries.insert(pos, entry)
-        self._find_checkpoint()
+        self._find_checkpoints()
 
-    def _find_checkpoint(self):
-        """Note the stamp of the oldest checkpoint (the first entry :meth:`_drop_old` drops)."""
-        self._checkpoint_t = next((e[_T] for e in self._entries if e[_STATE] is not None),
-                                  math.inf)
+    def _find_checkpoints(self):
+        """List the entries with a state again (after a rewind moved the checkpoints)."""
+        self._checkpoints = deque(e for e in self._entries if e[_STATE] is not None)
 
     def _drop_old(self):
+        """
+        Drop the entries up to the newest checkpoint older than the window.
+
+        The state of the last entry dropped becomes the base of a rewind, so the entries
+        go a checkpoint's worth at a time: fewer for the window, more for the number of
+        messages (max_messages). The newest entry is kept whatever its stamp.
+        """
         entries = self._entries
+        if not entries:
+            return
         horizon = self._est.t - self._length
-        if self._checkpoint_t >= horizon and len(entries) <= self._max:
-            return                    # no checkpoint older than the window: nothing to drop
-        last = len(entries) - 1       # the newest entry is kept whatever its stamp
-        # the state after the last dropped entry becomes the base, so drop up to the
-        # newest checkpoint older than the horizon: fewer for the horizon, more for the
-        # number of messages (below)
-        drop = j = 0
-        while j < last and entries[j][_T] < horizon:     # at most CHECKPOINT_EVERY or so
-            if entries[j][_STATE] is not None:
-                drop = j + 1
-            j += 1
-        if len(entries) - drop > self._max:
+        checkpoints = self._checkpoints
+        newest = entries[-1]
+        upto = None
+        while checkpoints and checkpoints[0][_T] < horizon and checkpoints[0] is not newest:
+            upto = checkpoints.popleft()
+        drop = 0 if upto is None else entries.index(upto) + 1    # identity first: C speed
+        if len(entries) - drop > self._max:         # rare: stamps crowd
+            last = len(entries) - 1
             drop = len(entries) - self._max
             while drop < last and entries[drop - 1][_STATE] is None:
                 drop += 1
             if entries[drop - 1][_STATE] is None:
                 drop = 0
+            upto = True                             # the checkpoints listed again below
         if drop > 0:
             self._base = entries[drop - 1][_STATE]
             self._dropped_t = max(self._dropped_t, entries[drop - 1][_T])
             del entries[:drop]
-            self._find_checkpoint()
+            if upto is True:
+                self._find_checkpoints()
