@@ -63,8 +63,10 @@ _MEASUREMENT, _COMMAND = 0, 1
 # An entry of the history is a list (cheaper to make than an object, per message):
 # the message's stamp, kind, value, rows and tag, then what applying it gave: the
 # estimator's state after it (a checkpoint, or None), and for a measurement the estimate
-# at its stamp, its residual and S. At one stamp the measurements come before the
-# commands, and messages of one kind in the order they arrived.
+# at its stamp, its residual and S (for the call itself and :attr:`History.revised`; the
+# fast path of :meth:`History.correct` does not keep them). At one stamp the
+# measurements come before the commands, and messages of one kind in the order they
+# arrived.
 _T, _KIND, _VALUE, _ROWS, _TAG, _STATE, _X, _RESIDUAL, _S = range(9)
 
 
@@ -241,7 +243,9 @@ class History:
                 if since >= CHECKPOINT_EVERY:
                     since, state = 0, est.save_state()
                 self._since = since
-                entry = [t, _MEASUREMENT, y, rows, tag, state, x, residual, S]
+                # x, residual and S are not kept: a rewind computes them again, and they
+                # go when the caller is done with them (memory reused, not held)
+                entry = [t, _MEASUREMENT, y, rows, tag, state, None, None, None]
                 entries.append(entry)
                 checkpoints = self._checkpoints
                 if state is not None:
