@@ -24,15 +24,15 @@ observers fuse them into one correction (the same result), a Kalman filter updat
 them in turn (the same to round-off).
 
 A command stamped ahead of the estimate (the compensator's delay compensation stamps its
-commands a few steps ahead) is held *pending*: it is applied when the estimate reaches its
-stamp (a measurement after it, or a prediction to or past it), not propagated to at once.
-So the measurements that come before its stamp are in order, not late (no rewind), and
-the result is that of the stamp order all the same.
+commands a few steps ahead) is held *pending*: it is applied when the estimate passes its
+stamp (a measurement after it; a prediction to or past it uses it), not propagated to at
+once. So the measurements that come before its stamp are in order, not late (no rewind),
+and the result is that of the stamp order all the same.
 
-A message newer than everything held costs little more than the estimator's own step
-(benchmarks/README.md, session 6): the entries are plain lists, compared by stamp and kind
-only on a rewind, and the old ones are dropped when the oldest checkpoint leaves the
-window (its stamp cached), not searched for per message.
+A measurement newer than everything held costs little more than the estimator's own step
+(benchmarks/README.md, session 6): its entry is a plain list placed without a sort key,
+and the old entries are dropped when the oldest checkpoint (kept in a deque) leaves the
+window, not searched for per message.
 
 The node and the bag replay both use this class: what one estimates from a recording,
 the other estimates live.
