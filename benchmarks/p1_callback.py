@@ -67,7 +67,7 @@ rclpy.try_shutdown()
 """
 
 
-def _command(directory, count, reps):
+def driver_command(directory, count, reps):
     """Return the environment and command line of the driver on one version."""
     env = dict(os.environ, PYTHONPATH=str(directory), ROS_DOMAIN_ID='48')
     config = Path(directory) / 'config' / 'submarine.yaml'
@@ -78,7 +78,7 @@ def _command(directory, count, reps):
 
 def _blocks(directory, count, reps):
     """Run the driver on one version; return its blocks' CPU per message (us)."""
-    env, argv = _command(directory, count, reps)
+    env, argv = driver_command(directory, count, reps)
     out = subprocess.run(argv, env=env, cwd=str(directory),
                          capture_output=True, text=True, check=True).stdout
     return [float(line) for line in out.split()]
@@ -88,7 +88,7 @@ def _interleaved(versions, count, reps):
     """Run every version at once, a block at a time in turn; return their blocks (us)."""
     procs = []
     for _, directory in versions:
-        env, argv = _command(directory, count, reps)
+        env, argv = driver_command(directory, count, reps)
         procs.append(subprocess.Popen(argv + ['interleave'], env=env, cwd=str(directory),
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                       stderr=subprocess.DEVNULL, text=True))
