@@ -21,7 +21,6 @@ Usage: ``python benchmarks/p1_instructions.py NAME=DIR [NAME=DIR ...]``.
 
 import argparse
 from concurrent.futures import ThreadPoolExecutor
-import os
 from pathlib import Path
 import shutil
 import subprocess

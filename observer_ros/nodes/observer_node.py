@@ -200,14 +200,14 @@ class ObserverNode(ObserverHealth, VehicleNode):
         if not late and head is not None and t - head > self._max_gap:
             self._long_gap(sensor, t, y, rows)
         estimator = self.estimator
-        skipped = getattr(estimator, 'unverified_corrections', 0)
+        skipped = estimator.unverified_corrections
         try:
             x_hat = history.correct(t, y, rows, tag=stamp)
         except (ObserverError, ValueError) as err:
             self._reject('rejected_updates', f'{sensor.topic}: {err}')
             self._answer_without_correction(sensor, t, stamp)
             return
-        if skipped != getattr(estimator, 'unverified_corrections', 0):
+        if skipped != estimator.unverified_corrections:
             # the gain of this step failed its verification: prediction only (core)
             reason = next(reversed(self.estimator.gain_failures.values()))
             self._reject('unverified_gain_corrections',

@@ -107,6 +107,9 @@ class Estimator:
     #: The attributes that make the state of an estimator (everything but its caches):
     #: what :meth:`save_state` copies. Subclasses add theirs.
     _STATE = ('_x', '_u', '_t', '_t_anchor', '_residual', '_residual_rows')
+    #: corrections skipped because their gain failed its verification (observers given
+    #: poles count them; the others never skip one)
+    unverified_corrections = 0
 
     def __init__(self, plant, x0=None, t0=None, measured_rows=None,
                  dt_digits=DT_DIGITS, cache_size=CACHE_SIZE, gain_digits=GAIN_DIGITS):
