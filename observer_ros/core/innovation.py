@@ -257,6 +257,7 @@ class InnovationMonitor:
         self._transient = float(transient)
         self._std = {}
         self._inv_std = {}              # None where a noise_std is 0 (cannot whiten)
+        self._size = {}                 # outputs per sensor (an int: read per message)
         # per sensor, the last ``window`` residuals as (values, factor): plain floats and
         # what whitens them (1 / noise_std, or 1 / sqrt(S) of one output, or 1.0 when
         # already whitened), multiplied when the window is judged (:meth:`health`, at the
@@ -267,6 +268,7 @@ class InnovationMonitor:
         for name, std in sensors:
             std = np.asarray(std, dtype=float).reshape(-1)
             self._std[name] = std
+            self._size[name] = std.size
             self._inv_std[name] = 1.0 / std if np.all(std > 0.0) else None
             self._ring[name] = [None] * self._window
         self.restart()
@@ -326,7 +328,7 @@ class InnovationMonitor:
         except (ValueError, TypeError, np.linalg.LinAlgError):
             return
         # plain floats: cheaper than numpy on a few elements (per message)
-        if len(values) != self._std[name].size or not all(map(math.isfinite, values)):
+        if len(values) != self._size[name] or not all(map(math.isfinite, values)):
             return
         k = self._count[name]
         self._ring[name][k % self._window] = (values, factor)
