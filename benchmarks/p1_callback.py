@@ -14,7 +14,13 @@ messages are timed with ``time.process_time``. The versions are alternated, ``--
 times. Printed per version: the smallest block (the least disturbed by other processes)
 and the median, in microseconds of CPU per message.
 
-Usage: ``python benchmarks/p1_callback.py NAME=DIR [NAME=DIR ...]``.
+With ``--interleave`` the versions' processes run side by side, one block at a time in
+turn (the others wait on a pipe, idle), the order rotated every block: each version's
+blocks then meet the same load of the host, and each block of a version is paired with
+the next version's. Also printed: the median and spread of the per-block ratios against
+the first version (the figure a shared host moves least).
+
+Usage: ``python benchmarks/p1_callback.py NAME=DIR [NAME=DIR ...] [--interleave]``.
 
 """
 
@@ -47,25 +53,69 @@ def one(i):
     node._on_measurement(sensor, msg)
 for i in range(500):
     one(i)
+interleave = len(sys.argv) > 5
 for rep in range(reps):
+    if interleave:              # wait for our turn
+        print('ready', flush=True)
+        sys.stdin.readline()
     c0 = time.process_time()
     for i in range(500 + rep * count, 500 + (rep + 1) * count):
         one(i)
-    print((time.process_time() - c0) / count * 1e6)
+    print((time.process_time() - c0) / count * 1e6, flush=True)
 node.destroy_node()
 rclpy.try_shutdown()
 """
 
 
-def _blocks(directory, count, reps):
-    """Run the driver on one version; return its blocks' CPU per message (us)."""
+def _command(directory, count, reps):
+    """Return the environment and command line of the driver on one version."""
     env = dict(os.environ, PYTHONPATH=str(directory), ROS_DOMAIN_ID='48')
     config = Path(directory) / 'config' / 'submarine.yaml'
     bench = str(Path(__file__).resolve().parent)     # the driver's _common
-    out = subprocess.run([sys.executable, '-W', 'ignore', '-c', DRIVER, str(count), str(reps),
-                          str(config), bench], env=env, cwd=str(directory),
+    return env, [sys.executable, '-W', 'ignore', '-c', DRIVER, str(count), str(reps),
+                 str(config), bench]
+
+
+def _blocks(directory, count, reps):
+    """Run the driver on one version; return its blocks' CPU per message (us)."""
+    env, argv = _command(directory, count, reps)
+    out = subprocess.run(argv, env=env, cwd=str(directory),
                          capture_output=True, text=True, check=True).stdout
     return [float(line) for line in out.split()]
+
+
+def _interleaved(versions, count, reps):
+    """Run every version at once, a block at a time in turn; return their blocks (us)."""
+    procs = []
+    for _, directory in versions:
+        env, argv = _command(directory, count, reps)
+        procs.append(subprocess.Popen(argv + ['interleave'], env=env, cwd=str(directory),
+                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                      stderr=subprocess.DEVNULL, text=True))
+    blocks = [[] for _ in versions]
+    try:
+        for proc in procs:                      # every warm-up done
+            _expect_ready(proc)
+        for rep in range(reps):
+            turn = rep % len(procs)
+            for v in list(range(turn, len(procs))) + list(range(turn)):
+                proc = procs[v]
+                proc.stdin.write('go\n')
+                proc.stdin.flush()
+                blocks[v].append(float(proc.stdout.readline()))
+                if rep + 1 < reps:
+                    _expect_ready(proc)
+    finally:
+        for proc in procs:
+            proc.stdin.close()
+            proc.wait(timeout=60)
+    return blocks
+
+
+def _expect_ready(proc):
+    line = proc.stdout.readline().strip()
+    if line != 'ready':
+        raise RuntimeError(f'driver said {line!r} instead of ready')
 
 
 def main(argv=None):
@@ -74,6 +124,8 @@ def main(argv=None):
     parser.add_argument('--count', type=int, default=1000, help='messages per block')
     parser.add_argument('--reps', type=int, default=15, help='blocks per run')
     parser.add_argument('--rounds', type=int, default=4, help='runs of each version')
+    parser.add_argument('--interleave', action='store_true',
+                        help='run the versions side by side, a block of each in turn')
     args = parser.parse_args(argv)
     versions = [v.split('=', 1) for v in args.versions]
     for name, directory in versions:
@@ -83,16 +135,30 @@ def main(argv=None):
     print(f'load average at start: {os.getloadavg()[0]:.2f}')
     blocks = {name: [] for name, _ in versions}
     for r in range(args.rounds):
+        if args.interleave:
+            for (name, _), got in zip(versions, _interleaved(versions, args.count, args.reps)):
+                blocks[name] += got
+                _print_round(r, name, got)
+            continue
         for name, directory in (versions if r % 2 == 0 else versions[::-1]):
             got = _blocks(directory, args.count, args.reps)
             blocks[name] += got
-            print(f'  round {r + 1} {name:>10}: min {min(got):.1f} us, median '
-                  f'{statistics.median(got):.1f} us per message', flush=True)
+            _print_round(r, name, got)
+    first = versions[0][0]
     for name, got in blocks.items():
         print(f'CALLBACK {name}: min {min(got):.1f} us, median {statistics.median(got):.1f} us '
               f'of CPU per message ({len(got)} blocks of {args.count})')
+        if args.interleave and name != first:
+            ratios = [a / b for a, b in zip(got, blocks[first])]
+            print(f'  {name} / {first}, block by block: median {statistics.median(ratios):.3f}'
+                  f' [{min(ratios):.3f}..{max(ratios):.3f}]')
     print(f'load average at end: {os.getloadavg()[0]:.2f}')
     return 0
+
+
+def _print_round(r, name, got):
+    print(f'  round {r + 1} {name:>10}: min {min(got):.1f} us, median '
+          f'{statistics.median(got):.1f} us per message', flush=True)
 
 
 if __name__ == '__main__':

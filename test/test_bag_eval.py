@@ -319,7 +319,7 @@ def test_bag_lockstep_replay_takes_the_nodes_order_not_the_receive_order(runs, t
 
 def test_bag_bulk_self_check_catches_a_discrepancy_anywhere(runs, tmp_path, monkeypatch):
     """A wrong input or a wrong step anywhere in a stretch: replayed call by call."""
-    import observer_ros.bag.replay as replay_module
+    import observer_ros.bag.bulk_replay as bulk_module
     vehicle, run = runs['sub_noisy']
     rec = read_recording(write_bag(tmp_path / 'swapped', _swap_commands(run['messages'])),
                          vehicle)
@@ -339,18 +339,18 @@ def test_bag_bulk_self_check_catches_a_discrepancy_anywhere(runs, tmp_path, monk
         ok[ok] = c_seq[last[ok]] > mseq[a]
         U[ok] = cmd.values[c_idx[last[ok]]]
         return U
-    monkeypatch.setattr(replay_module, '_held_inputs', bag_order_inputs)
+    monkeypatch.setattr(bulk_module, '_held_inputs', bag_order_inputs)
     rep = replay(rec, vehicle)
     assert rep.bulk_steps == 0 and 'bulk replay disabled' in rep.warnings[0]
     assert_array_equal(rep.x_hat, live.x_hat)
     monkeypatch.undo()
-    scan = replay_module.affine_scan
+    scan = bulk_module.affine_scan
     for where in (0.3, 0.77, 0.999):
         def bad_scan(F, W, x0, steps=None, chunk=1 << 16, where=where):
             X = scan(F, W, x0, steps, chunk)
             X[int(where * len(X)), 1] += 1e-8 * np.max(np.abs(X))      # one step
             return X
-        monkeypatch.setattr(replay_module, 'affine_scan', bad_scan)
+        monkeypatch.setattr(bulk_module, 'affine_scan', bad_scan)
         rep = replay(rec, vehicle)
         assert rep.bulk_steps == 0 and 'bulk replay disabled' in rep.warnings[0], where
         assert_array_equal(rep.x_hat, live.x_hat)

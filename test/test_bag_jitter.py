@@ -12,8 +12,9 @@ import copy
 from bag_synth import CONFIG, simulate, write_bag
 import numpy as np
 from numpy.testing import assert_allclose
+from observer_ros.bag.bulk_checks import _twin
 from observer_ros.bag.reader import read_recording
-from observer_ros.bag.replay import _twin, replay
+from observer_ros.bag.replay import replay
 from observer_ros.core.estimators import make_estimator
 from observer_ros.vehicle import load_vehicle
 
@@ -63,7 +64,7 @@ def test_a_twin_has_its_own_state_and_the_same_caches():
 
 def test_long_stretches_are_replayed_in_pieces_with_the_same_estimates(tmp_path,
                                                                        monkeypatch):
-    from observer_ros.bag import replay as replay_module
+    from observer_ros.bag import bulk_runs
     vehicle = load_vehicle(CONFIG / 'submarine.yaml')
     run = simulate(vehicle, steps=600, noise=True)
     bag = write_bag(tmp_path / 'long', run['messages'])
@@ -71,7 +72,7 @@ def test_long_stretches_are_replayed_in_pieces_with_the_same_estimates(tmp_path,
     whole = replay(rec, vehicle)
     exact = replay(rec, vehicle, exact=True)
     assert whole.bulk_steps > 500
-    monkeypatch.setattr(replay_module, 'MAX_RUN', 100)
+    monkeypatch.setattr(bulk_runs, 'MAX_RUN', 100)
     pieces = replay(rec, vehicle)
     assert pieces.bulk_steps == whole.bulk_steps and not pieces.warnings
     assert pieces.counts == whole.counts
@@ -81,22 +82,22 @@ def test_long_stretches_are_replayed_in_pieces_with_the_same_estimates(tmp_path,
 
 
 def test_jittered_maps_are_built_in_bulk_with_few_probes(tmp_path, monkeypatch):
-    from observer_ros.bag import replay as replay_module
+    from observer_ros.bag import bulk_replay
     vehicle = load_vehicle(CONFIG / 'submarine.yaml')
     run = simulate(vehicle, steps=400, noise=True)
     rec = read_recording(write_bag(tmp_path / 'jit', _jittered(run['messages'])), vehicle)
     calls = []
-    probe = replay_module._probe
+    probe = bulk_replay._probe
 
     def counted(*args):
         calls.append(args[1])
         return probe(*args)
 
-    monkeypatch.setattr(replay_module, '_probe', counted)
+    monkeypatch.setattr(bulk_replay, '_probe', counted)
     bulk = replay(rec, vehicle)
     exact = replay(rec, vehicle, exact=True)
     assert bulk.bulk_steps > 300 and not bulk.warnings
-    assert len(calls) <= replay_module.CHECK_CLASSES       # one probe per step before
+    assert len(calls) <= bulk_replay.CHECK_CLASSES       # one probe per step before
     assert_allclose(bulk.x_hat, exact.x_hat, rtol=1e-9, atol=1e-10)
     assert_allclose(bulk.residual, exact.residual, rtol=1e-9, atol=1e-10)
 
@@ -119,7 +120,7 @@ def test_zoh_stack_equals_scipy_expm():
 
 
 def test_bulk_maps_equal_the_probed_maps_of_every_step():
-    from observer_ros.bag.replay import _probe
+    from observer_ros.bag.bulk_replay import _probe
     from observer_ros.bag.step_maps import bulk_maps
     vehicle = load_vehicle(CONFIG / 'submarine.yaml')
     rows = [tuple(vehicle.plant.output_rows(vehicle.sensors[0].outputs))]
@@ -154,7 +155,7 @@ def test_gain_brackets_equal_the_estimators_key_by_key():
 
 
 def test_key_ids_number_the_keys_and_mark_steps_without_one():
-    from observer_ros.bag.replay import _key_ids
+    from observer_ros.bag.bulk_runs import _key_ids
     from observer_ros.core.errors import ObserverError
 
     def key_of(h):

@@ -1,6 +1,6 @@
 # test/test_bag_replay_blocks.py: the bulk stretches found a block at a time.
 """
-The replay finds its bulk stretches a block of steps at a time (``replay._Runs``).
+The replay finds its bulk stretches a block of steps at a time (``bulk_runs._Runs``).
 
 Any block size gives the same pieces and bit-identical estimates, residuals and
 counts as one block over the whole bag, on bags with several sensors, commands, truth,
@@ -16,9 +16,11 @@ from bag_synth import blank, CONFIG, JOINT_STATE, simulate, write_bag
 import late_sensors
 import numpy as np
 from numpy.testing import assert_array_equal
-from observer_ros.bag import replay as replay_mod
+from observer_ros.bag import bulk_runs, replay_events, replay_health
+from observer_ros.bag.bulk_runs import _find_runs, _has_late
 from observer_ros.bag.reader import read_recording
-from observer_ros.bag.replay import _Events, _find_runs, _has_late, innovation_health, replay
+from observer_ros.bag.replay import epochs_of, innovation_health, replay
+from observer_ros.bag.replay_events import _epoch_cuts, _Events
 from observer_ros.core.compensator import design_vehicle
 from observer_ros.core.estimators import make_estimator
 from observer_ros.core.innovation import sequence_health, transient_time
@@ -118,8 +120,8 @@ def cases(tmp_path_factory):
 
 
 def _replayed(rec, veh, monkeypatch, block, max_run):
-    monkeypatch.setattr(replay_mod, 'RUN_BLOCK', block)
-    monkeypatch.setattr(replay_mod, 'MAX_RUN', max_run)
+    monkeypatch.setattr(bulk_runs, 'RUN_BLOCK', block)
+    monkeypatch.setattr(bulk_runs, 'MAX_RUN', max_run)
     return replay(rec, veh)
 
 
@@ -127,7 +129,7 @@ def _replayed(rec, veh, monkeypatch, block, max_run):
 def test_bag_replay_in_blocks_equals_one_block(cases, name, monkeypatch):
     veh, bag = cases(name)
     rec = read_recording(bag, veh)
-    for max_run in (replay_mod.MAX_RUN, 100):
+    for max_run in (bulk_runs.MAX_RUN, 100):
         ref = _replayed(rec, veh, monkeypatch, WHOLE, max_run)
         if name == 'late':
             assert ref.counts['late_measurements'] > 0 and ref.bulk_steps == 0
@@ -162,7 +164,7 @@ def test_bag_runs_pieces_and_their_arrays_do_not_depend_on_the_block(cases, name
                                                                      monkeypatch):
     veh, bag = cases(name)
     rec = read_recording(bag, veh)
-    monkeypatch.setattr(replay_mod, 'MAX_RUN', 80)
+    monkeypatch.setattr(bulk_runs, 'MAX_RUN', 80)
     _, ref = _runs(rec, veh, WHOLE)
     assert ref.pieces
     if name == 'cart_shifted':
@@ -264,7 +266,7 @@ def test_bag_innovation_health_in_blocks_equals_the_whole_arrays(cases, name, mo
     if name in ('sub', 'loop'):
         assert ref['gyro']['transient'] > 0            # the initial transient is left out
     for block in (1, 7, 113, WHOLE):
-        monkeypatch.setattr(replay_mod, 'HEALTH_BLOCK', block)
+        monkeypatch.setattr(replay_health, 'HEALTH_BLOCK', block)
         assert innovation_health(rep) == ref, block
 
 
@@ -273,7 +275,7 @@ def test_bag_innovation_health_of_a_kalman_filter_and_of_no_rows(tmp_path, monke
     rep = replay(read_recording(write_bag(tmp_path / 'air', simulate(veh, noise=True)[
         'messages']), veh), veh)
     assert rep.kalman and len(rep)
-    monkeypatch.setattr(replay_mod, 'HEALTH_BLOCK', 5)
+    monkeypatch.setattr(replay_health, 'HEALTH_BLOCK', 5)
     assert innovation_health(rep) == _whole_health(rep)
     empty = copy.copy(rep)
     for field in ('stamp_ns', 'x_hat', 'residual', 'whitened', 'epoch', 'seq', 'sensor'):
@@ -329,3 +331,51 @@ def test_bag_replay_outputs_are_held_once_in_narrow_types(cases):
     assert np.isfinite(rep.whitened_rows()).any()
     assert set(np.unique(rep.sensor).tolist()) == {0, 1}
     assert (rep.sensor.dtype, rep.seq.dtype, rep.epoch.dtype) == (np.int8, np.int32, np.int32)
+
+
+def _reference_events(rec, veh):
+    """Return (seq, kind, idx) in the node's order, from the definitions, whole-bag."""
+    parts = []
+    for k, s in enumerate(veh.sensors):
+        st = rec.sensors[s.name]
+        ok = st.valid & ((st.stamp_ns != 0) if st.has_header else True)
+        sel = np.flatnonzero(ok)
+        parts.append((st.seq[sel], np.full(sel.size, k), sel, st.stamp_ns[sel]))
+    cmd = rec.command
+    if cmd is not None and veh.plant.m:
+        sel = np.flatnonzero(cmd.valid)
+        parts.append((cmd.seq[sel], np.full(sel.size, -1), sel, cmd.stamp_ns[sel]))
+    seq, kind, idx, stamp = (np.concatenate(c) for c in zip(*parts))
+    order = np.argsort(seq)
+    if veh.simulator.mode == 'lockstep':
+        stamp = stamp[order]
+        order = order[np.lexsort((seq[order], kind[order] < 0, stamp, epochs_of(stamp)))]
+    return seq[order], kind[order], idx[order]
+
+
+@pytest.mark.parametrize('name', CASES)
+def test_bag_events_merged_in_blocks_are_in_the_nodes_order(cases, name, monkeypatch):
+    veh, bag = cases(name)
+    rec = read_recording(bag, veh)
+    want = _reference_events(rec, veh)
+    for block in (1, 7, 113, replay_events.EVENT_BLOCK):
+        monkeypatch.setattr(replay_events, 'EVENT_BLOCK', block)
+        counts = dict.fromkeys(('zero_stamps', 'bad_messages', 'bad_commands'), 0)
+        events = _Events(rec, list(veh.sensors), veh.plant, counts,
+                         lockstep=veh.simulator.mode == 'lockstep')
+        for got, ref, field in zip((events.seq, events.kind, events.idx), want,
+                                   ('seq', 'kind', 'idx')):
+            assert_array_equal(got, ref, err_msg=f'{field}, block {block}')
+
+
+def test_bag_epoch_cuts_in_blocks_equal_epochs_of():
+    rng = np.random.default_rng(4)
+    for trial in range(20):
+        stamp = np.cumsum(rng.integers(-3, 10, size=200)) * 100_000_000
+        jumps = rng.integers(0, 200, size=trial % 5)
+        for j in jumps:
+            stamp[j:] -= int(rng.integers(0, 3)) * 10**9      # back by 0, 1 or 2 s
+        want = (np.flatnonzero(np.diff(epochs_of(stamp, 0.5))) + 1).tolist()
+        for block in (1, 2, 7, 64, 1000):
+            assert _epoch_cuts(stamp, 0.5, block) == want, (trial, block)
+    assert _epoch_cuts(np.zeros(0, dtype=np.int64), 0.5) == []

@@ -49,13 +49,14 @@ def _floats(values):
     return '[' + ', '.join(repr(float(x)) for x in np.ravel(values)) + ']'
 
 
-def simulate_noisy(v, q, seed, steps=STEPS, t0=1.0):
+def simulate_noisy(v, q, seed, steps=STEPS, t0=1.0, x0=None, noise_scale=1.0):
     """
     Return the messages of a closed loop with input noise of intensity q (see above).
 
-    The loop starts at rest (x = 0, where the observers start too): the vehicle files'
-    initial errors (the submarine's 30 degrees) would make the RMSE mostly a measure of
-    one transient, not of the noise.
+    The loop starts at rest (x = 0, where the observers start too) unless ``x0`` is
+    given: the vehicle files' initial errors (the submarine's 30 degrees) would make the
+    RMSE mostly a measure of one transient, not of the noise. ``noise_scale`` multiplies
+    the sensor's noise_std.
 
     """
     from bag_synth import blank
@@ -68,9 +69,9 @@ def simulate_noisy(v, q, seed, steps=STEPS, t0=1.0):
     design = design_vehicle(v)
     sensor = v.sensors[0]
     rows = plant.output_rows(sensor.outputs)
-    std = np.asarray(sensor.noise_std, float)
+    std = noise_scale * np.asarray(sensor.noise_std, float)
     rng = np.random.default_rng(seed)
-    x = np.zeros(plant.n)
+    x = np.zeros(plant.n) if x0 is None else np.asarray(x0, float).copy()
     u = np.zeros(plant.m)
     messages = []
     for k in range(steps + 1):
@@ -372,3 +373,47 @@ def test_observer_tune_entry_points_and_help(capsys):
     out = capsys.readouterr().out
     assert done.value.code == 0 and 'autocovariance least squares' in out
     assert '--compare' in out and '--input-noise' in out and '--refine' in out
+    assert 'each-pole' in out and '--evaluations' in out and '--workers' in out
+
+
+def test_sampled_data_in_blocks_is_the_whole_array_result():
+    # sampled_data checks the steps and looks the commands up a block at a time: any
+    # block gives the whole-array result, jittered stamps (an even number of steps: the
+    # median of two middle values) included, and refuses at the same sample
+    from types import SimpleNamespace
+    from observer_ros.bag.reader import Stream
+    from observer_ros.bag.sampled import sampled_data
+    v = load_vehicle(CONFIG / 'submarine.yaml')
+    rng = np.random.default_rng(3)
+    N = 1001
+    ns = 10**9 + np.arange(N) * 50_000_000 + rng.integers(-300_000, 300_000, N)
+    valid = np.ones(N, dtype=bool)
+    valid[[0, N - 1]] = False                   # (invalid inside would be a gap)
+    q = rng.standard_normal((N, 1))
+    c_ns = ns[::10] + np.where(np.arange(len(ns[::10])) % 2, 0, 1000)   # some equal stamps
+    c_val = rng.standard_normal((c_ns.size, 1))
+
+    def stream(stamps, values, ok):
+        n = stamps.size
+        return Stream('t', 'x', ('q',), np.arange(n), stamps, stamps, values, ok)
+
+    def rec(stamps):
+        return SimpleNamespace(sensors={'gyro': stream(stamps, q, valid)},
+                               command=stream(c_ns, c_val, np.ones(c_ns.size, dtype=bool)))
+    whole = sampled_data(rec(ns), v, block=10**6)
+    steps = np.diff(ns[valid]).astype(np.float64) * 1e-9
+    assert steps.size % 2 == 0 and whole.dt == float(np.median(steps))
+    assert whole.y.shape == (N - 2, 1) and np.array_equal(whole.y[:, 0], q[valid, 0])
+    held = np.searchsorted(c_ns, ns[valid], side='right') - 1
+    assert np.array_equal(whole.u[held >= 0, 0], c_val[held[held >= 0], 0])
+    assert np.any(whole.u != whole.u_meas)          # a command stamped at its sample
+    for block in (1, 7, 64):
+        part = sampled_data(rec(ns), v, block=block)
+        assert part.dt == whole.dt
+        for key in ('stamp_ns', 'y', 'u', 'u_meas'):
+            assert np.array_equal(getattr(part, key), getattr(whole, key)), key
+    gap = ns.copy()
+    gap[700:] += 20_000_000             # one step 40 % long: valid samples 698 to 699
+    for block in (7, 10**6):
+        with pytest.raises(BagToolError, match='s at sample 699 against a median'):
+            sampled_data(rec(gap), v, block=block)

@@ -197,7 +197,7 @@ def _load_vehicle(vehicle, overrides=()):
 
 def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=None,
                  exact=False, progress=None, clock_jump_tolerance=CLOCK_JUMP_TOLERANCE,
-                 include_live=True, include_design=True, compare=None):
+                 include_live=True, include_design=True, compare=None, spill=None):
     """
     Replay a bag through the vehicle's design and variants, and score them.
 
@@ -230,6 +230,9 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
         ``{name: vehicle file}``: other vehicle files replayed as variants (e.g. a
         tuned file against the original); same states, inputs and sensors as
         ``vehicle``.
+    spill : True or path, optional
+        Keep each replay's rows in temporary files (:func:`~observer_ros.bag.replay.replay`'s
+        ``spill``): memory no longer grows with them; every figure is the same.
 
     Returns
     -------
@@ -311,7 +314,7 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
         try:
             rep = replay(recording, v, name=name, overrides=overrides, exact=exact,
                          clock_jump_tolerance=clock_jump_tolerance,
-                         progress=stage(f'replaying {name}'))
+                         progress=stage(f'replaying {name}'), spill=spill)
         except ObserverError as err:
             if isinstance(err, BagToolError):
                 raise BagToolError(f'variant {name!r}: {err}') from None
@@ -525,6 +528,9 @@ def _parser():
                              f'(default {BAG_MAX_MESSAGES}; decimated beyond)')
     parser.add_argument('--exact', action='store_true',
                         help='call the estimator for every message (no bulk replay)')
+    parser.add_argument('--in-memory', action='store_true',
+                        help="keep the replays' rows in memory (default: in temporary files "
+                        'in TMPDIR, a block at a time, so that a long bag fits in memory)')
     parser.add_argument('--progress', action='store_true',
                         help='show progress even when stderr is not a terminal')
     return parser
@@ -567,7 +573,7 @@ def main(argv=None):
             warnings.simplefilter('ignore')
             result = evaluate_bag(args.bag, args.vehicle, variants, args.namespace,
                                   args.tolerance, exact=args.exact, progress=progress,
-                                  compare=compare)
+                                  compare=compare, spill=None if args.in_memory else True)
             progress.finish()
             files = write_results(result, out, force=args.force, plots=not args.no_plots,
                                   results_bag=not args.no_bag, bag_max_messages=args.bag_max)

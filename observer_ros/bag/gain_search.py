@@ -15,7 +15,9 @@ with one variant per scale); ``refine`` then narrows the best grid interval with
 error norm against ``state/true`` when every bag has it (``error_rms``); otherwise, per
 output, the residual RMS relative to that of the scale nearest 1, plus the fraction of
 autocorrelation lags outside +-1.96/sqrt(N) (0.05 for white residuals), averaged over the
-outputs. The search minimises the mean over the bags.
+outputs. Over many bags the metric is the mean of the per-bag metrics (each bag's is
+in the table); the search minimises it. The grid's bag x scale evaluations can run as
+jobs on Dask (``dask``), with the numbers of this process.
 
 """
 
@@ -28,7 +30,8 @@ import numpy as np
 from .errors import BagToolError
 from .evaluate import evaluate_bag
 
-__all__ = ['DEFAULT_SCALES', 'SearchResult', 'search_overrides', 'gain_search']
+__all__ = ['DEFAULT_SCALES', 'SearchResult', 'search_overrides', 'score_variants',
+           'bag_keys', 'gain_search']
 
 DEFAULT_SCALES = tuple(float(s) for s in np.round(np.geomspace(0.25, 4.0, 9), 4))
 
@@ -55,6 +58,12 @@ class SearchResult:
         return {'kind': self.kind, 'metric': self.metric, 'scales': self.scales,
                 'per_bag': self.per_bag, 'mean': self.mean, 'best': self.best,
                 'overrides': {str(k): v for k, v in self.overrides.items()}}
+
+
+def metric_name(truth):
+    """Return the metric's description (with or without ``state/true`` in every bag)."""
+    return 'error_rms (|x_hat - x_true| RMS)' if truth else \
+        'residual RMS / that at scale ~1 + fraction of ACF lags outside'
 
 
 def _floats(values):
@@ -87,45 +96,104 @@ def search_overrides(vehicle, kind, scale):
     raise BagToolError(f'--search {kind!r}: expected poles or kalman')
 
 
-def _bag_metric(result, names, scales, truth):
+def _number(v):
+    return math.nan if v is None else float(v)
+
+
+def _bag_metric(summaries, outputs, names, ref, truth):
+    """
+    Return the metric of each variant of one bag.
+
+    ``summaries`` and ``outputs`` are each variant's summary and per-output metrics (by
+    name; None for NaN, as the job rows have them), ``ref`` the residual metric's base.
+
+    """
     if truth:
-        return [result.variants[n].summary.get('error_rms', math.nan) for n in names]
-    ref = names[int(np.argmin([abs(math.log(s)) for s in scales]))]
+        return [_number(summaries[n].get('error_rms')) for n in names]
     out = []
     for n in names:
         terms = []
-        for output, m in result.variants[n].outputs.items():
-            base = result.variants[ref].outputs[output]['residual_rms']
+        for output, m in outputs[n].items():
+            base = _number(outputs[ref][output]['residual_rms'])
             if m['samples'] and base and math.isfinite(base):
-                terms.append(m['residual_rms'] / base + (m['acf_outside'] or 0.0))
+                outside = _number(m['acf_outside'])
+                terms.append(_number(m['residual_rms']) / base +
+                             (outside if math.isfinite(outside) else 0.0))
         out.append(float(np.mean(terms)) if terms else math.nan)
     return out
 
 
-def _scores(bags, vehicle, base, kind, scales, namespace, exact, progress=None):
-    """Return ({bag: [metric per scale]}, truth) of one batch of scales."""
-    names = tuple(f'scale_{i}' for i in range(len(scales)))
-    variants = {n: search_overrides(base, kind, s) for n, s in zip(names, scales)}
-    results = []
-    for i, bag in enumerate(bags):
+def score_variants(bags, vehicle, overrides, ref, namespace=None, exact=False,
+                   progress=None, dask=None):
+    """
+    Return ({bag: [metric per variant]}, truth) of observers given by their overrides.
+
+    ``overrides`` is a list of ``KEY:=VALUE`` lists, ``ref`` the index of the one the
+    residual metric is relative to (see the module). In this process every bag is read
+    once; with ``dask`` (``{'workers': N, 'scheduler': ADDRESS}``, a vehicle file path)
+    each bag x variant is a job of :mod:`observer_ros.bag.jobs` on a Dask cluster, with
+    the same numbers.
+
+    """
+    names = tuple(f'scale_{i}' for i in range(len(overrides)))
+    keys = bag_keys(bags)
+    if dask is not None:
+        return _score_jobs(bags, vehicle, dict(zip(names, overrides)), ref, namespace,
+                           exact, progress, dask)
+    per_bag, truth = {}, True
+    for i, (key, bag) in enumerate(zip(keys, bags)):
         if progress:
             progress('searching', i, len(bags))
-        results.append(evaluate_bag(bag, vehicle, variants, namespace, exact=exact,
-                                    include_live=False, include_design=False))
+        r = evaluate_bag(bag, vehicle, dict(zip(names, overrides)), namespace, exact=exact,
+                         include_live=False, include_design=False)
+        truth = truth and r.truth is not None
+        per_bag[key] = ({n: r.variants[n].summary for n in names},
+                        {n: r.variants[n].outputs for n in names})
     if progress:
         progress('searching', len(bags), len(bags))
-    truth = all(r.truth is not None for r in results)
+    return {k: _bag_metric(*v, names, names[ref], truth) for k, v in per_bag.items()}, truth
+
+
+def _score_jobs(bags, vehicle, variants, ref, namespace, exact, progress, dask):
+    from .jobs import Job, run_jobs
+    names = tuple(variants)
+    jobs = [Job(str(bag), str(vehicle), n, tuple(variants[n]), namespace, None, bool(exact))
+            for bag in bags for n in names]
+    rows = run_jobs(jobs, 'dask', dask.get('workers'), dask.get('scheduler'),
+                    None if progress is None else lambda d, t: progress('search jobs', d, t))
+    failed = [r for r in rows if r['error']]
+    if failed:
+        raise BagToolError(f'{failed[0]["bag"]}: {failed[0]["error"]}')
+    truth = all(r['ground_truth'] for r in rows)
     per_bag = {}
-    for bag, r in zip(bags, results):
-        key = str(bag)
-        while key in per_bag:
-            key += "'"
-        per_bag[key] = _bag_metric(r, names, scales, truth)
+    for i, key in enumerate(bag_keys(bags)):
+        part = rows[i * len(names):(i + 1) * len(names)]
+        per_bag[key] = _bag_metric({r['variant']: r['summary'] for r in part},
+                                   {r['variant']: r['outputs'] for r in part}, names,
+                                   names[ref], truth)
     return per_bag, truth
 
 
+def bag_keys(bags):
+    """Return the bags' names in the tables (a bag given twice gets a prime)."""
+    keys = []
+    for bag in bags:
+        key = str(bag)
+        while key in keys:
+            key += "'"
+        keys.append(key)
+    return keys
+
+
+def _scores(bags, vehicle, base, kind, scales, namespace, exact, progress=None, dask=None):
+    """Return ({bag: [metric per scale]}, truth) of one batch of scales."""
+    ref = int(np.argmin([abs(math.log(s)) for s in scales]))
+    return score_variants(bags, vehicle, [search_overrides(base, kind, s) for s in scales],
+                          ref, namespace, exact, progress, dask)
+
+
 def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exact=False,
-                progress=None, refine=0):
+                progress=None, refine=0, dask=None):
     """
     Score a family of observers (see the module) on one or many bags.
 
@@ -149,6 +217,10 @@ def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exac
         Then at most this many more evaluations of scipy.optimize.minimize_scalar
         (bounded, on log s) between the grid neighbours of the best grid scale (only
         when it is inside the grid); they join the table.
+    dask : dict, optional
+        ``{'workers': N, 'scheduler': ADDRESS}``: the grid's bag x scale evaluations as
+        jobs on Dask (:mod:`observer_ros.bag.jobs`; ``vehicle`` must be a file); the
+        refinement runs in this process.
 
     Returns
     -------
@@ -160,7 +232,8 @@ def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exac
     scales = sorted(float(s) for s in scales)
     if not scales or any(not (s > 0 and math.isfinite(s)) for s in scales):
         raise BagToolError(f'--grid: scales must be positive numbers; got {scales}')
-    per_bag, truth = _scores(bags, vehicle, base, kind, scales, namespace, exact, progress)
+    per_bag, truth = _scores(bags, vehicle, base, kind, scales, namespace, exact, progress,
+                             dask)
     mean = np.nanmean(np.array(list(per_bag.values())), axis=0)
     i = int(np.nanargmin(mean)) if np.isfinite(mean).any() else -1
     if refine and 0 < i < len(scales) - 1:
@@ -186,7 +259,5 @@ def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exac
                 per_bag[key].insert(k, values[key])
         mean = np.nanmean(np.array(list(per_bag.values())), axis=0)
     best = scales[int(np.nanargmin(mean))] if np.isfinite(mean).any() else math.nan
-    metric = 'error_rms (|x_hat - x_true| RMS)' if truth else \
-        'residual RMS / that at scale ~1 + fraction of ACF lags outside'
-    return SearchResult(kind, metric, scales, per_bag, [float(v) for v in mean], best,
-                        {s: search_overrides(base, kind, s) for s in scales})
+    return SearchResult(kind, metric_name(truth), scales, per_bag, [float(v) for v in mean],
+                        best, {s: search_overrides(base, kind, s) for s in scales})

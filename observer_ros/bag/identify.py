@@ -21,18 +21,21 @@ import numpy as np
 
 from .errors import BagToolError
 from .evaluate import _load_vehicle
-from .metrics import whiteness, WHITENESS_LAGS
+from .metrics import WHITENESS_LAGS
 from .reader import read_recording
 from .results import jsonable
 from .sampled import noise_input, reference_gain, sampled_data, sampled_model
 from ..core.als import (ALSError, DEFAULT_LAGS, identify_noise, kalman_predictor_gain,
-                        predictor_innovations, process_noise_map)
+                        predictor_blocks, process_noise_map)
+from ..core.autocovariance import LaggedSums
 
-__all__ = ['TRANSIENT_DECAY', 'Identification', 'identify']
+__all__ = ['BLOCK', 'TRANSIENT_DECAY', 'Identification', 'identify']
 
 #: Samples dropped at the start of each bag: until the reference predictor's slowest mode
 #: has decayed to this fraction.
 TRANSIENT_DECAY = 1e-6
+#: Innovations are computed and summed this many samples at a time.
+BLOCK = 1 << 16
 
 
 @dataclass
@@ -70,11 +73,11 @@ class Identification:
             'whiteness_tuned_kalman': self.whiteness_after, 'warnings': self.warnings})
 
 
-def _mehra(e, names):
+def _mehra(sums, names):
     """Mehra's test per output: white when at most 5 % of the lags leave +-1.96/sqrt(N)."""
     out = {}
     for j, name in enumerate(names):
-        w = whiteness(e[:, j], WHITENESS_LAGS)
+        w = sums.whiteness(j, WHITENESS_LAGS)
         w['white'] = bool(w['acf_outside'] <= 0.05) if math.isfinite(w['acf_outside']) \
             else None
         w.pop('acf', None)
@@ -83,7 +86,7 @@ def _mehra(e, names):
 
 
 def identify(bags, vehicle, namespace=None, lags=DEFAULT_LAGS, full=False, states=None,
-             burn=None, passes=2, input_noise=False):
+             burn=None, passes=2, input_noise=False, block=BLOCK):
     """
     Identify the process and measurement noise covariances from bags (ALS).
 
@@ -107,6 +110,8 @@ def identify(bags, vehicle, namespace=None, lags=DEFAULT_LAGS, full=False, state
         ALS passes; each after the first uses the previous pass's Kalman predictor.
     input_noise : bool
         Process noise on the inputs (G = B) instead.
+    block : int
+        Innovations computed this many at a time (never held whole).
 
     Returns
     -------
@@ -128,6 +133,7 @@ def identify(bags, vehicle, namespace=None, lags=DEFAULT_LAGS, full=False, state
         s = sampled_data(rec, vehicle)
         warn += [f'{bag}: {w}' for w in rec.warnings + s.warnings]
         data.append(s)
+    del rec                 # only the sampled arrays are kept
     dt = data[0].dt
     for bag, s in zip(bags, data):
         if abs(s.dt / dt - 1.0) > 1e-3:
@@ -148,33 +154,41 @@ def identify(bags, vehicle, namespace=None, lags=DEFAULT_LAGS, full=False, state
         raise BagToolError(f'{short[0]}: fewer than {10 * lags} samples after dropping the '
                            f'first {drop} (the transient); record longer or lower --burn')
     names = (noise_names, list(plant.output_names))
+    outputs = list(plant.output_names)
+    p = len(outputs)
 
-    ref = [predictor_innovations(Ad, Bd, C, D, Lp, s.y, s.u, s.u_meas, states=True)
-           for s in data]
+    # the innovations are never held whole: each pass runs its predictor a block at a
+    # time into running lagged sums (per bag for ALS; one sequence, the bags end to end,
+    # for Mehra's test); the reference's prediction at the end of the transient starts
+    # every later pass
+    starts = [predictor_blocks(Ad, Bd, C, D, Lp, s.y[:drop], s.u[:drop], s.u_meas[:drop],
+                               block=block) for s in data]
 
-    def innovations(gain):
-        """Innovations after the reference's transient; ``gain`` starts from its state."""
-        if gain is Lp:
-            return [e[drop:] for e, _ in ref]
-        return [predictor_innovations(Ad, Bd, C, D, gain, s.y[drop:], s.u[drop:],
-                                      s.u_meas[drop:], x0=xs[drop])
-                for s, (_, xs) in zip(data, ref)]
+    def run(gain, mehra=False):
+        """Run the predictor of ``gain`` after the transient; return its sums."""
+        sums = LaggedSums(p, lags)
+        white = LaggedSums(p, WHITENESS_LAGS + 1) if mehra else None
+        for s, x0 in zip(data, starts):
+            sums.new_sequence()
+            predictor_blocks(Ad, Bd, C, D, gain, s.y[drop:], s.u[drop:], s.u_meas[drop:],
+                             x0=x0, sinks=[sums] + ([white] if mehra else []), block=block)
+        return sums, white
 
     results = []
-    e_ref = innovations(Lp)
     gain = Lp
+    before = None
     for i in range(max(1, int(passes))):
-        e = e_ref if i == 0 else innovations(gain)
-        res = identify_noise(e, Ad, C, gain, F, G.shape[1], lags, full, names)
+        sums, white = run(gain, mehra=i == 0)
+        if i == 0:
+            before = _mehra(white, outputs)
+        res = identify_noise(sums, Ad, C, gain, F, G.shape[1], lags, full, names)
         results.append(res)
         if np.min(np.linalg.eigvalsh(res.R)) <= 0.0:
             raise ALSError('the identified measurement noise covariance R is not positive '
                            f'definite (diag {np.diag(res.R).tolist()}): the data do not '
                            'show measurement noise; a Kalman filter cannot be designed')
         gain = kalman_predictor_gain(Ad, C, res.Qk, res.R)
-    outputs = list(plant.output_names)
-    before = _mehra(np.vstack(e_ref), outputs)
-    after = _mehra(np.vstack(innovations(gain)), outputs)
+    after = _mehra(run(gain, mehra=True)[1], outputs)
     return Identification(vehicle, [str(b) for b in bags], dt, G, noise_names, reference,
                           results, {str(b): int(s.y.shape[0]) for b, s in zip(bags, data)},
                           drop, before, after, warn)

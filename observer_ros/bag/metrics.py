@@ -164,7 +164,10 @@ def whiteness(r, lags=WHITENESS_LAGS):
 
     """
     r = np.asarray(r, dtype=float)
-    r = r[np.isfinite(r)]
+    finite = np.isfinite(r)
+    if not finite.all():
+        r = r[finite]
+    del finite
     N = r.size
     out = {'samples': int(N), 'residual_rms': float(np.sqrt(np.mean(r * r))) if N else math.nan,
            'lags': 0, 'acf': [], 'ljung_box_q': math.nan, 'ljung_box_p': math.nan,
@@ -205,12 +208,29 @@ def _matched_norm2(error, block=BLOCK):
 
     """
     ok = np.zeros(len(error), dtype=bool)
-    norm2 = []
+    norm2 = np.empty(ok.size)                   # the matched rows' first: no parts joined
+    done = 0
     for lo in range(0, ok.size, block):
         e = error[lo:lo + block]
         ok[lo:lo + e.shape[0]] = fine = np.all(np.isfinite(e), axis=1)
-        norm2.append(np.sum(e[fine] ** 2, axis=1))
-    return ok, np.concatenate(norm2) if norm2 else np.zeros(0)
+        part = np.sum(e[fine] ** 2, axis=1)
+        norm2[done:done + part.size] = part
+        done += part.size
+    return ok, norm2[:done]
+
+
+def _finite_column(values, j, block=BLOCK):
+    """Return the finite values of column j in order, read a block of rows at a time."""
+    blocks = range(0, len(values), block)
+    count = sum(int(np.count_nonzero(np.isfinite(values[lo:lo + block, j]))) for lo in blocks)
+    out = np.empty(count)
+    done = 0
+    for lo in blocks:
+        col = values[lo:lo + block, j]
+        col = col[np.isfinite(col)]
+        out[done:done + col.size] = col
+        done += col.size
+    return out
 
 
 def score_variant(result, vr):
@@ -229,5 +249,6 @@ def score_variant(result, vr):
         settles = [m['settling_time'] for m in metrics]
         vr.summary['settling_time'] = float(max(settles)) if settles else math.nan
     for j, name in enumerate(plant.output_names):
-        vr.outputs[name] = whiteness(rep.residual[:, j]) if len(rep) else whiteness([])
+        vr.outputs[name] = whiteness(_finite_column(rep.residual, j)) if len(rep) else \
+            whiteness([])
     vr.sensors = innovation_health(rep)

@@ -156,7 +156,7 @@ def plot_autocovariances(path, output_names, fits, title):
     return path
 
 
-def plot_search(path, parameter, scales, metrics, metric_name, best=None):
+def plot_search(path, parameter, scales, metrics, metric_name, best=None, log=True):
     """Plot a gain search's metric against the parameter (one line per bag, and the mean)."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(8, 4))
@@ -167,7 +167,8 @@ def plot_search(path, parameter, scales, metrics, metric_name, best=None):
         ax.plot(scales, values, label=name, **style)
     if best is not None:
         ax.axvline(best, color='C3', ls='--', lw=1.0, label=f'best {best:g}')
-    ax.set_xscale('log')
+    if log:
+        ax.set_xscale('log')
     ax.set_xlabel(parameter)
     ax.set_ylabel(metric_name)
     ax.grid(True, which='both', alpha=0.3)

@@ -206,7 +206,7 @@ def write_results(result, out, force=False, plots=True, results_bag=True,
 
 def _joint_state_bytes(names, stamp_ns, values):
     """Serialize JointState messages (name, position) for many stamps at once."""
-    from .reader import _joint_state_layout   # the same layout rules as the decoder
+    from .cdr_decode import _joint_state_layout   # the same layout rules as the decoder
     store = jazzy_typestore()
     js = store.types['sensor_msgs/msg/JointState']
     hdr = store.types['std_msgs/msg/Header']

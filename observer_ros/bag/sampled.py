@@ -21,11 +21,13 @@ from ..core.als import kalman_predictor_gain, process_noise_map
 from ..core.design import observer_gain
 from ..core.model import map_poles_to_discrete, zoh_matrices
 
-__all__ = ['JITTER_MAX', 'Sampled', 'sampled_data', 'sampled_model', 'noise_input',
+__all__ = ['BLOCK', 'JITTER_MAX', 'Sampled', 'sampled_data', 'sampled_model', 'noise_input',
            'reference_gain']
 
 #: Largest relative deviation of a sample step from the median step.
 JITTER_MAX = 0.05
+#: Samples looked at a time by :func:`sampled_data`'s checks and command look-up.
+BLOCK = 1 << 16
 
 
 @dataclass
@@ -40,9 +42,14 @@ class Sampled:
     warnings: List[str]
 
 
-def sampled_data(recording, vehicle):
+def sampled_data(recording, vehicle, block=BLOCK):
     """
     Return the recording's outputs and inputs on the sample grid.
+
+    The checks and the commands' look-up go a block of ``block`` samples at a time, so
+    the transient memory is that of the one array of steps (8 bytes a sample) beside
+    the result (``y``, ``u``, ``u_meas``); a stream whose messages are all valid is not
+    copied for its stamps.
 
     Raises
     ------
@@ -54,39 +61,31 @@ def sampled_data(recording, vehicle):
     """
     plant = vehicle.plant
     warnings = []
-    stamps, cols = None, {}
+    stamps, picks = None, []
     for sensor in vehicle.sensors:
         stream = recording.sensors[sensor.name]
-        sel = np.flatnonzero(stream.valid)
-        ns = stream.stamp_ns[sel]
+        sel = None if stream.valid.all() else np.flatnonzero(stream.valid)
+        ns = stream.stamp_ns if sel is None else stream.stamp_ns[sel]
         if stamps is None:
             stamps = ns
-        elif ns.size != stamps.size or np.any(ns != stamps):
+        elif ns.size != stamps.size or not np.array_equal(ns, stamps):
             raise BagToolError(f'sensor {sensor.name!r} ({stream.topic}) is not measured at '
                                f'the same stamps as {vehicle.sensors[0].name!r} '
                                f'({ns.size} against {stamps.size} messages): the noise '
                                'identification needs every output at every sample')
-        for j, row in enumerate(plant.output_rows(sensor.outputs)):
-            cols[row] = stream.values[sel, j]
+        picks.append((sensor, stream, sel))
     if stamps is None or stamps.size < 100:
         raise BagToolError(f'{0 if stamps is None else stamps.size} samples: too few to '
                            'identify noise covariances (need at least 100)')
-    if np.any(np.diff(stamps) <= 0):
-        raise BagToolError('measurement stamps are not increasing (a clock jump or '
-                           'reordered messages): cut the bag to one run')
-    steps = np.diff(stamps).astype(np.float64) * 1e-9
-    dt = float(np.median(steps))
-    worst = float(np.max(np.abs(steps / dt - 1.0)))
-    if worst > JITTER_MAX:
-        k = int(np.argmax(np.abs(steps / dt - 1.0)))
-        raise BagToolError(f'measurement steps are not regular: {steps[k]:.6g} s at sample '
-                           f'{k + 1} against a median of {dt:.6g} s (more than '
-                           f'{JITTER_MAX:.0%} off)')
+    dt = _regular_step(stamps, block)
     if vehicle.plant.is_discrete and abs(dt / vehicle.sample_time - 1.0) > JITTER_MAX:
         raise BagToolError(f"measurement step {dt:.6g} s is not the discrete model's "
                            f'model.sample_time {vehicle.sample_time:.6g} s')
-    y = np.column_stack([cols[r] for r in range(plant.p)])
     N, m = stamps.size, plant.m
+    y = np.empty((N, plant.p))
+    for sensor, stream, sel in picks:
+        for j, row in enumerate(plant.output_rows(sensor.outputs)):
+            y[:, row] = stream.values[:, j] if sel is None else stream.values[sel, j]
     u = np.zeros((N, m))
     u_meas = np.zeros((N, m))
     cmd = recording.command
@@ -96,11 +95,41 @@ def sampled_data(recording, vehicle):
         sel = np.flatnonzero(cmd.valid)
         order = np.argsort(cmd.stamp_ns[sel], kind='stable')
         c_ns, c_val = cmd.stamp_ns[sel][order], cmd.values[sel][order]
-        at = np.searchsorted(c_ns, stamps, side='right') - 1       # stamp <= t_k
-        before = np.searchsorted(c_ns, stamps, side='left') - 1    # stamp < t_k
-        u[at >= 0] = c_val[at[at >= 0]]
-        u_meas[before >= 0] = c_val[before[before >= 0]]
+        for a in range(0, N, block):
+            t = stamps[a:a + block]
+            at = np.searchsorted(c_ns, t, side='right') - 1       # stamp <= t_k
+            before = np.searchsorted(c_ns, t, side='left') - 1    # stamp < t_k
+            u[a:a + block][at >= 0] = c_val[at[at >= 0]]
+            u_meas[a:a + block][before >= 0] = c_val[before[before >= 0]]
     return Sampled(stamps, y, u, u_meas, dt, warnings)
+
+
+def _regular_step(stamps, block):
+    """Return the median step in seconds; refuse stamps that are not increasing or regular."""
+    steps = np.diff(stamps)
+    if np.any(steps <= 0):
+        raise BagToolError('measurement stamps are not increasing (a clock jump or '
+                           'reordered messages): cut the bag to one run')
+    # np.median of the steps in seconds, partitioning the integer steps in place: the
+    # middle one, or the mean of the two middle ones, converted as the steps were
+    k = steps.size // 2
+    steps.partition([k - 1, k] if steps.size % 2 == 0 else [k])
+    middle = steps[k - 1:k + 1] if steps.size % 2 == 0 else steps[k:k + 1]
+    middle = [float(x) * 1e-9 for x in middle]
+    dt = float(np.mean(middle))
+    del steps
+    worst, where = -1.0, 0
+    for a in range(0, stamps.size - 1, block):
+        rel = np.abs(np.diff(stamps[a:a + block + 1]).astype(np.float64) * 1e-9 / dt - 1.0)
+        k = int(np.argmax(rel))
+        if rel[k] > worst:
+            worst, where = float(rel[k]), a + k
+    if worst > JITTER_MAX:
+        step = float(stamps[where + 1] - stamps[where]) * 1e-9
+        raise BagToolError(f'measurement steps are not regular: {step:.6g} s at sample '
+                           f'{where + 1} against a median of {dt:.6g} s (more than '
+                           f'{JITTER_MAX:.0%} off)')
+    return dt
 
 
 def sampled_model(vehicle, dt):

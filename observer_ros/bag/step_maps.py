@@ -4,7 +4,7 @@ The affine maps of the steps of a bulk stretch, computed for all step lengths at
 
 With jittered stamps every step of a stretch has its own length, so its own map
 ``x_k = F x_{k-1} + G y_k + H u``. Measuring each map on the estimator
-(``replay._probe``, n + q + m + 1 calls) costs about 1.5 ms a step; here the maps of a
+(``bulk_replay._probe``, n + q + m + 1 calls) costs about 1.5 ms a step; here the maps of a
 continuous plant's open-loop and full-order (poles) estimators are built with numpy
 from the same ingredients the estimator uses:
 
@@ -21,7 +21,7 @@ from the same ingredients the estimator uses:
 The current form ``x- = Ad x + Bd u``, ``x+ = x- + M (y - D u - C x-)`` then gives
 ``F = (I - M C) Ad``, ``G = M``, ``H = (I - M C) Bd - M D`` and the residual
 ``r = y - D u - C x-``; the open loop is the same with M = 0. The replay checks these
-maps against the estimator's own calls (``replay._probe`` on a sample of step classes,
+maps against the estimator's own calls (``bulk_replay._probe`` on a sample of step classes,
 and its usual step and window checks).
 
 """
@@ -173,7 +173,7 @@ def bulk_maps(est, keys, sensors, rows):
     Returns
     -------
     maps : tuple of ndarray or None
-        ``(F, G, H, Rx, Ry, Ru)``, each stacked over the classes, as ``replay._probe``
+        ``(F, G, H, Rx, Ry, Ru)``, each stacked over the classes, as ``bulk_replay._probe``
         measures them one class at a time; None for an estimator this module does not
         model (reduced order, Kalman, a gain given, a discrete plant) or sensors with
         different numbers of rows: the caller measures its maps.

@@ -17,16 +17,18 @@ Tune an observer from recorded data.
    against the fitted ones, with +-2 sigma bands.
 3. A gain search (:mod:`observer_ros.bag.gain_search`) over a scale of the Kalman weights
    (``--search kalman``, the default) or of the vehicle's observer poles (``--search
-   poles``, also without identification: ``--no-als``).
+   poles``, also without identification: ``--no-als``), or of each pole
+   (``--search each-pole``, :mod:`observer_ros.bag.pole_search`: the common scale, then
+   scipy.optimize on every pole, conjugate pairs kept). Over many bags the metric is
+   the mean of the per-bag metrics; the tables give each bag's.
 4. A new vehicle file with the tuned observer (never overwriting), and the report beside
    the first bag (``<bag>_tune``): tune.txt, tune.json, search.csv, autocovariance.png,
-   search.png.
+   search.png (and pole_search.csv, pole_search.png of ``--search each-pole``).
 
 """
 
 import argparse
 from dataclasses import dataclass, field
-import json
 import math
 from pathlib import Path
 import sys
@@ -40,11 +42,10 @@ from .errors import BagToolError
 from .evaluate import _load_vehicle, _Progress, tool_error
 from .gain_search import DEFAULT_SCALES, gain_search, search_overrides
 from .identify import Identification, identify
-from .metrics import WHITENESS_LAGS
 from .outputs import check_output, prepare_output, seal_output
-from .plots import plot_autocovariances, plot_search
-from .report import csv_cell, fmt, text_table
+from .pole_search import DEFAULT_EVALUATIONS, pole_search, pole_set
 from .results import jsonable
+from .tune_report import format_report, write_report
 from .tuned_vehicle import OBSERVER_KEYS, write_tuned_vehicle
 from ..core.als import DEFAULT_LAGS
 from ..core.errors import ObserverError
@@ -104,7 +105,7 @@ def default_out(bag):
 def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS,
          full=False, states=None, burn=None, passes=2, als=True, search='auto',
          scales=DEFAULT_SCALES, use_search=False, force=False, plots=True, progress=None,
-         input_noise=False, refine=0):
+         input_noise=False, refine=0, evaluations=DEFAULT_EVALUATIONS, dask=None):
     """
     Identify, search and write the tuned vehicle file and the report (see the module).
 
@@ -123,7 +124,7 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
         See :func:`identify`.
     als : bool
         Identify the noise covariances (else only the pole search runs).
-    search : {'auto', 'kalman', 'poles', 'none'}
+    search : {'auto', 'kalman', 'poles', 'each-pole', 'none'}
         The gain search (``auto``: kalman after identification, else poles).
     scales : sequence of float
         The search grid.
@@ -141,6 +142,11 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
         See :func:`identify`.
     refine : int
         Evaluations of scipy.optimize.minimize_scalar after the grid (0: none).
+    evaluations : int
+        ``each-pole``: most observers scored by scipy.optimize.minimize.
+    dask : dict, optional
+        ``{'workers': N, 'scheduler': ADDRESS}``: the search grid's bag x scale
+        evaluations as jobs on Dask (:mod:`observer_ros.bag.jobs`), same numbers.
 
     Returns
     -------
@@ -153,11 +159,12 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
     out = Path(out)
     if search == 'auto':
         search = 'kalman' if als else 'poles'
-    if als and search == 'poles' and use_search:
-        raise BagToolError('--use-search --search poles: the tuned file is a Kalman filter; '
-                           'add --no-als to write the best poles')
+    if als and search in ('poles', 'each-pole') and use_search:
+        raise BagToolError(f'--use-search --search {search}: the tuned file is a Kalman '
+                           'filter; add --no-als to write the best poles')
     if not als and search in ('kalman', 'none'):
-        raise BagToolError(f'--no-als --search {search}: nothing to tune (use --search poles)')
+        raise BagToolError(f'--no-als --search {search}: nothing to tune (use --search poles '
+                           'or each-pole)')
     output = Path(output) if output else out / f'{Path(vehicle_path).stem}_tuned.yaml'
     check_output(out, force, 'observer-tune')          # before the work, touching nothing
     if output.exists() or output.is_symlink():
@@ -165,6 +172,8 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
                            '(give another --output)')
     if search == 'poles':
         search_overrides(vehicle, 'poles', 1.0)           # refuse early
+    if search == 'each-pole':
+        pole_set(vehicle)
     ident = identify(bags, vehicle, namespace, lags, full, states, burn, passes,
                      input_noise) \
         if als else None
@@ -182,9 +191,12 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
                 tmp.unlink()
             write_tuned_vehicle(vehicle_path, tmp, observer, sources, header)
     sr = None
-    if search != 'none':
+    if search == 'each-pole':
+        sr = pole_search(bags, vehicle_path, scales, namespace, progress=progress,
+                         evaluations=evaluations, refine=refine, dask=dask)
+    elif search != 'none':
         sr = gain_search(bags, tmp if search == 'kalman' else vehicle_path, search, scales,
-                         namespace, progress=progress, refine=refine)
+                         namespace, progress=progress, refine=refine, dask=dask)
     replace = OBSERVER_KEYS
     if ident is None:           # only the poles change: the rest of the design stays
         replace = ('observer.poles', 'observer.poles_imag')
@@ -192,9 +204,11 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
         header = [f'{vehicle.name} with observer poles chosen by observer-tune from '
                   f'{", ".join(bags)}', f'original: {vehicle_path}']
         sources = {}
-    if ident is None and not math.isfinite(sr.best):
+    if ident is None and not math.isfinite(_best_metric(sr)):
         raise BagToolError('the gain search found no finite metric: no poles to write')
-    if sr is not None and (use_search or ident is None) and math.isfinite(sr.best):
+    if search == 'each-pole' and ident is None:
+        _write_poles(observer, sources, sr.best_poles, _pole_note(sr, bags))
+    elif sr is not None and (use_search or ident is None) and math.isfinite(sr.best):
         best = _load_vehicle(tmp if search == 'kalman' else vehicle_path,
                              sr.overrides[sr.best])
         grid = ', '.join(f'{x:.4g}' for x in sr.scales)
@@ -204,95 +218,39 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
             observer['observer.Qd'] = list(np.ravel(best.observer.Qd))
             sources['observer.Qd'] += f'; times {sr.best:g} by the {note}'
         else:
-            p = np.asarray(best.observer.poles, dtype=complex)
-            observer['observer.poles'] = list(p.real)
-            observer['observer.poles_imag'] = list(p.imag)
-            sources['observer.poles'] = note
-            sources['observer.poles_imag'] = note
+            _write_poles(observer, sources, best.observer.poles, note)
     vehicle_file = write_tuned_vehicle(vehicle_path, output, observer, sources, header,
                                        replace)
     if tmp is not None:
         tmp.unlink()
     result = TuneResult(ident, sr, vehicle_file)
-    files += _write_report(result, out, plots)
+    files += write_report(result, out, plots)
     seal_output(out, 'observer-tune', files)       # the tuned vehicle file is not ours
     result.files = files + [vehicle_file]
     result.seconds = time.perf_counter() - start
     return result
 
 
-def format_report(result):
-    """Return the readable report (what ``observer-tune`` prints)."""
-    lines = []
-    ident = result.identification
-    if ident is not None:
-        r = ident.result
-        lines += [f'noise identification (autocovariance least squares) of '
-                  f'{ident.vehicle.name} on {len(ident.bags)} bag(s): '
-                  f'{sum(ident.samples.values())} samples at dt {ident.dt:.6g} s, first '
-                  f'{ident.burn} of each dropped, {r.lags} lags, '
-                  f'{"full" if r.full else "diagonal"} covariances',
-                  f'reference: {ident.reference}; condition number {fmt(r.condition)} '
-                  f'(rank {r.rank} of {r.unknowns})', '']
-        rows = []
-        for i, p in enumerate(ident.passes):
-            for j, name in enumerate(ident.noise_names):
-                rows.append([i + 1, f'Qd {name}', fmt(p.Q[j, j])])
-            for j, name in enumerate(ident.vehicle.plant.output_names):
-                rows.append([i + 1, f'Rd {name}', fmt(p.R[j, j])])
-        lines += [text_table(['pass', 'entry', 'value'], rows), '']
-        rows = []
-        for label, w in (('reference', ident.whiteness_before),
-                         ('tuned kalman', ident.whiteness_after)):
-            for name, m in w.items():
-                rows.append([label, name, m['samples'], fmt(m['residual_rms']),
-                             fmt(m['ljung_box_p'], 3), fmt(m['acf_outside'], 3),
-                             {True: 'yes', False: 'no'}.get(m['white'], '-')])
-        lines += [f'Mehra whiteness test of the innovations (lags 1..{WHITENESS_LAGS}; '
-                  'white if at most 5% of the lags are outside +-1.96/sqrt(N))', '',
-                  text_table(['filter', 'output', 'N', 'rms', 'LB_p', 'acf_out', 'white'],
-                             rows), '']
-    sr = result.search
-    if sr is not None:
-        names = list(sr.per_bag)
-        head = ['scale', 'mean'] + [f'bag{i + 1}' for i in range(len(names))]
-        rows = [[fmt(c) for c in row] for row in sr.rows()]
-        lines += [f'gain search: {sr.kind} scale; metric {sr.metric}; best {fmt(sr.best)}',
-                  ''] + [f'  bag{i + 1}: {n}' for i, n in enumerate(names)] + \
-            ['', text_table(head, rows), '']
-    lines.append(f'tuned vehicle file: {result.vehicle_file}')
-    return '\n'.join(lines)
+def _best_metric(sr):
+    """Return the best mean metric of a search."""
+    return sr.best_metric if hasattr(sr, 'best_metric') else \
+        min(sr.mean, key=lambda m: m if math.isfinite(m) else math.inf)
 
 
-def _write_report(result, out, plots):
-    files = []
-    (out / 'tune.txt').write_text(format_report(result) + '\n')
-    files.append(out / 'tune.txt')
-    with open(out / 'tune.json', 'w') as f:
-        json.dump(result.to_dict(), f, indent=2)
-        f.write('\n')
-    files.append(out / 'tune.json')
-    sr = result.search
-    if sr is not None:
-        with open(out / 'search.csv', 'w') as f:
-            f.write(','.join(['scale', 'mean'] + list(sr.per_bag)) + '\n')
-            for row in sr.rows():
-                f.write(','.join(csv_cell(float(c)) for c in row) + '\n')
-        files.append(out / 'search.csv')
-    if plots and result.identification is not None:
-        ident = result.identification
-        fits = [(f'pass {i + 1}: ' + (ident.reference if i == 0 else
-                                      'Kalman filter of the previous pass'),
-                 p.empirical, p.fitted, p.sigma) for i, p in enumerate(ident.passes)]
-        files.append(plot_autocovariances(
-            out / 'autocovariance.png', ident.vehicle.plant.output_names, fits,
-            f'{ident.vehicle.name}: innovation autocovariances, empirical and fitted'))
-    if plots and sr is not None:
-        metrics = dict(sr.per_bag) if len(sr.per_bag) > 1 else {}
-        metrics['mean'] = sr.mean
-        files.append(plot_search(out / 'search.png', f'{sr.kind} scale', sr.scales,
-                                 metrics, sr.metric, sr.best))
-    return files
+def _write_poles(observer, sources, poles, note):
+    p = np.asarray(poles, dtype=complex)
+    observer['observer.poles'] = [float(x) for x in p.real]
+    observer['observer.poles_imag'] = [float(x) for x in p.imag]
+    sources['observer.poles'] = note
+    sources['observer.poles_imag'] = note
+
+
+def _pole_note(sr, bags):
+    return (f'observer-tune per-pole search (scipy.optimize Nelder-Mead from the poles '
+            f'times {sr.start_scale:g}, the best common scale; evaluation {sr.best} of '
+            f'{len(sr.mean)}, metric {sr.metric} {sr.best_metric:.6g} against '
+            f'{_best_metric(sr.grid):.6g} at the best common scale; mean over '
+            f'{", ".join(bags)})')
 
 
 _EPILOG = """\
@@ -305,16 +263,20 @@ what it does:
   2. Mehra's whiteness test of the innovations before (reference) and after (Kalman
      filter of the identified covariances);
   3. a gain search: the identified Kalman filter's Qd times each --grid scale (--search
-     kalman) or the vehicle's observer poles times each scale (--search poles); metric:
-     RMS estimation error against state/true when the bags have it, else residual RMS
-     and whiteness;
+     kalman) or the vehicle's observer poles times each scale (--search poles), or
+     each pole (--search each-pole: the scale grid, then scipy.optimize Nelder-Mead on
+     every real pole and every conjugate pair's real part and |imag|, kept stable, at
+     most --evaluations observers); metric: RMS estimation error against state/true
+     when the bags have it, else residual RMS and whiteness; over many bags, the mean
+     of the per-bag metrics (each bag's in the tables);
   4. writes a NEW vehicle file with observer.type kalman, Qd, Rd, Bd (each number's
      source as a comment) and the report.
 
 output (folder --out; default <first bag>_tune next to it; never overwritten without
 --force): tune.txt (also on stdout), tune.json, search.csv, autocovariance.png,
-search.png, and the tuned vehicle file (default <out>/<vehicle>_tuned.yaml, --output;
-never overwritten). Compare it with the original:
+search.png (and pole_search.csv, pole_search.png of --search each-pole), and the tuned
+vehicle file (default <out>/<vehicle>_tuned.yaml, --output; never overwritten).
+Compare it with the original:
   observer-eval BAG --vehicle V.yaml --compare <out>/V_tuned.yaml
 
 exit status: 0 done; 2 the bags, the vehicle file or the arguments cannot be used, or
@@ -349,14 +311,25 @@ def _parser():
                         help='identification passes (default 2)')
     parser.add_argument('--no-als', action='store_true',
                         help='no noise identification (only --search poles)')
-    parser.add_argument('--search', choices=['auto', 'kalman', 'poles', 'none'],
+    parser.add_argument('--search', choices=['auto', 'kalman', 'poles', 'each-pole', 'none'],
                         default='auto', help='gain search (default: kalman after the '
-                        'identification, poles without it)')
+                        'identification, poles without it; each-pole: every pole on its '
+                        'own, after the poles grid)')
+    parser.add_argument('--evaluations', type=int, default=DEFAULT_EVALUATIONS, metavar='N',
+                        help='--search each-pole: most observers scored by '
+                        f'scipy.optimize (default {DEFAULT_EVALUATIONS})')
     parser.add_argument('--grid', help='search scales, comma-separated (default '
                         f'{",".join(f"{s:g}" for s in DEFAULT_SCALES)})')
     parser.add_argument('--refine', type=int, default=0, metavar='N',
                         help='then up to N evaluations of scipy.optimize.minimize_scalar '
                         'around the best grid scale (default 0: the grid only)')
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument('--workers', type=int, metavar='N',
+                       help="the search grid's bag x scale evaluations as jobs on a local "
+                       'Dask cluster of N processes (default: in this process)')
+    where.add_argument('--scheduler', metavar='ADDRESS',
+                       help='... on an existing Dask cluster (its workers need observer_ros '
+                       'and the same paths to the bags and the vehicle file)')
     parser.add_argument('--use-search', action='store_true',
                         help="write the search's best scale into the tuned file")
     parser.add_argument('--force', action='store_true',
@@ -370,6 +343,10 @@ def _parser():
 def _check_args(args):
     if args.lags < 1:
         raise BagToolError(f'--lags {args.lags}: must be at least 1')
+    if args.workers is not None and args.workers < 1:
+        raise BagToolError(f'--workers {args.workers}: must be at least 1')
+    if args.evaluations < 1:
+        raise BagToolError(f'--evaluations {args.evaluations}: must be at least 1')
     if args.refine < 0:
         raise BagToolError(f'--refine {args.refine}: must be >= 0')
     if args.passes < 1:
@@ -391,6 +368,12 @@ def _check_args(args):
     return scales, states
 
 
+def _dask(args):
+    if args.workers is None and args.scheduler is None:
+        return None
+    return {'workers': args.workers, 'scheduler': args.scheduler}
+
+
 def main(argv=None):
     """Entry point of ``observer-tune``; returns the exit status."""
     args = _parser().parse_args(argv)
@@ -405,7 +388,8 @@ def main(argv=None):
                           args.lags, args.full, states, args.burn, args.passes,
                           not args.no_als, args.search, scales, args.use_search,
                           args.force, not args.no_plots, progress,
-                          args.input_noise, args.refine)
+                          args.input_noise, args.refine, args.evaluations,
+                          _dask(args))
         progress.finish()
     except (ObserverError, OSError, KeyboardInterrupt) as err:
         return tool_error(progress, err)

@@ -50,7 +50,8 @@ from .errors import ObserverError
 from .model import as_matrix
 
 __all__ = ['ALSError', 'ALSResult', 'DEFAULT_LAGS', 'RANK_TOL', 'predictor_innovations',
-           'sample_autocovariances', 'model_autocovariances', 'autocovariance_sigma',
+           'predictor_blocks', 'sample_autocovariances', 'model_autocovariances',
+           'autocovariance_sigma',
            'process_noise_map', 'als_matrix', 'identify_noise', 'kalman_predictor_gain']
 
 DEFAULT_LAGS = 15
@@ -100,7 +101,8 @@ class ALSResult:
                 'form': 'full' if self.full else 'diagonal'}
 
 
-def predictor_innovations(Ad, Bd, C, D, Lp, y, u, u_meas=None, x0=None, states=False):
+def predictor_innovations(Ad, Bd, C, D, Lp, y, u, u_meas=None, x0=None, states=False,
+                          final=False):
     """
     Innovations of a fixed-gain predictor run over sampled data.
 
@@ -120,6 +122,8 @@ def predictor_innovations(Ad, Bd, C, D, Lp, y, u, u_meas=None, x0=None, states=F
         Initial prediction; zeros by default.
     states : bool
         Also return the predictions.
+    final : bool
+        Also return the prediction after the last sample (``xh[N]``, to go on from).
 
     Returns
     -------
@@ -127,6 +131,8 @@ def predictor_innovations(Ad, Bd, C, D, Lp, y, u, u_meas=None, x0=None, states=F
         ``y[k] - C xh[k] - D u_meas[k]``.
     xh : (N, n) ndarray
         The predictions ``xh[k]`` (only with ``states``).
+    x_next : (n,) ndarray
+        ``xh[N]`` (only with ``final``).
 
     """
     Ad = as_matrix(Ad, 'Ad', square=True)
@@ -153,7 +159,32 @@ def predictor_innovations(Ad, Bd, C, D, Lp, y, u, u_meas=None, x0=None, states=F
             xs[k] = x
         out[k] = z[k] - C @ x
         x = Abar @ x + drive[k] + Lp @ z[k]
-    return (out, xs) if states else out
+    got = (out,) + ((xs,) if states else ()) + ((x,) if final else ())
+    return got if len(got) > 1 else out
+
+
+def predictor_blocks(Ad, Bd, C, D, Lp, y, u, u_meas=None, x0=None, sinks=(),
+                     block=1 << 16):
+    """
+    Run :func:`predictor_innovations` a block of rows at a time; return ``xh[N]``.
+
+    Each block of innovations goes to ``sink.add(block)`` of every sink (e.g. a
+    :class:`~observer_ros.core.autocovariance.LaggedSums`), so they are never held whole;
+    the predictions are those of one call over every row.
+
+    """
+    N = np.asarray(y).shape[0]
+    x = x0
+    for a in range(0, N, int(block)):
+        b = min(N, a + int(block))
+        e, x = predictor_innovations(Ad, Bd, C, D, Lp, y[a:b], u[a:b],
+                                     None if u_meas is None else u_meas[a:b], x0=x,
+                                     final=True)
+        for sink in sinks:
+            sink.add(e)
+    if x is None:
+        x = np.zeros(np.asarray(Ad).shape[0])
+    return np.asarray(x, dtype=float)
 
 
 def sample_autocovariances(e, lags):
@@ -367,9 +398,10 @@ def identify_noise(innovations, Ad, C, Lp, noise_map, k, lags=DEFAULT_LAGS, full
 
     Parameters
     ----------
-    innovations : (N, p) array_like, or a list of them
+    innovations : (N, p) array_like, or a list of them, or LaggedSums
         The predictor's innovations, the transient already dropped (several
-        sequences, e.g. one per bag, are pooled).
+        sequences, e.g. one per bag, are pooled), or their running lagged sums
+        (:class:`~observer_ros.core.autocovariance.LaggedSums`, at least ``lags`` lags).
     Ad, C : array_like
         Sampled model.
     Lp : (n, p) array_like
@@ -405,9 +437,13 @@ def identify_noise(innovations, Ad, C, Lp, noise_map, k, lags=DEFAULT_LAGS, full
     if not rho < 1.0:
         raise ALSError(f'the reference predictor is not stable (spectral radius {rho:.4g})')
     lags = int(lags)
-    emp = sample_autocovariances(innovations, lags)
-    samples = sum(np.asarray(s).shape[0] for s in innovations) \
-        if isinstance(innovations, (list, tuple)) else np.asarray(innovations).shape[0]
+    if hasattr(innovations, 'autocovariances'):       # LaggedSums: given a block at a time
+        emp = innovations.autocovariances(lags)
+        samples = innovations.samples
+    else:
+        emp = sample_autocovariances(innovations, lags)
+        samples = sum(np.asarray(s).shape[0] for s in innovations) \
+            if isinstance(innovations, (list, tuple)) else np.asarray(innovations).shape[0]
     M, q_labels, r_labels = als_matrix(Ad, C, Lp, noise_map, k, lags, full)
     scale = np.linalg.norm(M, axis=0)
     unknowns = M.shape[1]

@@ -7,6 +7,8 @@ publish what they find on /diagnostics.
 
 """
 
+import operator
+
 import numpy as np
 
 __all__ = ['ENVELOPE_FACTOR', 'ENVELOPE_LEARN_CAP', 'ENVELOPE_LEARN_S', 'ENVELOPE_PERSIST',
@@ -126,7 +128,7 @@ class Envelope:
             # learnt, and nothing beyond: plain floats, about 1 us per call on a 3-vector
             # against 6-7 us for the numpy below; a NaN fails <= and goes on below
             values = value.tolist() if isinstance(value, np.ndarray) else value
-            if all(abs(v) <= b for v, b in zip(values, fixed)):
+            if all(map(operator.le, map(abs, values), fixed)):
                 return None
         mag = np.abs(np.asarray(value, dtype=float))
         bound = self.bound
@@ -210,6 +212,10 @@ class LoadMeter:
         self.overloaded = self.busy >= self.busy_limit or self._missed > 0
         self._start, self._idle, self._answered, self._missed = end, 0.0, 0, 0
         return True
+
+    def missed(self, count):
+        """Note ``count`` messages known to be lost (a gap in a sensor's stamps)."""
+        self._missed += count
 
     def idle(self, now):
         """Forget a window with no message for two windows (the input stopped)."""

@@ -257,21 +257,25 @@ class InnovationMonitor:
         self._transient = float(transient)
         self._std = {}
         self._inv_std = {}              # None where a noise_std is 0 (cannot whiten)
-        self._buf = {}
+        # per sensor, the last ``window`` residuals as (values, factor): plain floats and
+        # what whitens them (1 / noise_std, or 1 / sqrt(S) of one output, or 1.0 when
+        # already whitened), multiplied when the window is judged (:meth:`health`, at the
+        # node's diagnostics rate) rather than per message
+        self._ring = {}
         self._count = {}
         self._skipped = {}              # residuals of the transient, per sensor
         for name, std in sensors:
             std = np.asarray(std, dtype=float).reshape(-1)
             self._std[name] = std
             self._inv_std[name] = 1.0 / std if np.all(std > 0.0) else None
-            self._buf[name] = np.full((self._window, std.size), np.nan)
+            self._ring[name] = [None] * self._window
         self.restart()
 
     def restart(self):
         """Forget the residuals: the estimator restarted (a new initial transient)."""
         self._judge_from = None if self._transient > 0.0 else -math.inf
-        for name, buf in self._buf.items():
-            buf.fill(math.nan)
+        for name, ring in self._ring.items():
+            ring[:] = [None] * self._window
             self._count[name] = 0
             self._skipped[name] = 0
 
@@ -305,27 +309,27 @@ class InnovationMonitor:
             if t < judge_from:
                 self._skipped[name] += 1
                 return
-        buf = self._buf[name]
         try:
+            values = residual.tolist() if type(residual) is np.ndarray and residual.ndim == 1 \
+                else np.asarray(residual, dtype=float).reshape(-1).tolist()
             if S is None:
-                inv = self._inv_std[name]
-                if inv is None:
+                factor = self._inv_std[name]
+                if factor is None:
                     return
-                e = np.multiply(residual, inv)
-            elif len(S) == 1 and len(residual) == 1:    # one output: no Cholesky
+            elif len(values) == 1 and len(S) == 1:      # one output: no Cholesky
                 s = float(S[0][0])
                 if not s > 0.0:
                     return
-                e = np.multiply(residual, 1.0 / math.sqrt(s))
+                factor = 1.0 / math.sqrt(s)
             else:
-                e = whiten(residual, S)
+                values, factor = whiten(values, S).tolist(), 1.0
         except (ValueError, TypeError, np.linalg.LinAlgError):
             return
-        # plain floats: cheaper than numpy's reductions on a few elements (per message)
-        if e.shape != buf.shape[1:] or not all(map(math.isfinite, e.tolist())):
+        # plain floats: cheaper than numpy on a few elements (per message)
+        if len(values) != self._std[name].size or not all(map(math.isfinite, values)):
             return
         k = self._count[name]
-        buf[k % self._window] = e
+        self._ring[name][k % self._window] = (values, factor)
         self._count[name] = k + 1
 
     def health(self, name):
@@ -351,7 +355,9 @@ class InnovationMonitor:
             return SensorHealth(name, count, math.nan, low, high, math.nan, True,
                                 transient=skipped, converging=self.converging)
         k = count % self._window
-        E = np.roll(self._buf[name], -k, axis=0)       # oldest first
+        ring = self._ring[name]
+        E = np.array([np.multiply(values, factor)                   # oldest first
+                      for values, factor in ring[k:] + ring[:k]])
         h = _judge(name, E, self._kalman, self._lags, self._alpha, count)
         h.transient = skipped
         return h

@@ -9,10 +9,13 @@ the measurement). The node calls these from its measurement path and its diagnos
 
 """
 
+import math
+
 from diagnostic_msgs.msg import DiagnosticStatus
 import numpy as np
 
 from .checks import state_scale
+from .common import MESSAGE_CLASSES
 from ..core.health import Envelope, ENVELOPE_FACTOR, LoadMeter, max_prediction_gap
 
 __all__ = ['DIVERGENCE_HOLD', 'ObserverHealth']
@@ -34,19 +37,26 @@ class ObserverHealth:
         # each sensor's period (s): a longer gap between its stamps is missed messages
         self._periods = {s.name: s.rate_divider / vehicle.simulator.rate_hz
                          for s in vehicle.sensors}
+        # a longer gap between two stamps of a sensor says a message was missed (a
+        # message without a stamp, timed when received, says nothing)
+        self._gap_missed = {s.name: 1.5 * self._periods[s.name]
+                            if hasattr(MESSAGE_CLASSES[s.msg_type], 'header') else math.inf
+                            for s in vehicle.sensors}
         self._envelope = Envelope(vehicle.plant.state_names, state_scale(vehicle), 'x_hat')
         self._max_gap = max_prediction_gap(vehicle.plant.A, vehicle.sample_time,
                                            vehicle.plant.is_discrete)
 
-    def _missed_before(self, sensor, msg):
-        """Return how many messages of the sensor its stamp says were missed (0 if none)."""
-        last = self._last_stamp.get(sensor.name)
-        if last is None or not self._stamped[sensor.name]:
-            return 0
-        stamp = msg.header.stamp        # float seconds are exact enough to count periods
-        gap = stamp.sec - last + stamp.nanosec * 1e-9
+    def _count_missed(self, sensor, gap):
+        """
+        Count the messages a gap (s) between a sensor's newest stamps says were missed.
+
+        The node calls this only for a gap longer than ``_gap_missed`` of the sensor (1.5
+        periods: one missed message at least); a gap of 100 periods or more is a pause,
+        not missed messages.
+        """
         period = self._periods[sensor.name]
-        return max(int(round(gap / period)) - 1, 0) if gap < 100.0 * period else 0
+        if gap < 100.0 * period:
+            self._load.missed(int(round(gap / period)) - 1)
 
     def _on_divergence(self, t, problem):
         """

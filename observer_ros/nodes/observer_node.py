@@ -124,7 +124,8 @@ class ObserverNode(ObserverHealth, VehicleNode):
         self._health = _innovation_monitor(vehicle, design)
         self.vehicle = vehicle
         # each sensor's rows of C, looked up once rather than per message
-        self._rows = {s.name: vehicle.plant.output_rows(s.outputs) for s in vehicle.sensors}
+        self._rows = {s.name: tuple(vehicle.plant.output_rows(s.outputs))
+                      for s in vehicle.sensors}
         self._stamped = {s.name: hasattr(MESSAGE_CLASSES[s.msg_type], 'header')
                          for s in vehicle.sensors}
         self._build_health(vehicle)
@@ -163,12 +164,11 @@ class ObserverNode(ObserverHealth, VehicleNode):
     # -- callbacks ----------------------------------------------------------------------
     def _on_measurement(self, sensor, msg):
         start = self._last_seen[sensor.name] = self.wall_now()
-        missed = self._missed_before(sensor, msg)
         if self._lockstep and self._pending_commands > 0:
             self._queue.append((sensor, msg))
         else:
             self._process_measurement(sensor, msg)
-        if self._load.took(start, self.wall_now(), missed) and self._load.overloaded:
+        if self._load.took(start, self.wall_now()) and self._load.overloaded:
             # said at once: a saturated executor may run the diagnostics timer late
             self._on_diagnostics()
 
@@ -199,14 +199,15 @@ class ObserverNode(ObserverHealth, VehicleNode):
         late = head is not None and t < head
         if not late and head is not None and t - head > self._max_gap:
             self._long_gap(sensor, t, y, rows)
-        skipped = getattr(self.estimator, 'unverified_corrections', 0)
+        estimator = self.estimator
+        skipped = getattr(estimator, 'unverified_corrections', 0)
         try:
             x_hat = history.correct(t, y, rows, tag=stamp)
         except (ObserverError, ValueError) as err:
             self._reject('rejected_updates', f'{sensor.topic}: {err}')
             self._answer_without_correction(sensor, t, stamp)
             return
-        if getattr(self.estimator, 'unverified_corrections', 0) > skipped:
+        if skipped != getattr(estimator, 'unverified_corrections', 0):
             # the gain of this step failed its verification: prediction only (core)
             reason = next(reversed(self.estimator.gain_failures.values()))
             self._reject('unverified_gain_corrections',
@@ -222,7 +223,11 @@ class ObserverNode(ObserverHealth, VehicleNode):
         problem = self._envelope.check(t, x_hat)
         if problem is not None:
             self._on_divergence(t, problem)
-        self._last_stamp[sensor.name] = max(t, self._last_stamp.get(sensor.name, t))
+        newest = self._last_stamp.get(sensor.name)
+        if newest is None or t > newest:
+            self._last_stamp[sensor.name] = t
+            if newest is not None and t - newest > self._gap_missed[sensor.name]:
+                self._count_missed(sensor, t - newest)      # the load meter's
         self.count('measurements')
         # the estimate first: it is what the compensator waits for (benchmarks P1). A late
         # measurement is answered with the estimate at the newest stamp, now revised.
@@ -231,7 +236,8 @@ class ObserverNode(ObserverHealth, VehicleNode):
             self._publish_estimate(history.t, sensor.frame_id, history.head_tag, x_hat)
         else:
             self._publish_estimate(t, sensor.frame_id, stamp, x_hat)
-        self._publish_covariance()
+        if self._cov_pub is not None:
+            self._publish_covariance()
         residual = history.residual
         if residual is not None:
             self._health.add(sensor.name, residual, history.innovation_covariance, t)
@@ -288,8 +294,8 @@ class ObserverNode(ObserverHealth, VehicleNode):
         """Handle stamps that go backwards, repeat, or lie far in the future."""
         last = self.history.t
         if last is not None and t < last:
-            # a jump is judged against the sensors' own stamps: a command stamped ahead
-            # (delay compensation) moves the estimate's time, and must never reset it
+            # a jump is judged against the sensors' own stamps (a command never moves the
+            # estimate's time: one stamped ahead is held until the estimate reaches it)
             newest = max(self._last_stamp.values(), default=last)
             if newest - t > self.param('clock_jump_tolerance'):
                 self._reset_estimator('clock_jumps', f'{sensor.topic}: clock jumped back '
@@ -351,15 +357,17 @@ class ObserverNode(ObserverHealth, VehicleNode):
             now = self.get_clock().now().nanoseconds * 1e-9
             last = self.history.t
             jump = self.param('clock_jump_tolerance')
-            # a command is not a time source: it never moves the estimator's time far (set_input
-            # propagates x_hat to its stamp) nor resets it; only the sensors' stamps can
+            # a command is not a time source: it never moves the estimator's time (one
+            # stamped ahead is held until the estimate reaches it) nor resets it; only the
+            # sensors' stamps can
             if now > 0.0 and t - now > self.param('future_tolerance'):
                 self._reject('future_stamps', f'{topic}: stamp {t:.3f} is {t - now:.1f} s '
                              'ahead of the clock; skipped')
             elif last is not None and t - last > jump:
                 self._reject('future_stamps', f'{topic}: stamp {t:.6f} is {t - last:.3f} s '
                              'ahead of the estimate; skipped')
-            # inside the history: from its stamp on; older: held from the estimate's time
+            # ahead: pending; inside the history: from its stamp on; older: held from the
+            # estimate's time
             elif self.history.set_input(t, u, tag=msg.header.stamp):
                 if last - t > jump:
                     self._reject('late_commands', f'{topic}: stamp {t:.6f} is {last - t:.3f} '

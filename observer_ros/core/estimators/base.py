@@ -377,6 +377,54 @@ class Estimator:
             self._u[:] = u
         return self._x.copy()
 
+    def check_input(self, u):
+        """
+        Return u as the estimator would hold it, or raise as :meth:`set_input` would.
+
+        Parameters
+        ----------
+        u : array_like
+            The input (m).
+
+        Returns
+        -------
+        u : ndarray
+            Finite, of m elements.
+
+        """
+        return self._as_input(u)
+
+    def check_measurement(self, y, rows=None):
+        """
+        Raise as :meth:`correct` would for a bad measurement (its stamp aside).
+
+        Parameters
+        ----------
+        y : array_like
+            Measured values of the outputs ``rows``.
+        rows : sequence of int, optional
+            See :meth:`correct`.
+
+        """
+        self._as_measurement(y, self._all if rows is None else self._rows_info(rows, 'rows'))
+
+    def last_residual(self):
+        """
+        Return the residual of the last correction and its covariance S, not copied.
+
+        For a caller that keeps them (the history): no call changes them in place, each
+        correction makes new ones.
+
+        Returns
+        -------
+        residual : ndarray or None
+            As :attr:`residual`.
+        S : ndarray or None
+            As :attr:`innovation_covariance`.
+
+        """
+        return self._residual, None
+
     # ------------------------------------------------------------ internals
 
     @staticmethod
@@ -468,8 +516,10 @@ class Estimator:
             For :meth:`restore_state`; the caches (matrices, gains) are not part of it.
 
         """
-        get = self.__getattribute__
-        return tuple([_copy(get(name)) for name in self._STATE])
+        # _copy inlined: this runs every CHECKPOINT_EVERY messages of the history
+        return tuple([value.copy() if type(value) is np.ndarray else
+                      set(value) if type(value) is set else value
+                      for value in map(self.__getattribute__, self._STATE)])
 
     def restore_state(self, state):
         """

@@ -23,14 +23,24 @@ several sensors at one stamp may then come in another order: the full- and reduc
 observers fuse them into one correction (the same result), a Kalman filter updates with
 them in turn (the same to round-off).
 
+A command stamped ahead of the estimate (the compensator's delay compensation stamps its
+commands a few steps ahead) is held *pending*: it is applied when the estimate passes its
+stamp (a measurement after it; a prediction to or past it uses it), not propagated to at
+once. So the measurements that come before its stamp are in order, not late (no rewind),
+and the result is that of the stamp order all the same.
+
+A measurement newer than everything held costs little more than the estimator's own step
+(benchmarks/README.md, session 6): its entry is a plain list placed without a sort key,
+and the old entries are dropped when the oldest checkpoint (kept in a deque) leaves the
+window, not searched for per message.
+
 The node and the bag replay both use this class: what one estimates from a recording,
 the other estimates live.
 
 """
 
-import bisect
-
-import numpy as np
+from collections import deque
+import math
 
 from .base import TimeOrderError
 from ..spec import HISTORY_LENGTH
@@ -50,23 +60,18 @@ CHECKPOINT_EVERY = 8
 
 _MEASUREMENT, _COMMAND = 0, 1
 
+# An entry of the history is a list (cheaper to make than an object, per message):
+# the message's stamp, kind, value, rows and tag, then what applying it gave: the
+# estimator's state after it (a checkpoint, or None), and for a measurement the estimate
+# at its stamp, its residual and S (for the call itself and :attr:`History.revised`; the
+# fast path of :meth:`History.correct` does not keep them). At one stamp the
+# measurements come before the commands, and messages of one kind in the order they
+# arrived.
+_T, _KIND, _VALUE, _ROWS, _TAG, _STATE, _X, _RESIDUAL, _S = range(9)
 
-class _Entry:
-    """One message of the history, and the estimator's state after it."""
 
-    __slots__ = ('key', 'kind', 't', 'value', 'rows', 'tag', 'state', 'x', 'residual', 'S')
-
-    def __init__(self, key, kind, t, value, rows, tag):
-        self.key = key
-        self.kind = kind
-        self.t = t
-        self.value = value
-        self.rows = rows
-        self.tag = tag
-        self.state = None
-        self.x = None
-        self.residual = None
-        self.S = None
+def _entry(t, kind, value, rows, tag):
+    return [t, kind, value, rows, tag, None, None, None, None]
 
 
 class History:
@@ -87,31 +92,32 @@ class History:
     -----
     :attr:`revised` lists, after each call, the measurements whose estimate changed
     because a late message was inserted before them, as ``(tag, x_hat, residual, S)``:
-    the bag replay overwrites what it had recorded for them.
+    the bag replay overwrites what it had recorded for them. It is a new list after a
+    call that revised some; otherwise the same empty list.
 
     """
 
     def __init__(self, estimator, length=HISTORY_LENGTH, max_messages=HISTORY_MAX_MESSAGES):
         length = float(length)
-        if not (length >= 0.0 and np.isfinite(length)):
+        if not (length >= 0.0 and math.isfinite(length)):
             raise ValueError(f'history length must be >= 0 and finite; got {length!r}')
         if int(max_messages) < 1:
             raise ValueError(f'max_messages must be at least 1; got {max_messages!r}')
         self._est = estimator
         self._length = length
         self._max = int(max_messages)
-        self._seq = 0
         self.revised = []
         self.rewinds = 0
         self.reapplied = 0
         self._clear()
 
     def _clear(self):
-        self._entries = []
-        self._keys = []
+        self._entries = []                        # applied, in stamp order
+        self._pending = []                        # commands not before the estimate's t
         self._since = 0                           # messages since the last checkpoint
         self._base = self._est.save_state()      # the state before the first entry
-        self._dropped_t = -np.inf                 # the newest stamp no longer kept
+        self._dropped_t = -math.inf               # the newest stamp no longer kept
+        self._checkpoints = deque()               # the entries with a state, in order
         self._residual = None
         self._S = None
         self._x_at = None
@@ -120,7 +126,7 @@ class History:
 
     @property
     def estimator(self):
-        """Return the estimator this history drives (it is at the newest stamp)."""
+        """Return the estimator this history drives (it is at the newest stamp applied)."""
         return self._est
 
     @property
@@ -130,7 +136,7 @@ class History:
 
     @property
     def t(self):
-        """Time of the estimate (the newest stamp), or None before the first message."""
+        """Time of the estimate, or None before the first message (pending commands aside)."""
         return self._est.t
 
     @property
@@ -155,11 +161,16 @@ class History:
 
     @property
     def head_tag(self):
-        """Return the tag of the newest message of the history (None when empty)."""
-        return self._entries[-1].tag if self._entries else None
+        """Return the tag of the newest message applied (None when there is none)."""
+        return self._entries[-1][_TAG] if self._entries else None
+
+    @property
+    def pending(self):
+        """Return the number of commands held until the estimate reaches their stamps."""
+        return len(self._pending)
 
     def __len__(self):
-        return len(self._entries)
+        return len(self._entries) + len(self._pending)
 
     # ------------------------------------------------------------ calls
 
@@ -200,7 +211,8 @@ class History:
         Returns
         -------
         x_hat : ndarray
-            The estimate at the newest stamp (t itself unless the measurement is late).
+            The estimate at the newest stamp applied (t itself unless the measurement is
+            late). Not to be modified: it may be :attr:`x_at_stamp` itself.
 
         Raises
         ------
@@ -210,16 +222,52 @@ class History:
             A bad measurement (the history is left as it was).
 
         """
-        rows = self._est.measured_rows if rows is None else tuple(rows)
-        entry = self._insert(_MEASUREMENT, t, y, rows, tag)
-        self._residual = entry.residual
-        self._S = entry.S
-        self._x_at = entry.x
-        return self._est.x_hat
+        est = self._est
+        if rows is None:
+            rows = est.measured_rows
+        elif type(rows) is not tuple:
+            rows = tuple(rows)
+        if self.revised:
+            self.revised = []
+        entries = self._entries
+        pending = self._pending
+        if entries and type(t) is float and (not pending or pending[0][_T] >= t):
+            last = entries[-1]
+            if last[_T] < t or (last[_T] == t and last[_KIND] == _MEASUREMENT):
+                # in order, nothing pending before it: the estimator is at the last entry
+                # and this is its step, an entry and a checkpoint every CHECKPOINT_EVERY
+                x = est.correct(t, y, rows)         # refuses a non-finite t
+                residual, S = est.last_residual()
+                since = self._since + 1
+                state = None
+                if since >= CHECKPOINT_EVERY:
+                    since, state = 0, est.save_state()
+                self._since = since
+                # x, residual and S are not kept: a rewind computes them again, and they
+                # go when the caller is done with them (memory reused, not held)
+                entry = [t, _MEASUREMENT, y, rows, tag, state, None, None, None]
+                entries.append(entry)
+                checkpoints = self._checkpoints
+                if state is not None:
+                    checkpoints.append(entry)
+                if (checkpoints and checkpoints[0][_T] < t - self._length) or \
+                        len(entries) > self._max:
+                    self._drop_old()
+                self._residual, self._S, self._x_at = residual, S, x
+                return x
+        entry = self._insert(_MEASUREMENT, est._as_time(t), y, rows, tag)
+        self._residual = entry[_RESIDUAL]
+        self._S = entry[_S]
+        self._x_at = entry[_X]
+        return est.x_hat
 
     def set_input(self, t, u, tag=None):
         """
         Hold the input u from its stamp t on (from the newest stamp if older than the history).
+
+        A stamp after the estimate's time is held pending: applied when the estimate
+        passes it (:meth:`correct` after it; :meth:`predict` to or past it uses it without
+        applying it). Measurements at its stamp come before it, as in the stamp order.
 
         Parameters
         ----------
@@ -237,9 +285,19 @@ class History:
             estimate's time instead (as an estimator without a history does).
 
         """
+        est = self._est
+        t = est._as_time(t)
+        if self.revised:
+            self.revised = []
+        head = est.t
+        pending = self._pending
+        if head is not None and (t > head or (pending and pending[0][_T] <= t)):
+            # ahead of the estimate (or after commands held at its stamp): held
+            self._hold(_entry(t, _COMMAND, est.check_input(u), (), tag))
+            return False
         late = not self.accepts(t)
         if late:
-            t = self._est.t
+            t = head
         self._insert(_COMMAND, t, u, (), tag)
         return late
 
@@ -255,12 +313,17 @@ class History:
         Returns
         -------
         x_hat : ndarray
-            The prediction at t with the held input.
+            The prediction at t with the input held, pending commands stamped up to t
+            included.
 
         """
         est = self._est
         state = est.save_state()
         try:
+            for e in self._pending:
+                if e[_T] > t:
+                    break
+                est.set_input(e[_T], e[_VALUE])
             return est.predict(t)
         finally:
             est.restore_state(state)
@@ -270,12 +333,16 @@ class History:
         Start the history again from the estimator's present state.
 
         For a caller that drove the estimator directly (the bag replay's bulk stretches):
-        no message stamped at or before the estimate's time is accepted after this.
+        no message stamped at or before the estimate's time is accepted after this; the
+        pending commands stamped after it stay pending.
 
         """
+        head = self._est.t
+        pending = [e for e in self._pending if head is None or e[_T] > head]
         self._clear()
-        if self._est.t is not None:
-            self._dropped_t = self._est.t
+        self._pending = pending
+        if head is not None:
+            self._dropped_t = head
 
     def reset(self, x0=None, t0=None):
         """
@@ -296,50 +363,85 @@ class History:
     # ------------------------------------------------------------ internals
 
     def _insert(self, kind, t, value, rows, tag):
+        """Insert a message at its place among the entries applied (a rewind if late)."""
         est = self._est
-        t = est._as_time(t)
         if not self.accepts(t):
             raise TimeOrderError(f'time {t!r} s is older than the history '
                                  f'({self._length:g} s before {est.t!r} s)')
-        self._seq += 1
-        key = (t, kind, self._seq)
-        entry = _Entry(key, kind, t, value, rows, tag)
-        keys = self._keys
-        self.revised = []
-        if not keys or key > keys[-1]:
-            self._apply(entry)               # in order: the estimator is at the last entry
-            keys.append(key)
-            self._entries.append(entry)
+        entry = _entry(t, kind, value, rows, tag)
+        entries = self._entries
+        pos = len(entries)
+        while pos and (entries[pos - 1][_T] > t or
+                       (entries[pos - 1][_T] == t and entries[pos - 1][_KIND] > kind)):
+            pos -= 1
+        if pos == len(entries):
+            self._append(entry)          # in order: the estimator is at the last entry
         else:
-            self._rewind(bisect.bisect_right(keys, key), entry)
+            self._rewind(pos, entry)
         self._drop_old()
         return entry
+
+    def _append(self, entry):
+        """Apply an entry newer than those applied, the pending commands before it first."""
+        pending = self._pending
+        t = entry[_T]
+        if pending and pending[0][_T] < t:
+            if entry[_KIND] == _MEASUREMENT:            # a bad one changes nothing
+                self._est.check_measurement(entry[_VALUE], entry[_ROWS])
+            self._apply_pending(t)
+        self._apply(entry)
+        self._entries.append(entry)
+
+    def _hold(self, entry):
+        """Keep a command stamped after the estimate until the estimate reaches it."""
+        pending = self._pending
+        t = entry[_T]
+        pos = len(pending)
+        while pos and pending[pos - 1][_T] > t:      # arrival order at one stamp
+            pos -= 1
+        pending.insert(pos, entry)
+        if len(self) > self._max:            # bounded: the oldest reaches the estimate
+            self._apply_pending(pending[0][_T], True)
+            self._drop_old()
+
+    def _apply_pending(self, t, inclusive=False):
+        """Apply the pending commands stamped before t (or at t too, if inclusive)."""
+        pending = self._pending
+        n = 0
+        for e in pending:
+            if e[_T] > t or (e[_T] == t and not inclusive):
+                break
+            self._apply(e)
+            self._entries.append(e)
+            n += 1
+        del pending[:n]
 
     def _apply(self, entry, checkpoint=None):
         """Apply an entry; keep the state after it every CHECKPOINT_EVERY messages."""
         est = self._est
-        if entry.kind == _MEASUREMENT:
-            entry.x = est.correct(entry.t, entry.value, entry.rows)
-            entry.residual = est.residual
-            entry.S = est.innovation_covariance
+        if entry[_KIND] == _MEASUREMENT:
+            entry[_X] = est.correct(entry[_T], entry[_VALUE], entry[_ROWS])
+            entry[_RESIDUAL], entry[_S] = est.last_residual()
         else:
-            est.set_input(entry.t, entry.value)
-        if checkpoint is None:
-            self._since += 1
-            checkpoint = self._since >= CHECKPOINT_EVERY
-            if checkpoint:
-                self._since = 0
-        entry.state = est.save_state() if checkpoint else None
+            est.set_input(entry[_T], entry[_VALUE])
+        since_counted = checkpoint is None
+        if since_counted:
+            since = self._since + 1
+            checkpoint = since >= CHECKPOINT_EVERY
+            self._since = 0 if checkpoint else since
+        entry[_STATE] = est.save_state() if checkpoint else None
+        if checkpoint and since_counted:
+            self._checkpoints.append(entry)        # a rewind lists them again at its end
 
     def _rewind(self, pos, entry):
         est = self._est
         entries = self._entries
         # the newest checkpoint before the new entry, and the entries from it on
         start = pos
-        while start > 0 and entries[start - 1].state is None:
+        while start > 0 and entries[start - 1][_STATE] is None:
             start -= 1
         head = est.save_state()
-        est.restore_state(entries[start - 1].state if start else self._base)
+        est.restore_state(entries[start - 1][_STATE] if start else self._base)
         # checkpoints again every CHECKPOINT_EVERY messages from the one restored
         count = 0
         try:
@@ -352,39 +454,56 @@ class History:
             # a bad message changes nothing (the states the entries before it got are
             # those they had: the same messages from the same checkpoint)
             est.restore_state(head)
+            self._find_checkpoints()
             raise
         self.rewinds += 1
         later = entries[pos:]
+        revised = []
         for e in later:
             count += 1
             self._apply(e, count % CHECKPOINT_EVERY == 0)
-            if e.kind == _MEASUREMENT:
-                self.revised.append((e.tag, e.x, e.residual, e.S))
+            if e[_KIND] == _MEASUREMENT:
+                revised.append((e[_TAG], e[_X], e[_RESIDUAL], e[_S]))
+        if revised:
+            self.revised = revised
         self._since = count % CHECKPOINT_EVERY
         self.reapplied += len(later) + pos - start
         entries.insert(pos, entry)
-        self._keys.insert(pos, entry.key)
+        self._find_checkpoints()
+
+    def _find_checkpoints(self):
+        """List the entries with a state again (after a rewind moved the checkpoints)."""
+        self._checkpoints = deque(e for e in self._entries if e[_STATE] is not None)
 
     def _drop_old(self):
+        """
+        Drop the entries up to the newest checkpoint older than the window.
+
+        The state of the last entry dropped becomes the base of a rewind, so the entries
+        go a checkpoint's worth at a time: fewer for the window, more for the number of
+        messages (max_messages). The newest entry is kept whatever its stamp.
+        """
         entries = self._entries
+        if not entries:
+            return
         horizon = self._est.t - self._length
-        last = len(entries) - 1       # the newest entry is kept whatever its stamp
-        # the state after the last dropped entry becomes the base, so drop up to the
-        # newest checkpoint older than the horizon: fewer for the horizon, more for the
-        # number of messages (below)
-        drop = j = 0
-        while j < last and entries[j].t < horizon:     # at most CHECKPOINT_EVERY or so
-            if entries[j].state is not None:
-                drop = j + 1
-            j += 1
-        if len(entries) - drop > self._max:
+        checkpoints = self._checkpoints
+        newest = entries[-1]
+        upto = None
+        while checkpoints and checkpoints[0][_T] < horizon and checkpoints[0] is not newest:
+            upto = checkpoints.popleft()
+        drop = 0 if upto is None else entries.index(upto) + 1    # identity first: C speed
+        if len(entries) - drop > self._max:         # rare: stamps crowd
+            last = len(entries) - 1
             drop = len(entries) - self._max
-            while drop < last and entries[drop - 1].state is None:
+            while drop < last and entries[drop - 1][_STATE] is None:
                 drop += 1
-            if entries[drop - 1].state is None:
+            if entries[drop - 1][_STATE] is None:
                 drop = 0
+            upto = True                             # the checkpoints listed again below
         if drop > 0:
-            self._base = entries[drop - 1].state
-            self._dropped_t = max(self._dropped_t, entries[drop - 1].t)
+            self._base = entries[drop - 1][_STATE]
+            self._dropped_t = max(self._dropped_t, entries[drop - 1][_T])
             del entries[:drop]
-            del self._keys[:drop]
+            if upto is True:
+                self._find_checkpoints()

@@ -96,6 +96,10 @@ class KalmanEstimator(Estimator):
         """Return ``S = C P- C^T + R`` of the last correction's rows (a copy), or None."""
         return None if self._S is None else self._S.copy()
 
+    def last_residual(self):
+        """Return the residual of the last correction and its S, not copied (see the base)."""
+        return self._residual, self._S
+
     def _reset_state(self):
         self._P = None if self._P0 is None else self._P0.copy()
         self._S = None

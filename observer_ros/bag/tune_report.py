@@ -1,0 +1,143 @@
+# observer_ros.bag.tune_report: observer-tune's report (text, JSON, CSV, PNG).
+"""
+The report of :func:`observer_ros.bag.tune.tune`.
+
+``tune.txt`` (what ``observer-tune`` prints: the identification, Mehra's test, the
+search tables with a column per bag, their mean and each bag's best), ``tune.json``
+(every number), ``search.csv`` (the common-scale grid), ``pole_search.csv`` (each
+evaluation of ``--search each-pole`` with its poles) and the PNGs (autocovariances, the
+metric against the scale and per evaluation).
+
+"""
+
+import json
+import math
+
+import numpy as np
+
+from .metrics import WHITENESS_LAGS
+from .plots import plot_autocovariances, plot_search
+from .report import csv_cell, fmt, text_table
+
+__all__ = ['format_report', 'write_report']
+
+
+def format_report(result):
+    """Return the readable report (what ``observer-tune`` prints)."""
+    lines = []
+    ident = result.identification
+    if ident is not None:
+        r = ident.result
+        lines += [f'noise identification (autocovariance least squares) of '
+                  f'{ident.vehicle.name} on {len(ident.bags)} bag(s): '
+                  f'{sum(ident.samples.values())} samples at dt {ident.dt:.6g} s, first '
+                  f'{ident.burn} of each dropped, {r.lags} lags, '
+                  f'{"full" if r.full else "diagonal"} covariances',
+                  f'reference: {ident.reference}; condition number {fmt(r.condition)} '
+                  f'(rank {r.rank} of {r.unknowns})', '']
+        rows = []
+        for i, p in enumerate(ident.passes):
+            for j, name in enumerate(ident.noise_names):
+                rows.append([i + 1, f'Qd {name}', fmt(p.Q[j, j])])
+            for j, name in enumerate(ident.vehicle.plant.output_names):
+                rows.append([i + 1, f'Rd {name}', fmt(p.R[j, j])])
+        lines += [text_table(['pass', 'entry', 'value'], rows), '']
+        rows = []
+        for label, w in (('reference', ident.whiteness_before),
+                         ('tuned kalman', ident.whiteness_after)):
+            for name, m in w.items():
+                rows.append([label, name, m['samples'], fmt(m['residual_rms']),
+                             fmt(m['ljung_box_p'], 3), fmt(m['acf_outside'], 3),
+                             {True: 'yes', False: 'no'}.get(m['white'], '-')])
+        lines += [f'Mehra whiteness test of the innovations (lags 1..{WHITENESS_LAGS}; '
+                  'white if at most 5% of the lags are outside +-1.96/sqrt(N))', '',
+                  text_table(['filter', 'output', 'N', 'rms', 'LB_p', 'acf_out', 'white'],
+                             rows), '']
+    sr = result.search
+    if sr is not None:
+        grid = getattr(sr, 'grid', sr)          # a per-pole search starts with a grid
+        lines += _grid_lines(grid)
+        if grid is not sr:
+            lines += _pole_lines(sr)
+    lines.append(f'tuned vehicle file: {result.vehicle_file}')
+    return '\n'.join(lines)
+
+
+def _grid_lines(sr):
+    names = list(sr.per_bag)
+    head = ['scale', 'mean'] + [f'bag{i + 1}' for i in range(len(names))]
+    rows = [[fmt(c) for c in row] for row in sr.rows()]
+    return [f'gain search: {sr.kind} scale; metric {sr.metric} (mean over the bags); best '
+            f'{fmt(sr.best)}', ''] + [f'  bag{i + 1}: {n}' for i, n in enumerate(names)] + \
+        ['', text_table(head, rows), ''] + _per_bag_best(sr.per_bag, sr.scales, 'scale')
+
+
+def _per_bag_best(per_bag, points, what):
+    """Return the summary: each bag's best point and metric."""
+    lines = []
+    for i, values in enumerate(per_bag.values()):
+        v = np.array(values, dtype=float)
+        if np.isfinite(v).any():
+            k = int(np.nanargmin(np.where(np.isfinite(v), v, np.nan)))
+            lines.append(f'  bag{i + 1}: best {what} {fmt(points[k])}, metric {fmt(v[k])}')
+    return ['summary per bag:'] + lines + [''] if len(per_bag) > 1 else []
+
+
+def _pole_lines(sr):
+    names = list(sr.per_bag)
+    head = ['eval', 'mean'] + [f'bag{i + 1}' for i in range(len(names))] + ['poles']
+    rows = [[str(r[0])] + [fmt(c) for c in r[1:-1]] + [r[-1]] for r in sr.rows()]
+    grid_best = min((m for m in sr.grid.mean if math.isfinite(m)), default=math.nan)
+    return ['per-pole search (scipy.optimize Nelder-Mead, each real pole and each '
+            "conjugate pair's real part and |imag|, from the poles times "
+            f'{fmt(sr.start_scale)}): metric {sr.metric} (mean over the bags)', '',
+            text_table(head, rows), '',
+            f'best: evaluation {sr.best}, metric {fmt(sr.best_metric)} (best common scale '
+            f'{fmt(grid_best)}), poles {rows[sr.best][-1]}', ''] + \
+        _per_bag_best(sr.per_bag, list(range(len(sr.mean))), 'evaluation')
+
+
+def write_report(result, out, plots):
+    """Write tune.txt, tune.json, the search tables and the plots; return the files."""
+    files = []
+    (out / 'tune.txt').write_text(format_report(result) + '\n')
+    files.append(out / 'tune.txt')
+    with open(out / 'tune.json', 'w') as f:
+        json.dump(result.to_dict(), f, indent=2)
+        f.write('\n')
+    files.append(out / 'tune.json')
+    sr = result.search
+    grid = getattr(sr, 'grid', sr)
+    if sr is not None:
+        with open(out / 'search.csv', 'w') as f:
+            f.write(','.join(['scale', 'mean'] + list(grid.per_bag)) + '\n')
+            for row in grid.rows():
+                f.write(','.join(csv_cell(float(c)) for c in row) + '\n')
+        files.append(out / 'search.csv')
+    if grid is not sr:
+        with open(out / 'pole_search.csv', 'w') as f:
+            f.write(','.join(['evaluation', 'mean'] + list(sr.per_bag) + ['poles']) + '\n')
+            for row in sr.rows():
+                f.write(','.join([str(row[0])] + [csv_cell(float(c)) for c in row[1:-1]] +
+                                 [row[-1]]) + '\n')
+        files.append(out / 'pole_search.csv')
+    if plots and result.identification is not None:
+        ident = result.identification
+        fits = [(f'pass {i + 1}: ' + (ident.reference if i == 0 else
+                                      'Kalman filter of the previous pass'),
+                 p.empirical, p.fitted, p.sigma) for i, p in enumerate(ident.passes)]
+        files.append(plot_autocovariances(
+            out / 'autocovariance.png', ident.vehicle.plant.output_names, fits,
+            f'{ident.vehicle.name}: innovation autocovariances, empirical and fitted'))
+    if plots and sr is not None:
+        metrics = dict(grid.per_bag) if len(grid.per_bag) > 1 else {}
+        metrics['mean'] = grid.mean
+        files.append(plot_search(out / 'search.png', f'{grid.kind} scale', grid.scales,
+                                 metrics, grid.metric, grid.best))
+    if plots and grid is not sr:
+        metrics = dict(sr.per_bag) if len(sr.per_bag) > 1 else {}
+        metrics['mean'] = sr.mean
+        files.append(plot_search(out / 'pole_search.png', 'evaluation (scipy.optimize)',
+                                 list(range(len(sr.mean))), metrics, sr.metric, sr.best,
+                                 log=False))
+    return files

@@ -1,0 +1,171 @@
+# test/test_bag_tune_search.py: observer-tune's gain searches over several different bags.
+"""
+The per-pole search, and the searches over two different bags (serially and on Dask).
+
+The bags are test_bag_tune's closed loops with known noise, 3000 samples each, two per
+vehicle that differ in seed, measurement noise (the second twice the sensor's) and
+initial state (the second starts away from rest, where the observer starts).
+
+"""
+
+from pathlib import Path
+from types import SimpleNamespace
+
+from bag_synth import CONFIG, write_bag
+import numpy as np
+from numpy.testing import assert_allclose
+from observer_ros.bag.errors import BagToolError
+from observer_ros.bag.evaluate import evaluate_bag
+from observer_ros.bag.gain_search import gain_search
+from observer_ros.bag.pole_search import MARGIN, pole_set
+from observer_ros.bag.tune import main, tune
+from observer_ros.vehicle import load_vehicle
+import pytest
+from test_bag_tune import _true, simulate_noisy
+import yaml
+
+STEPS = 3000
+
+
+@pytest.fixture(scope='module')
+def two_bags(tmp_path_factory):
+    """Two different bags of the cart-pendulum and of the submarine (and without truth)."""
+    root = tmp_path_factory.mktemp('tune_search')
+    out = {}
+    for name in ('cart_pendulum', 'submarine'):
+        v, q, _ = _true(name)
+        runs = [simulate_noisy(v, q, 31, steps=STEPS),
+                simulate_noisy(v, q, 32, steps=STEPS, x0=0.01 * np.ones(v.plant.n),
+                               noise_scale=2.0)]
+        out[name] = [write_bag(root / f'{name}_{i}', m) for i, m in enumerate(runs)]
+        out[f'{name}_no_truth'] = [write_bag(root / f'{name}_{i}_nt', m, skip=('state/true',))
+                                   for i, m in enumerate(runs)]
+    return out
+
+
+def _sorted(poles):
+    return np.sort_complex(np.asarray(poles, dtype=complex))
+
+
+def test_per_pole_search_beats_the_common_scale_and_writes_the_poles(two_bags, tmp_path):
+    bags = two_bags['cart_pendulum']
+    vehicle = CONFIG / 'cart_pendulum.yaml'
+    res = tune(bags, vehicle, tmp_path / 'out', als=False, search='each-pole',
+               scales=[0.5, 1.0, 2.0], evaluations=12)
+    sr = res.search
+    grid_best = min(sr.grid.mean)
+    # the start is the vehicle's poles times the best common scale, and it is evaluation 0
+    assert sr.start_scale == sr.grid.best
+    assert sr.mean[0] == pytest.approx(grid_best, rel=1e-12)
+    assert sr.best_metric <= grid_best and len(sr.mean) <= 12
+    assert len(sr.mean) >= 8                           # the optimizer did move the poles
+    # the metric is the mean over the two bags of each bag's error RMS; the per-bag
+    # figures are observer-eval's of the written file
+    assert len(sr.per_bag) == 2
+    a, b = (v[sr.best] for v in sr.per_bag.values())
+    assert sr.best_metric == pytest.approx((a + b) / 2, rel=1e-12) and a != b
+    text = Path(res.vehicle_file).read_text()
+    tuned = load_vehicle(res.vehicle_file)
+    assert tuned.observer.kind == 'full'
+    assert_allclose(_sorted(tuned.observer.poles), _sorted(sr.best_poles), rtol=1e-12)
+    for bag, want in zip(bags, (a, b)):
+        ev = evaluate_bag(bag, res.vehicle_file, include_live=False)
+        assert ev.variants['design'].summary['error_rms'] == pytest.approx(want, rel=1e-9)
+    assert '# observer-tune per-pole search (scipy.optimize Nelder-Mead' in text
+    assert text.count('# observer-tune per-pole search') == 2      # poles and poles_imag
+    # conjugate pairs stay pairs, every pole left of the margin
+    p = np.asarray(tuned.observer.poles, dtype=complex)
+    assert_allclose(_sorted(p), _sorted(p.conj()), rtol=1e-12)
+    assert np.all(p.real < -MARGIN * 0.5 * 10.0 + 1e-9)     # slowest start: -5 (scale 0.5)
+    # the report: per evaluation, per bag, the summary; the plot per evaluation
+    rows = (tmp_path / 'out' / 'pole_search.csv').read_text().splitlines()
+    assert rows[0].split(',')[:2] == ['evaluation', 'mean'] and len(rows) == len(sr.mean) + 1
+    report = (tmp_path / 'out' / 'tune.txt').read_text()
+    assert 'per-pole search' in report and 'summary per bag:' in report
+    assert f'best: evaluation {sr.best}' in report
+    assert {'pole_search.png', 'search.png', 'search.csv'} <= \
+        {f.name for f in (tmp_path / 'out').iterdir()}
+
+
+def test_search_over_two_different_bags_is_the_mean_of_each(two_bags):
+    bags = two_bags['submarine']
+    vehicle = CONFIG / 'submarine.yaml'
+    both = gain_search(bags, vehicle, 'poles', [0.25, 0.5, 1.0])
+    alone = [gain_search([b], vehicle, 'poles', [0.25, 0.5, 1.0]) for b in bags]
+    assert list(both.per_bag) == [str(b) for b in bags]
+    for one, values in zip(alone, both.per_bag.values()):
+        assert list(one.per_bag.values())[0] == values
+    first, second = both.per_bag.values()
+    assert all(x != y for x, y in zip(first, second))         # different data
+    assert both.mean == [(x + y) / 2 for x, y in zip(first, second)]
+    assert both.metric.startswith('error_rms')
+
+
+def test_search_on_dask_gives_the_serial_numbers(two_bags, tmp_path, capsys):
+    # without state/true: the residual metric, relative to the scale nearest 1
+    bags = two_bags['submarine_no_truth']
+    vehicle = CONFIG / 'submarine.yaml'
+    serial = gain_search(bags, vehicle, 'poles', [0.25, 0.5, 1.0])
+    assert serial.metric.startswith('residual RMS')
+    out = tmp_path / 'dask'
+    argv = [str(b) for b in bags] + ['--vehicle', str(vehicle), '--out', str(out), '--no-als',
+                                     '--search', 'poles', '--grid', '0.25,0.5,1', '--no-plots',
+                                     '--workers', '2']
+    assert main(argv) == 0
+    assert 'summary per bag:' in capsys.readouterr().out
+    rows = [r.split(',') for r in (out / 'search.csv').read_text().splitlines()]
+    assert rows[0] == ['scale', 'mean'] + [str(b) for b in bags]
+    got = np.array(rows[1:], dtype=float)
+    want = np.column_stack([serial.scales, serial.mean] + list(serial.per_bag.values()))
+    np.testing.assert_array_equal(got, want)
+
+
+def _vehicle_file(tmp_path, name, **observer):
+    doc = yaml.safe_load((CONFIG / 'submarine.yaml').read_text())
+    params = doc['/**']['ros__parameters']
+    for key, value in observer.items():
+        section, field = key.split('__')
+        params[section][field] = value
+    path = tmp_path / f'{name}.yaml'
+    path.write_text(yaml.safe_dump(doc))
+    return str(path)
+
+
+def test_per_pole_search_refusals(two_bags, tmp_path, capsys):
+    bag = str(two_bags['submarine'][0])
+    cases = [
+        # theta and w are not seen by the gyro once the model is decoupled
+        (_vehicle_file(tmp_path, 'unobservable', model__A=[
+            -1.0, 0.0, 0.0, 0.0, -2.0, 0.0, 0.0, 0.0, -3.0]), [],
+         'is not observable from its outputs'),
+        (_vehicle_file(tmp_path, 'unpaired', observer__poles_imag=[1.0, 0.0, 0.0]), [],
+         'observer.poles: pole -0.6+1j has no complex-conjugate partner'),
+        (_vehicle_file(tmp_path, 'kalman', observer__type='kalman', observer__Qd=[1e-4],
+                       observer__Rd=[1e-6], observer__Bd=[0.0, 0.0322, -0.0857]), [],
+         'has no poles'),
+        (str(CONFIG / 'submarine.yaml'), ['--evaluations', '0'], '--evaluations 0'),
+        (str(CONFIG / 'submarine.yaml'), ['--workers', '0'], '--workers 0'),
+    ]
+    for i, (vehicle, extra, match) in enumerate(cases):
+        code = main([bag, '--vehicle', vehicle, '--no-als', '--search', 'each-pole',
+                     '--out', str(tmp_path / f'o{i}')] + extra)
+        err = capsys.readouterr().err
+        assert code == 2 and err.startswith('error: ') and match in err, err
+        assert err.count('\n') == 1 and not (tmp_path / f'o{i}').exists()
+    # the pairing is checked by the search itself too (a vehicle built in code)
+    plant = load_vehicle(CONFIG / 'submarine.yaml').plant
+    fake = SimpleNamespace(name='fake', plant=plant, observer=SimpleNamespace(
+        kind='full', poles=[-1 + 1j, -1 + 2j, -3]))
+    with pytest.raises(BagToolError, match=r'observer.poles_imag: the pole .* no conjugate'):
+        pole_set(fake)
+    fake.observer.poles = [-1.0, 0.5, -2.0]
+    with pytest.raises(BagToolError, match='observer.poles: 0.5.* is not stable'):
+        pole_set(fake)
+    # a discrete vehicle's z-plane poles are searched through s = log(z) / dt: the start
+    # gives them back, and any parameters give poles inside the unit circle
+    disc = load_vehicle(CONFIG / 'submarine_discrete.yaml')
+    space = pole_set(disc)
+    assert_allclose(_sorted(space.poles(space.start)), _sorted(disc.observer.poles),
+                    rtol=1e-12)
+    assert np.all(np.abs(space.poles(space.start + 5.0)) < 1.0)
+    assert np.all(np.abs(space.poles(space.start - 30.0)) < 1.0)

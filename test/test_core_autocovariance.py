@@ -1,0 +1,137 @@
+# test/test_core_autocovariance.py: running lagged sums against the whole-array formulas.
+"""
+Sample autocovariances and whiteness from blocks (core.autocovariance, core.als).
+
+:class:`LaggedSums` given the rows in blocks of any size must give the whole-array
+:func:`sample_autocovariances` (pooled sequences included) to 1e-12 relative, and the
+Ljung-Box whiteness of :func:`observer_ros.bag.metrics.whiteness`; the blocked predictor
+the same innovations and final prediction as one call; and the memory of summing does
+not grow with the number of rows.
+
+"""
+
+import tracemalloc
+
+import numpy as np
+from numpy.testing import assert_allclose
+from observer_ros.bag.metrics import whiteness
+from observer_ros.core.als import (ALSError, predictor_blocks, predictor_innovations,
+                                   sample_autocovariances)
+from observer_ros.core.autocovariance import LaggedSums
+from observer_ros.core.errors import ObserverError
+import pytest
+
+
+def _coloured(seed, N, p=2, mean=0.3):
+    """Rows of an AR(1) sequence with correlated columns and a non-zero mean."""
+    rng = np.random.default_rng(seed)
+    w = rng.standard_normal((N, p)) @ np.array([[1.0, 0.4], [0.0, 0.7]])[:p, :p]
+    out = np.empty((N, p))
+    x = np.zeros(p)
+    for k in range(N):
+        x = 0.8 * x + w[k]
+        out[k] = x
+    return out + mean
+
+
+def _summed(seqs, lags, block):
+    sums = LaggedSums(seqs[0].shape[1], lags)
+    for s in seqs:
+        sums.new_sequence()
+        for a in range(0, s.shape[0], block):
+            sums.add(s[a:a + block])
+    return sums
+
+
+@pytest.mark.parametrize('block', [1, 7, 64, 1000, 10 ** 6])
+def test_blocked_autocovariances_equal_the_whole_array_ones(block):
+    seqs = [_coloured(1, 3001), _coloured(2, 1234), _coloured(3, 40)]
+    lags = 15
+    whole = sample_autocovariances(seqs, lags)
+    sums = _summed(seqs, lags, block)
+    got = sums.autocovariances()
+    assert sums.samples == 3001 + 1234 + 40 and sums.lengths == [3001, 1234, 40]
+    assert_allclose(got, whole, rtol=1e-12, atol=1e-12 * np.max(np.abs(whole)))
+    assert_allclose(sums.autocovariances(4), whole[:4], rtol=1e-12)
+    # one sequence: the plain average of products, as the whole-array function
+    one = _summed(seqs[:1], lags, block).autocovariances()
+    assert_allclose(one, sample_autocovariances(seqs[0], lags), rtol=1e-12)
+    # an off-diagonal lag is not symmetric: the orientation is e[k+j] e[k]^T
+    e = seqs[0]
+    assert one[3, 0, 1] == pytest.approx(float(e[3:, 0] @ e[:-3, 1]) / (e.shape[0] - 3),
+                                         rel=1e-12)
+    assert abs(one[3, 0, 1] - one[3, 1, 0]) > 1e-3 * abs(one[3, 0, 1])
+
+
+@pytest.mark.parametrize('block', [1, 5, 333, 10 ** 6])
+def test_blocked_whiteness_equals_the_whole_array_test(block):
+    for seed, mean in ((4, 0.3), (5, -2.0)):
+        e = _coloured(seed, 2000, mean=mean)
+        e[:, 1] = np.random.default_rng(seed).standard_normal(2000) + mean   # white
+        sums = _summed([e], 21, block)
+        for j in range(2):
+            want = whiteness(e[:, j], 20)
+            got = sums.whiteness(j, 20)
+            assert got['samples'] == want['samples'] and got['lags'] == want['lags'] == 20
+            assert_allclose(got['acf'], want['acf'], rtol=1e-9, atol=1e-12)
+            for key in ('residual_rms', 'ljung_box_q', 'ljung_box_p', 'acf_outside'):
+                assert got[key] == pytest.approx(want[key], rel=1e-9, abs=1e-300), key
+        assert sums.whiteness(0, 20)['acf_outside'] > 0.5       # AR(1): coloured
+        assert sums.whiteness(1, 20)['ljung_box_p'] > 1e-3      # white
+    # few samples: the lag count is cut to N // 4, as the whole-array test
+    short = _summed([e[:30]], 21, block)
+    assert short.whiteness(0, 20)['lags'] == whiteness(e[:30, 0], 20)['lags'] == 7
+
+
+def test_too_few_rows_and_pooled_whiteness_are_refused():
+    sums = _summed([_coloured(6, 10)], 15, 4)
+    with pytest.raises(ALSError, match='10 innovations are too few for 15 lags'):
+        sums.autocovariances()
+    pooled = _summed([_coloured(6, 100), _coloured(7, 100)], 5, 10)
+    with pytest.raises(ObserverError, match='one sequence'):
+        pooled.whiteness(0, 4)
+
+
+def test_blocked_predictor_gives_the_same_innovations_and_prediction():
+    rng = np.random.default_rng(8)
+    Ad = np.array([[0.9, 0.1], [0.0, 0.8]])
+    Bd = np.array([[0.0], [0.1]])
+    C = np.array([[1.0, 0.0]])
+    D = np.array([[0.05]])
+    Lp = np.array([[0.5], [0.2]])
+    y, u, um = rng.standard_normal((500, 1)), rng.standard_normal((500, 1)), \
+        rng.standard_normal((500, 1))
+    x0 = np.array([0.3, -0.1])
+    e, x = predictor_innovations(Ad, Bd, C, D, Lp, y, u, um, x0=x0, final=True)
+
+    class Keep:
+        def __init__(self):
+            self.parts = []
+
+        def add(self, block):
+            self.parts.append(block)
+    keep = Keep()
+    got = predictor_blocks(Ad, Bd, C, D, Lp, y, u, um, x0=x0, sinks=[keep], block=37)
+    assert len(keep.parts) == 14
+    np.testing.assert_array_equal(np.vstack(keep.parts), e)
+    np.testing.assert_array_equal(got, x)
+    # no rows: the start itself (zeros when not given)
+    np.testing.assert_array_equal(predictor_blocks(Ad, Bd, C, D, Lp, y[:0], u[:0]),
+                                  np.zeros(2))
+
+
+def test_summing_a_longer_sequence_needs_no_more_memory():
+    def peak(N):
+        rng = np.random.default_rng(9)
+        Ad, C = np.array([[0.9, 0.1], [0.0, 0.8]]), np.array([[1.0, 0.0]])
+        Lp, Bd = np.array([[0.5], [0.2]]), np.zeros((2, 1))
+        y, u = rng.standard_normal((N, 1)), np.zeros((N, 1))
+        sums = LaggedSums(1, 15)
+        tracemalloc.start()
+        predictor_blocks(Ad, Bd, C, None, Lp, y, u, sinks=[sums], block=512)
+        _, top = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+        return top
+    small, large = peak(5_000), peak(20_000)
+    # the whole innovations would add 8 bytes a row (120 kB more for the longer one)
+    assert large < 1.2 * small + 10_000, (small, large)
