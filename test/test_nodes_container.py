@@ -57,4 +57,3 @@ def test_only_the_first_sigint_interrupts_a_node_process():
             signal.raise_signal(signal.SIGINT)
     finally:
         signal.signal(signal.SIGINT, old)
-
