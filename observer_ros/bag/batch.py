@@ -22,7 +22,7 @@ import time
 import warnings
 
 from .errors import BagToolError
-from .evaluate import _Progress, parse_options
+from .evaluate import _Progress, IN_MEMORY_HELP, parse_options
 from .jobs import job_dict, make_jobs, run_jobs, SCHEDULER_ENV, summarize
 from .report import text_table
 from .results import jsonable
@@ -191,6 +191,7 @@ def _parser():
     where.add_argument('--scheduler', metavar='ADDRESS',
                        help=f'an existing Dask scheduler (default ${SCHEDULER_ENV})')
     where.add_argument('--serial', action='store_true', help='run the jobs in this process')
+    parser.add_argument('--in-memory', action='store_true', help=IN_MEMORY_HELP)
     parser.add_argument('--no-plots', action='store_true', help='do not write the plot')
     parser.add_argument('--progress', action='store_true',
                         help='show progress even when stderr is not a terminal')
@@ -216,7 +217,8 @@ def main(argv=None):
         with warnings.catch_warnings():
             warnings.simplefilter('ignore')
             rows = run_jobs(jobs, 'serial' if args.serial else 'dask', args.workers,
-                            args.scheduler, lambda d, t: progress('jobs done', d, t))
+                            args.scheduler, lambda d, t: progress('jobs done', d, t),
+                            spill=None if args.in_memory else True)
         progress.finish()
         summary = summarize(rows)
         files = write_batch(out, jobs, rows, summary, plots=not args.no_plots)

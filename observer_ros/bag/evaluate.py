@@ -44,7 +44,7 @@ from .outputs import check_output
 from .reader import read_recording
 from .replay import CLOCK_JUMP_TOLERANCE, epochs_of, live_replay, replay
 from .report import BAG_MAX_MESSAGES, format_table, write_results
-from .results import EvalResult, jsonable, VariantResult
+from .results import EvalResult, jsonable, ScoredReplay, VariantResult
 from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 
@@ -54,6 +54,8 @@ __all__ = ['DEFAULT_TOLERANCE', 'STEADY_FRACTION', 'WHITENESS_LAGS', 'VariantRes
            'evaluate_job', 'write_results', 'format_table', 'whiteness', 'main']
 
 RESERVED = ('design', 'live')
+IN_MEMORY_HELP = ("keep the replays' rows in memory (default: in temporary files in TMPDIR, "
+                  'a block at a time, so that a long bag fits in memory)')
 _NAME = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
 
 
@@ -197,7 +199,8 @@ def _load_vehicle(vehicle, overrides=()):
 
 def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=None,
                  exact=False, progress=None, clock_jump_tolerance=CLOCK_JUMP_TOLERANCE,
-                 include_live=True, include_design=True, compare=None, spill=None):
+                 include_live=True, include_design=True, compare=None, spill=None,
+                 keep_rows=True):
     """
     Replay a bag through the vehicle's design and variants, and score them.
 
@@ -233,6 +236,12 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
     spill : True or path, optional
         Keep each replay's rows in temporary files (:func:`~observer_ros.bag.replay.replay`'s
         ``spill``): memory no longer grows with them; every figure is the same.
+    keep_rows : bool
+        Keep each variant's rows (and errors) for the plots and the results bag. When
+        False each variant is scored as soon as its replay ends and its rows are dropped
+        (its ``replay`` becomes a :class:`~observer_ros.bag.results.ScoredReplay`): the
+        memory of a search does not grow with the number of variants. Either way every
+        variant is scored right after its replay, with the same figures.
 
     Returns
     -------
@@ -323,15 +332,22 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
             warnings_out.append(f'{name}: {text}')
         if not len(rep):
             warnings_out.append(f'{name}: no measurement was accepted')
-        result.variants[name] = VariantResult(name, v.observer.kind, overrides, rep)
+        _scored(result, VariantResult(name, v.observer.kind, overrides, rep), keep_rows)
+        del rep
     if include_live:
         live = live_replay(recording, base, clock_jump_tolerance)
         if live is not None:
-            result.variants['live'] = VariantResult('live', 'recorded', (), live)
-    for vr in result.variants.values():
-        score_variant(result, vr)
+            _scored(result, VariantResult('live', 'recorded', (), live), keep_rows)
     result.seconds = time.perf_counter() - start
     return result
+
+
+def _scored(result, vr, keep_rows):
+    """Score a variant and add it to the result; without ``keep_rows``, drop its rows."""
+    score_variant(result, vr)
+    if not keep_rows:
+        vr.replay, vr.error, vr.matched = ScoredReplay.of(vr.replay), None, None
+    result.variants[vr.name] = vr
 
 
 @dataclass
@@ -364,7 +380,8 @@ class JobResult:
 
 
 def evaluate_job(bag_path, vehicle, variant='design', overrides=(), namespace=None,
-                 tolerance=None, exact=False, clock_jump_tolerance=CLOCK_JUMP_TOLERANCE):
+                 tolerance=None, exact=False, clock_jump_tolerance=CLOCK_JUMP_TOLERANCE,
+                 spill=None):
     """
     Evaluate one bag with one observer configuration (one job).
 
@@ -379,8 +396,8 @@ def evaluate_job(bag_path, vehicle, variant='design', overrides=(), namespace=No
         empty), ``live`` (the recorded estimate) or a variant name.
     overrides : sequence of str
         ``KEY:=VALUE`` overrides of the vehicle file for the variant.
-    namespace, tolerance, exact, clock_jump_tolerance
-        As in :func:`evaluate_bag`.
+    namespace, tolerance, exact, clock_jump_tolerance, spill
+        As in :func:`evaluate_bag` (the rows are dropped once scored).
 
     Returns
     -------
@@ -403,7 +420,7 @@ def evaluate_job(bag_path, vehicle, variant='design', overrides=(), namespace=No
     variants = {} if variant in RESERVED else {variant: list(overrides)}
     res = evaluate_bag(bag_path, vehicle, variants, namespace, tolerance, exact=exact,
                        clock_jump_tolerance=clock_jump_tolerance, include_live=live,
-                       include_design=variant == 'design')
+                       include_design=variant == 'design', spill=spill, keep_rows=False)
     if variant not in res.variants:
         raise BagToolError(f'{bag_path}: no recorded state/estimate to score as '
                            f'{variant!r}')
@@ -528,9 +545,7 @@ def _parser():
                              f'(default {BAG_MAX_MESSAGES}; decimated beyond)')
     parser.add_argument('--exact', action='store_true',
                         help='call the estimator for every message (no bulk replay)')
-    parser.add_argument('--in-memory', action='store_true',
-                        help="keep the replays' rows in memory (default: in temporary files "
-                        'in TMPDIR, a block at a time, so that a long bag fits in memory)')
+    parser.add_argument('--in-memory', action='store_true', help=IN_MEMORY_HELP)
     parser.add_argument('--progress', action='store_true',
                         help='show progress even when stderr is not a terminal')
     return parser

@@ -10,7 +10,9 @@ The family is one parameter, a scale ``s`` of the vehicle's observer:
   ratio of Qd to Rd sets the gain): s > 1 trusts the measurements more.
 
 Each bag is read once and replayed through every scale of a grid (:func:`evaluate_bag`
-with one variant per scale); ``refine`` then narrows the best grid interval with
+with one variant per scale, each scored as soon as it is replayed and its rows dropped,
+spilled to temporary files while it runs unless ``spill`` is None: memory does not grow
+with the number of scales); ``refine`` then narrows the best grid interval with
 ``scipy.optimize.minimize_scalar``. The metric of a bag is the RMS of the estimation
 error norm against ``state/true`` when every bag has it (``error_rms``); otherwise, per
 output, the residual RMS relative to that of the scale nearest 1, plus the fraction of
@@ -124,7 +126,7 @@ def _bag_metric(summaries, outputs, names, ref, truth):
 
 
 def score_variants(bags, vehicle, overrides, ref, namespace=None, exact=False,
-                   progress=None, dask=None):
+                   progress=None, dask=None, spill=True):
     """
     Return ({bag: [metric per variant]}, truth) of observers given by their overrides.
 
@@ -132,20 +134,22 @@ def score_variants(bags, vehicle, overrides, ref, namespace=None, exact=False,
     residual metric is relative to (see the module). In this process every bag is read
     once; with ``dask`` (``{'workers': N, 'scheduler': ADDRESS}``, a vehicle file path)
     each bag x variant is a job of :mod:`observer_ros.bag.jobs` on a Dask cluster, with
-    the same numbers.
+    the same numbers. ``spill``: :func:`evaluate_bag`'s (True: the replay's rows in
+    temporary files; None: in memory); each variant's rows are dropped once scored.
 
     """
     names = tuple(f'scale_{i}' for i in range(len(overrides)))
     keys = bag_keys(bags)
     if dask is not None:
         return _score_jobs(bags, vehicle, dict(zip(names, overrides)), ref, namespace,
-                           exact, progress, dask)
+                           exact, progress, dask, spill)
     per_bag, truth = {}, True
     for i, (key, bag) in enumerate(zip(keys, bags)):
         if progress:
             progress('searching', i, len(bags))
         r = evaluate_bag(bag, vehicle, dict(zip(names, overrides)), namespace, exact=exact,
-                         include_live=False, include_design=False)
+                         include_live=False, include_design=False, spill=spill,
+                         keep_rows=False)
         truth = truth and r.truth is not None
         per_bag[key] = ({n: r.variants[n].summary for n in names},
                         {n: r.variants[n].outputs for n in names})
@@ -154,13 +158,14 @@ def score_variants(bags, vehicle, overrides, ref, namespace=None, exact=False,
     return {k: _bag_metric(*v, names, names[ref], truth) for k, v in per_bag.items()}, truth
 
 
-def _score_jobs(bags, vehicle, variants, ref, namespace, exact, progress, dask):
+def _score_jobs(bags, vehicle, variants, ref, namespace, exact, progress, dask, spill):
     from .jobs import Job, run_jobs
     names = tuple(variants)
     jobs = [Job(str(bag), str(vehicle), n, tuple(variants[n]), namespace, None, bool(exact))
             for bag in bags for n in names]
     rows = run_jobs(jobs, 'dask', dask.get('workers'), dask.get('scheduler'),
-                    None if progress is None else lambda d, t: progress('search jobs', d, t))
+                    None if progress is None else lambda d, t: progress('search jobs', d, t),
+                    spill=spill)
     failed = [r for r in rows if r['error']]
     if failed:
         raise BagToolError(f'{failed[0]["bag"]}: {failed[0]["error"]}')
@@ -185,15 +190,16 @@ def bag_keys(bags):
     return keys
 
 
-def _scores(bags, vehicle, base, kind, scales, namespace, exact, progress=None, dask=None):
+def _scores(bags, vehicle, base, kind, scales, namespace, exact, progress=None, dask=None,
+            spill=True):
     """Return ({bag: [metric per scale]}, truth) of one batch of scales."""
     ref = int(np.argmin([abs(math.log(s)) for s in scales]))
     return score_variants(bags, vehicle, [search_overrides(base, kind, s) for s in scales],
-                          ref, namespace, exact, progress, dask)
+                          ref, namespace, exact, progress, dask, spill)
 
 
 def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exact=False,
-                progress=None, refine=0, dask=None):
+                progress=None, refine=0, dask=None, spill=True):
     """
     Score a family of observers (see the module) on one or many bags.
 
@@ -221,6 +227,9 @@ def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exac
         ``{'workers': N, 'scheduler': ADDRESS}``: the grid's bag x scale evaluations as
         jobs on Dask (:mod:`observer_ros.bag.jobs`; ``vehicle`` must be a file); the
         refinement runs in this process.
+    spill : True or path or None
+        Each replay's rows in temporary files (True: in TMPDIR) or in memory (None);
+        either way a scale's rows are dropped once it is scored (:func:`score_variants`).
 
     Returns
     -------
@@ -233,7 +242,7 @@ def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exac
     if not scales or any(not (s > 0 and math.isfinite(s)) for s in scales):
         raise BagToolError(f'--grid: scales must be positive numbers; got {scales}')
     per_bag, truth = _scores(bags, vehicle, base, kind, scales, namespace, exact, progress,
-                             dask)
+                             dask, spill)
     mean = np.nanmean(np.array(list(per_bag.values())), axis=0)
     i = int(np.nanargmin(mean)) if np.isfinite(mean).any() else -1
     if refine and 0 < i < len(scales) - 1:
@@ -244,7 +253,8 @@ def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exac
 
         def cost(logs):
             s = float(math.exp(logs))
-            got, _ = _scores(bags, vehicle, base, kind, [s, ref], namespace, exact)
+            got, _ = _scores(bags, vehicle, base, kind, [s, ref], namespace, exact,
+                             spill=spill)
             extra[s] = {k: v[0] for k, v in got.items()}
             return float(np.nanmean(list(extra[s].values())))
         minimize_scalar(cost, bounds=(math.log(scales[i - 1]), math.log(scales[i + 1])),

@@ -71,9 +71,13 @@ def make_jobs(bags, vehicle, variants=None, namespace=None, tolerance=None, exac
             for bag in bags for name, ov in configs]
 
 
-def run_job(job):
+def run_job(job, spill=True):
     """
     Evaluate one job; return its row (plain data).
+
+    ``spill`` is :func:`~observer_ros.bag.evaluate.evaluate_bag`'s: True (default) keeps
+    the replay's rows in temporary files (in the worker's TMPDIR) while it runs, None in
+    memory; the rows are dropped once scored, so the row is the same either way.
 
     The row is :meth:`JobResult.to_dict() <observer_ros.bag.evaluate.JobResult>` of
     :func:`~observer_ros.bag.evaluate.evaluate_job` (``bag``, ``variant``,
@@ -91,7 +95,7 @@ def run_job(job):
         with warnings.catch_warnings():
             warnings.simplefilter('ignore')
             result = evaluate_job(job.bag, job.vehicle, job.variant, job.overrides,
-                                  job.namespace, job.tolerance, job.exact)
+                                  job.namespace, job.tolerance, job.exact, spill=spill)
     except (ObserverError, OSError) as err:
         text = str(err).splitlines()[0] if str(err) else type(err).__name__
         return {'bag': job.bag, 'vehicle': job.vehicle, 'variant': job.variant,
@@ -104,7 +108,7 @@ def run_job(job):
     return row
 
 
-def run_jobs(jobs, backend='dask', workers=None, scheduler=None, progress=None):
+def run_jobs(jobs, backend='dask', workers=None, scheduler=None, progress=None, spill=True):
     """
     Run jobs; return their rows in the jobs' order.
 
@@ -122,23 +126,25 @@ def run_jobs(jobs, backend='dask', workers=None, scheduler=None, progress=None):
         neither is set, a local cluster is started and stopped.
     progress : callable, optional
         ``progress(done, total)`` after each finished job.
+    spill : True or path or None
+        Every job's :func:`run_job` ``spill`` (None: the rows in memory).
 
     """
     jobs = list(jobs)
     if backend == 'serial':
         rows = []
         for i, job in enumerate(jobs):
-            rows.append(run_job(job))
+            rows.append(run_job(job, spill))
             if progress is not None:
                 progress(i + 1, len(jobs))
         return rows
     if backend != 'dask':
         raise ValueError(f'backend must be "dask" or "serial", not {backend!r}')
     return _run_dask(jobs, workers, scheduler or os.environ.get(SCHEDULER_ENV) or None,
-                     progress)
+                     progress, spill)
 
 
-def _run_dask(jobs, workers, scheduler, progress):
+def _run_dask(jobs, workers, scheduler, progress, spill):
     try:
         from distributed import as_completed, Client, LocalCluster
     except ImportError:
@@ -154,7 +160,8 @@ def _run_dask(jobs, workers, scheduler, progress):
     else:
         client = Client(scheduler, timeout='30s')
     try:
-        futures = {client.submit(run_job, job, pure=False): i for i, job in enumerate(jobs)}
+        futures = {client.submit(run_job, job, spill, pure=False): i
+                   for i, job in enumerate(jobs)}
         rows = [None] * len(jobs)
         done = 0
         for future in as_completed(futures):

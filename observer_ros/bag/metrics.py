@@ -72,13 +72,14 @@ class StateError:
 
     Never held whole: ``error[rows]`` (a slice, mask or index array) computes those rows
     (each row alone, so any rows give the values of the whole array); ``np.asarray``
-    gives the whole array for a caller that wants it.
+    gives the whole array for a caller that wants it. ``truth`` is the truth tuple or a
+    :class:`TruthAt` (one shared by the variants of a bag: its sorted copy made once).
 
     """
 
     def __init__(self, rep, truth):
         self.x_hat, self.stamp_ns, self.epoch = rep.x_hat, rep.stamp_ns, rep.epoch
-        self.truth = TruthAt(truth)
+        self.truth = truth if isinstance(truth, TruthAt) else TruthAt(truth)
         self.shape = rep.x_hat.shape
         self.ndim = 2
 
@@ -238,7 +239,9 @@ def score_variant(result, vr):
     rep = vr.replay
     plant = result.vehicle.plant
     if result.truth is not None and len(rep):
-        vr.error = StateError(rep, result.truth)       # computed block by block
+        if getattr(result, 'truth_at', None) is None:  # one sorted truth for every variant
+            result.truth_at = TruthAt(result.truth)
+        vr.error = StateError(rep, result.truth_at)    # computed block by block
         tol = np.array([result.tolerance[s] for s in plant.state_names])
         metrics = state_metrics(_Seconds(rep.stamp_ns), vr.error, rep.epoch, tol)
         vr.states = dict(zip(plant.state_names, metrics))

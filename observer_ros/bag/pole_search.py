@@ -171,7 +171,8 @@ def _pole_text(z):
 
 
 def pole_search(bags, vehicle, scales=DEFAULT_SCALES, namespace=None, exact=False,
-                progress=None, evaluations=DEFAULT_EVALUATIONS, refine=0, dask=None):
+                progress=None, evaluations=DEFAULT_EVALUATIONS, refine=0, dask=None,
+                spill=True):
     """
     Search each observer pole (see the module) on one or many bags.
 
@@ -181,7 +182,7 @@ def pole_search(bags, vehicle, scales=DEFAULT_SCALES, namespace=None, exact=Fals
         The bags.
     vehicle : str or Path or Vehicle
         The vehicle (file) whose observer poles are searched.
-    scales, namespace, exact, progress, refine, dask
+    scales, namespace, exact, progress, refine, dask, spill
         The common-scale search's (:func:`~observer_ros.bag.gain_search.gain_search`;
         the optimizer's evaluations, one after the other, run in this process).
     evaluations : int
@@ -199,7 +200,7 @@ def pole_search(bags, vehicle, scales=DEFAULT_SCALES, namespace=None, exact=Fals
     if int(evaluations) < 1:
         raise BagToolError(f'--evaluations {evaluations}: must be at least 1')
     grid = gain_search(bags, vehicle, 'poles', scales, namespace, exact, progress, refine,
-                       dask)
+                       dask, spill)
     if not math.isfinite(grid.best):
         raise BagToolError('the common-scale search found no finite metric: no poles '
                            'to start from')
@@ -215,7 +216,7 @@ def pole_search(bags, vehicle, scales=DEFAULT_SCALES, namespace=None, exact=Fals
             return seen[key]
         try:
             got, truth[0] = score_variants(bags, vehicle, [space.overrides(theta), own], 1,
-                                           namespace, exact)
+                                           namespace, exact, spill=spill)
             values = {k: float(v[0]) for k, v in got.items()}
         except ObserverError:            # a candidate that cannot be designed
             values = {k: math.inf for k in per_bag}

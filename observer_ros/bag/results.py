@@ -14,7 +14,7 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-__all__ = ['VariantResult', 'EvalResult', 'jsonable']
+__all__ = ['VariantResult', 'EvalResult', 'ScoredReplay', 'jsonable']
 
 
 @dataclass
@@ -67,6 +67,33 @@ class VariantResult:
 
 
 @dataclass
+class ScoredReplay:
+    """
+    What stays of a replay once it is scored and its rows dropped (``keep_rows=False``).
+
+    The row count and the counters the tables and JSON give; no rows, so a search over
+    many variants holds one replay's rows at a time.
+
+    """
+
+    name: str
+    rows: int
+    counts: Dict[str, int]
+    bulk_steps: int = 0
+    warnings: list = field(default_factory=list)
+
+    @classmethod
+    def of(cls, rep):
+        """Return the scored summary of a replay."""
+        return cls(rep.name, len(rep), dict(rep.counts), int(getattr(rep, 'bulk_steps', 0)),
+                   list(rep.warnings))
+
+    def __len__(self):
+        """Return the number of estimates the replay had."""
+        return self.rows
+
+
+@dataclass
 class EvalResult:
     """Everything :func:`evaluate_bag` computed."""
 
@@ -79,6 +106,7 @@ class EvalResult:
     tolerance_rule: str
     warnings: List[str] = field(default_factory=list)
     seconds: float = 0.0
+    truth_at: Optional[object] = field(default=None, repr=False)  # metrics.TruthAt, shared
 
     @property
     def state_names(self):

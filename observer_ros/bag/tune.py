@@ -39,7 +39,7 @@ import warnings
 import numpy as np
 
 from .errors import BagToolError
-from .evaluate import _load_vehicle, _Progress, tool_error
+from .evaluate import _load_vehicle, _Progress, IN_MEMORY_HELP, tool_error
 from .gain_search import DEFAULT_SCALES, gain_search, search_overrides
 from .identify import Identification, identify
 from .outputs import check_output, prepare_output, seal_output
@@ -105,7 +105,8 @@ def default_out(bag):
 def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS,
          full=False, states=None, burn=None, passes=2, als=True, search='auto',
          scales=DEFAULT_SCALES, use_search=False, force=False, plots=True, progress=None,
-         input_noise=False, refine=0, evaluations=DEFAULT_EVALUATIONS, dask=None):
+         input_noise=False, refine=0, evaluations=DEFAULT_EVALUATIONS, dask=None,
+         spill=True):
     """
     Identify, search and write the tuned vehicle file and the report (see the module).
 
@@ -147,6 +148,9 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
     dask : dict, optional
         ``{'workers': N, 'scheduler': ADDRESS}``: the search grid's bag x scale
         evaluations as jobs on Dask (:mod:`observer_ros.bag.jobs`), same numbers.
+    spill : True or path or None
+        The search's replays' rows in temporary files (default) or in memory (None); each
+        variant's rows are dropped once it is scored.
 
     Returns
     -------
@@ -193,10 +197,11 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
     sr = None
     if search == 'each-pole':
         sr = pole_search(bags, vehicle_path, scales, namespace, progress=progress,
-                         evaluations=evaluations, refine=refine, dask=dask)
+                         evaluations=evaluations, refine=refine, dask=dask, spill=spill)
     elif search != 'none':
         sr = gain_search(bags, tmp if search == 'kalman' else vehicle_path, search, scales,
-                         namespace, progress=progress, refine=refine, dask=dask)
+                         namespace, progress=progress, refine=refine, dask=dask,
+                         spill=spill)
     replace = OBSERVER_KEYS
     if ident is None:           # only the poles change: the rest of the design stays
         replace = ('observer.poles', 'observer.poles_imag')
@@ -330,6 +335,7 @@ def _parser():
     where.add_argument('--scheduler', metavar='ADDRESS',
                        help='... on an existing Dask cluster (its workers need observer_ros '
                        'and the same paths to the bags and the vehicle file)')
+    parser.add_argument('--in-memory', action='store_true', help=IN_MEMORY_HELP)
     parser.add_argument('--use-search', action='store_true',
                         help="write the search's best scale into the tuned file")
     parser.add_argument('--force', action='store_true',
@@ -389,7 +395,7 @@ def main(argv=None):
                           not args.no_als, args.search, scales, args.use_search,
                           args.force, not args.no_plots, progress,
                           args.input_noise, args.refine, args.evaluations,
-                          _dask(args))
+                          _dask(args), None if args.in_memory else True)
         progress.finish()
     except (ObserverError, OSError, KeyboardInterrupt) as err:
         return tool_error(progress, err)
