@@ -23,6 +23,12 @@ CONFIG = REPO / 'config'
 # One DDS domain per test session, so concurrent runs on the machine do not cross-talk.
 DOMAIN_ID = random.SystemRandom().randint(100, 199)
 
+# s: the one deadline of every wait on a condition (discovery, a message, a counter on
+# /diagnostics). CI runs 800 tests on a loaded 2-core machine, where discovery alone took
+# seconds; every wait ends as soon as its condition holds, so a long deadline costs a
+# passing test nothing.
+WAIT = 120.0
+
 
 def _die_with_parent():
     """In the child: get SIGTERM when the test process dies (no stray nodes)."""
@@ -98,7 +104,7 @@ class Probe:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
 
-    def spin_until(self, predicate, timeout=20.0, what='condition'):
+    def spin_until(self, predicate, timeout=WAIT, what='condition'):
         """Spin until predicate() is true; fail the test with `what` after timeout."""
         deadline = time.monotonic() + timeout
         while not predicate():
@@ -106,15 +112,28 @@ class Probe:
                 raise AssertionError(f'timed out after {timeout} s waiting for {what}')
             self.executor.spin_once(timeout_sec=0.02)
 
-    def wait_subscribers(self, topic, count=1, timeout=20.0):
+    def wait_subscribers(self, topic, count=1, timeout=WAIT):
         """Wait until `count` subscribers see `topic` (discovery, never a sleep)."""
         self.spin_until(lambda: self.node.count_subscribers(topic) >= count, timeout,
                         f'{count} subscriber(s) on {topic}')
 
-    def wait_publishers(self, topic, count=1, timeout=20.0):
+    def wait_publishers(self, topic, count=1, timeout=WAIT):
         """Wait until `count` publishers of `topic` are discovered."""
         self.spin_until(lambda: self.node.count_publishers(topic) >= count, timeout,
                         f'{count} publisher(s) of {topic}')
+
+    def wait_matched(self, endpoint, what=None):
+        """
+        Wait until a publisher or subscription of the probe is matched; return it.
+
+        Matched, not just discovered: a message sent now reaches the other side.
+        """
+        if hasattr(endpoint, 'get_subscription_count'):
+            matched = endpoint.get_subscription_count
+        else:
+            matched = endpoint.get_publisher_count
+        self.spin_until(lambda: matched() >= 1, WAIT, f'{what or endpoint.topic_name} matched')
+        return endpoint
 
     def close(self):
         """Destroy the node and shut the context down."""

@@ -131,8 +131,8 @@ def test_eval_writes_the_same_files_spilled_or_in_memory(name, tmp_path, monkeyp
                        _written(results[1], tmp_path / 'memory'))
 
 
-def test_observer_eval_spills_by_default_with_the_same_files(tmp_path, monkeypatch):
-    monkeypatch.setattr(replay_outputs, 'SPILL_BLOCK', 50)
+def spy_on_spill(monkeypatch):
+    """Record the ``spill`` argument of every evaluate_bag call; return that list."""
     spills = []
     evaluate_bag = evaluate.evaluate_bag
 
@@ -140,6 +140,12 @@ def test_observer_eval_spills_by_default_with_the_same_files(tmp_path, monkeypat
         spills.append(kwargs.get('spill'))
         return evaluate_bag(*args, **kwargs)
     monkeypatch.setattr(evaluate, 'evaluate_bag', recorded)
+    return spills
+
+
+def test_observer_eval_spills_by_default_with_the_same_files(tmp_path, monkeypatch):
+    monkeypatch.setattr(replay_outputs, 'SPILL_BLOCK', 50)
+    spills = spy_on_spill(monkeypatch)
     files = []
     for extra in ([], ['--in-memory']):
         out = tmp_path / f'out{len(files)}'

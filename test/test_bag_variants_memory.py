@@ -23,6 +23,7 @@ from observer_ros.vehicle import load_vehicle
 import pytest
 from test_bag_jobs import _numbers
 from test_bag_reader_memory import _p3
+from test_bag_spill import spy_on_spill
 
 SAMPLES = CONFIG.parent / 'bags' / 'samples'
 ROWS = 70_000
@@ -122,13 +123,7 @@ def test_dropped_rows_give_the_kept_rows_metrics(name):
 def test_jobs_spill_by_default_with_the_same_rows(tmp_path, monkeypatch):
     jobs = make_jobs([SAMPLES / 'submarine'], CONFIG / 'submarine.yaml',
                      {'openloop': ['observer.type:=open_loop']})
-    spills = []
-    evaluate_bag = evaluate.evaluate_bag
-
-    def recorded(*args, **kwargs):
-        spills.append(kwargs.get('spill'))
-        return evaluate_bag(*args, **kwargs)
-    monkeypatch.setattr(evaluate, 'evaluate_bag', recorded)
+    spills = spy_on_spill(monkeypatch)
     assert _numbers(run_jobs(jobs, 'serial')) == _numbers(run_jobs(jobs, 'serial', spill=None))
     assert spills == [True, True, None, None]
     tables = []

@@ -1,11 +1,13 @@
 # The container executable and the executor choice (the nodes' own behaviour is tested
 # through test_nodes_closed_loop, which runs the container too).
-"""``container NODE ...``: argument errors, a bad vehicle file; OBSERVER_ROS_EXECUTOR."""
+"""``container NODE ...``: argument errors, a bad vehicle file; OBSERVER_ROS_EXECUTOR; Ctrl-C."""
 
+import signal
 import subprocess
 import sys
 
 from observer_ros.core.errors import ObserverError
+from observer_ros.nodes import common
 from observer_ros.nodes.common import make_executor
 import pytest
 from ros_helpers import CONFIG, ros_env
@@ -42,3 +44,16 @@ def test_unknown_executor_is_refused_naming_the_variable(monkeypatch):
     monkeypatch.setenv('OBSERVER_ROS_EXECUTOR', 'multi')
     with pytest.raises(ObserverError, match='OBSERVER_ROS_EXECUTOR'):
         make_executor()
+
+
+def test_only_the_first_sigint_interrupts_a_node_process():
+    """Ctrl-C signals the group and ros2 launch signals again: one KeyboardInterrupt."""
+    old = signal.getsignal(signal.SIGINT)
+    try:
+        common._interrupt_once()
+        with pytest.raises(KeyboardInterrupt):
+            signal.raise_signal(signal.SIGINT)
+        for _ in range(3):      # while the first is handled: ignored, no second exception
+            signal.raise_signal(signal.SIGINT)
+    finally:
+        signal.signal(signal.SIGINT, old)

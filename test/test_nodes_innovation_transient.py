@@ -10,7 +10,7 @@ estimate converges from its 30 deg error the node says so, then the gyro is cons
 from observer_ros.nodes.common import joint_state, SENSOR_QOS, STATE_QOS
 from observer_ros.timeutil import ns_to_sec
 import pytest
-from ros_helpers import CONFIG, Probe, Proc
+from ros_helpers import CONFIG, Probe, Proc, WAIT
 from sensor_msgs.msg import Imu, JointState
 from test_core_innovation_transient import _run, NOISE, submarine  # noqa: F401
 from test_nodes_faults import Listener
@@ -37,7 +37,7 @@ def test_the_demo_design_is_consistent_after_its_transient(submarine, fault,  # 
         gyro = node.create_publisher(Imu, 'imu/data', SENSOR_QOS)
         command = node.create_publisher(JointState, 'control/u', STATE_QOS)
         for pub in (gyro, command):
-            probe.spin_until(lambda: pub.get_subscription_count() >= 1, 30.0, 'matched')
+            probe.wait_matched(pub)
         listener.wait_matched('state/estimate', '/diagnostics')
         listener.wait_alive('observer')
         answered = 0
@@ -45,19 +45,19 @@ def test_the_demo_design_is_consistent_after_its_transient(submarine, fault,  # 
             if topic == 'imu/data':                  # the bag's message, as rclpy's
                 gyro.publish(_gyro(ns, msg.angular_velocity.y))
                 answered += 1
-                probe.spin_until(lambda: len(listener.estimates) >= answered, 10.0,
+                probe.spin_until(lambda: len(listener.estimates) >= answered, WAIT,
                                  f'the answer to the gyro stamped {ns}')
             elif topic == 'control/u':
                 command.publish(joint_state(['delta'], msg.position, ns_to_sec(ns)))
             if answered == 100 and topic == 'control/u':         # 5 s: still converging
                 probe.spin_until(lambda: (s := _health(listener, 'gyro')) is not None and
-                                 _value(s, 'transient_samples') == '100', 10.0,
+                                 _value(s, 'transient_samples') == '100', WAIT,
                                  'the status after 100 gyro messages')
                 status = _health(listener, 'gyro')
                 assert _level(status) == OK
                 assert 'estimate converging' in status.message, status.message
         probe.spin_until(lambda: (s := _health(listener, 'gyro')) is not None and
-                         _value(s, 'samples') == str(expected.samples), 10.0,
+                         _value(s, 'samples') == str(expected.samples), WAIT,
                          'the status after the last gyro message')
         status = _health(listener, 'gyro')
         assert _value(status, 'transient_samples') == str(expected.transient)

@@ -9,7 +9,7 @@ from observer_ros.nodes.common import joint_state, SENSOR_QOS, STATE_QOS
 from observer_ros.nodes.observer_node import covariance_names
 from observer_ros.timeutil import ns_to_sec, stamp_to_sec
 import pytest
-from ros_helpers import Probe, Proc
+from ros_helpers import Probe, Proc, WAIT
 from sensor_msgs.msg import Imu, JointState
 from test_nodes_faults import Listener
 
@@ -45,7 +45,7 @@ def late_observer(tmp_path, request):
                 'pitch': node.create_publisher(JointState, 'pitch', SENSOR_QOS),
                 'u': node.create_publisher(JointState, 'control/u', STATE_QOS)}
         for name, pub in pubs.items():
-            probe.spin_until(lambda: pub.get_subscription_count() >= 1, 30.0, f'{name} matched')
+            probe.wait_matched(pub, name)
         listener.wait_matched('state/estimate', '/diagnostics')
         listener.wait_alive('observer')
         yield proc, probe, listener, pubs, late_sensors.vehicle(tmp_path, kind)
@@ -69,7 +69,7 @@ def test_messages_out_of_order_over_dds_give_the_stamp_order_estimate(late_obser
         pubs[kind].publish(_gyro(ns, value) if kind == 'gyro' else _pitch(ns, value))
         answered += 1
         # each measurement is answered by one estimate (the newest, revised if it was late)
-        probe.spin_until(lambda: len(listener.estimates) >= answered, 10.0,
+        probe.spin_until(lambda: len(listener.estimates) >= answered, WAIT,
                          f'the answer to {kind} stamped {ns}')
     # the reference: the core estimator given the same messages in stamp order
     est = make_estimator(veh.plant, veh.observer)
@@ -82,6 +82,7 @@ def test_messages_out_of_order_over_dds_give_the_stamp_order_estimate(late_obser
     assert stamp_to_sec(final.header.stamp) == ns_to_sec(last_ns)
     assert_allclose(final.position, est.x_hat, rtol=0.0, atol=1e-9)
     listener.wait_counter('observer', 'late_measurements', 30)
+    listener.wait_counter('observer', 'measurements', answered)
     assert listener.counter('observer', 'out_of_order') == 0
     assert listener.counter('observer', 'measurements') == answered
     assert proc.alive(), proc.output()
@@ -96,7 +97,7 @@ def test_publish_rate_gives_the_prediction_to_now(late_observer):
     pubs['gyro'].publish(_gyro(now_ns, 0.02))
     t0 = ns_to_sec(now_ns)
     probe.spin_until(lambda: sum(stamp_to_sec(m.header.stamp) > t0
-                                 for m in listener.estimates) >= 10, 20.0, '10 predictions')
+                                 for m in listener.estimates) >= 10, WAIT, '10 predictions')
     est = make_estimator(veh.plant, veh.observer)
     est.correct(t0, [0.02], (0,))
     predictions = [m for m in listener.estimates if stamp_to_sec(m.header.stamp) > t0]
@@ -134,16 +135,16 @@ def test_a_faulty_sensor_is_named_on_diagnostics(late_observer, fault):
     covariances = []
     sub = probe.node.create_subscription(JointState, 'state/covariance', covariances.append,
                                          STATE_QOS)
-    probe.spin_until(lambda: sub.get_publisher_count() >= 1, 20.0, 'state/covariance matched')
+    probe.wait_matched(sub, 'state/covariance')
     answered = 0
     for kind, ns, _, value in late_sensors.receive_order(msgs):
         pubs[kind].publish(_gyro(ns, value) if kind == 'gyro' else _pitch(ns, value))
         answered += 1
-        probe.spin_until(lambda: len(listener.estimates) >= answered, 10.0,
+        probe.spin_until(lambda: len(listener.estimates) >= answered, WAIT,
                          f'the answer to {kind} stamped {ns}')
     WARN = 1
     probe.spin_until(lambda: (s := _health(listener, 'pitch')) is not None and
-                     _level(s) == WARN, 10.0, 'an innovation WARN naming pitch')
+                     _level(s) == WARN, WAIT, 'an innovation WARN naming pitch')
     status = _health(listener, 'pitch')
     assert status.message.startswith('pitch: residuals'), status.message
     gyro = _health(listener, 'gyro')
@@ -156,7 +157,7 @@ def test_a_faulty_sensor_is_named_on_diagnostics(late_observer, fault):
     for kind, ns, _, value in late_sensors.stamp_order(msgs):
         est.correct(ns_to_sec(ns), [value], (0,) if kind == 'gyro' else (1,))
     probe.spin_until(lambda: covariances and covariances[-1].header.stamp ==
-                     listener.estimates[-1].header.stamp, 10.0, 'the last covariance')
+                     listener.estimates[-1].header.stamp, WAIT, 'the last covariance')
     last = covariances[-1]
     assert last.name == covariance_names(['theta', 'w', 'q'])
     assert last.name[:3] == ['theta,theta', 'theta,w', 'theta,q']

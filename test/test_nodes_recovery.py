@@ -15,7 +15,7 @@ from observer_ros.vehicle import load_vehicle
 import pytest
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
-from ros_helpers import CONFIG, Probe, Proc
+from ros_helpers import CONFIG, Probe, Proc, WAIT
 from sensor_msgs.msg import JointState
 from test_nodes_faults import (_imu, compensator_setup, Listener,  # noqa: F401
                                observer_setup)
@@ -62,7 +62,7 @@ class Loop:
         s = self.status.get(node)
         return 0 if s is None else int(next((kv.value for kv in s.values if kv.key == key), 0))
 
-    def wait(self, predicate, what, timeout=90.0):
+    def wait(self, predicate, what, timeout=WAIT):
         self.probe.spin_until(predicate, timeout, what)
 
     def wait_converged(self, since, after_t):
@@ -148,8 +148,8 @@ def test_compensator_predicts_a_late_estimate_to_when_its_command_applies(tmp_pa
         node = probe.node
         est = node.create_publisher(JointState, 'state/estimate', STATE_QOS)
         enc = node.create_publisher(JointState, 'joint_states', SENSOR_QOS)
-        for pub, what in ((est, 'state/estimate'), (enc, 'joint_states')):
-            probe.spin_until(lambda: pub.get_subscription_count() >= 1, 20.0, what)
+        for pub in (est, enc):
+            probe.wait_matched(pub)
         listener.wait_matched('control/u', '/diagnostics')
         names = ['theta', 'x', 'theta_dot', 'x_dot']
         x_hat = np.array([0.01, 0.2, -0.03, 0.1])
@@ -165,11 +165,11 @@ def test_compensator_predicts_a_late_estimate_to_when_its_command_applies(tmp_pa
                 s = listener.latest_status('compensator')
                 return s is not None and any(kv.key == 'plant_time' and float(kv.value) == t
                                              for kv in s.values)
-            probe.spin_until(seen, 20.0, f'the compensator at plant time {t}')
+            probe.spin_until(seen, WAIT, f'the compensator at plant time {t}')
         # the plant is at 10.05 (its encoder's stamp) when the estimate of 10.0 comes
         plant_time_is(10.05)
         est.publish(joint_state(names, x_hat, 10.0))
-        probe.spin_until(lambda: listener.commands, 20.0, 'the command')
+        probe.spin_until(lambda: listener.commands, WAIT, 'the command')
         msg = listener.commands[0]
         # 5 steps late plus the lead of 3: predicted 8 steps (no command in force: zero)
         assert abs(stamp_to_sec(msg.header.stamp) - 10.08) < 1e-9
@@ -183,11 +183,11 @@ def test_compensator_predicts_a_late_estimate_to_when_its_command_applies(tmp_pa
         # an estimate later than observer.history_length (0.25 s): the safe command, ERROR
         plant_time_is(10.5)
         est.publish(joint_state(names, x_hat, 10.1))
-        listener.wait_counter('compensator', 'too_late_estimates', 1, 20.0)
+        listener.wait_counter('compensator', 'too_late_estimates', 1)
         probe.spin_until(lambda: any(
             s.name.endswith('compensator') and s.level == DiagnosticStatus.ERROR
             and 'later than observer.history_length' in s.message
-            for a in listener.diagnostics for s in a.status), 20.0, 'the ERROR')
+            for a in listener.diagnostics for s in a.status), WAIT, 'the ERROR')
         assert listener.counter('compensator', 'safe_commands_predict') >= 1
     finally:
         probe.close()
@@ -196,14 +196,14 @@ def test_compensator_predicts_a_late_estimate_to_when_its_command_applies(tmp_pa
 
 def _set(probe, node, name, value):
     client = probe.node.create_client(SetParameters, f'/{node}/set_parameters')
-    probe.spin_until(client.service_is_ready, 20.0, f'/{node}/set_parameters')
+    probe.spin_until(client.service_is_ready, WAIT, f'/{node}/set_parameters')
     if isinstance(value, list):
         pv = ParameterValue(type=ParameterType.PARAMETER_DOUBLE_ARRAY, double_array_value=value)
     else:
         pv = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value)
     future = client.call_async(SetParameters.Request(parameters=[Parameter(name=name,
                                                                            value=pv)]))
-    probe.spin_until(future.done, 20.0, f'the answer to setting {name}')
+    probe.spin_until(future.done, WAIT, f'the answer to setting {name}')
     return future.result().results[0]
 
 
@@ -244,7 +244,7 @@ def test_compensator_reports_divergence_and_sends_the_safe_command(
     proc, probe, listener, est = compensator_setup
     names = ['theta', 'w', 'q']
     est.publish(joint_state(names, [0.1, 0.0, 0.0], 5.0))
-    probe.spin_until(lambda: listener.counter('compensator', 'commands') >= 1, 10.0,
+    probe.spin_until(lambda: listener.counter('compensator', 'commands') >= 1, WAIT,
                      'a command')
     x = 0.1
     for k in range(1, 30):          # an estimate growing x2.6 per step
@@ -258,7 +258,7 @@ def test_compensator_reports_divergence_and_sends_the_safe_command(
     assert listener.counter('compensator', 'divergence_safe_commands') >= 1
     # once the growth is declared (5 growing estimates beyond the envelope), zero
     probe.spin_until(lambda: any(stamp_to_sec(m.header.stamp) > 6.35
-                                 for m in listener.commands), 10.0, 'the last commands')
+                                 for m in listener.commands), WAIT, 'the last commands')
     last = [m for m in listener.commands if stamp_to_sec(m.header.stamp) > 6.3]
     assert last and all(m.position[0] == 0.0 for m in last), [   # submarine: zero
         (stamp_to_sec(m.header.stamp), m.position[0]) for m in last]
@@ -270,18 +270,18 @@ def test_compensator_keeps_the_loop_closed_until_back_inside_after_an_outage(
     names = ['theta', 'w', 'q']
     est.publish(joint_state(names, [0.1, 0.0, 0.0], 5.0))
     listener.wait_counter('compensator', 'commands', 1)
-    listener.wait_counter('compensator', 'safe_commands', 1, 20.0)     # stale
+    listener.wait_counter('compensator', 'safe_commands', 1)     # stale
     # back: the first estimate starts the resync, one past its deadline (10 observer
     # settling times, 67 s on the submarine) ends it and the recovery begins
     est.publish(joint_state(names, [0.1, 0.0, 0.0], 6.0))
     est.publish(joint_state(names, [0.1, 0.0, 0.0], 500.0))
-    listener.wait_counter('compensator', 'resync_commands', 2, 20.0)
+    listener.wait_counter('compensator', 'resync_commands', 2)
     # far beyond the envelope (theta bound 52 rad): shrinking once, then growing 6 times,
     # as the cart's estimate swings while the loop brings it back. Check() lets the
     # shrinking one pass; ending the recovery on it reopened the loop on the growth
     for k, x in enumerate([1e4, 0.9e4, 1.0e4, 1.1e4, 1.2e4, 1.3e4, 1.4e4, 1.5e4]):
         est.publish(joint_state(names, [x, 0.0, 0.0], 500.05 + 0.05 * k))
-    listener.wait_counter('compensator', 'recovery_commands', 8, 20.0)
+    listener.wait_counter('compensator', 'recovery_commands', 8)
     assert listener.counter('compensator', 'divergence_safe_commands') == 0
     status = listener.latest_status('compensator')
     assert status.level == DiagnosticStatus.ERROR and 'recovering' in status.message
@@ -289,13 +289,13 @@ def test_compensator_keeps_the_loop_closed_until_back_inside_after_an_outage(
     est.publish(joint_state(names, [0.1, 0.0, 0.0], 600.0))
     est.publish(joint_state(names, [0.1, 0.0, 0.0], 607.0))
     probe.spin_until(lambda: (s := listener.latest_status('compensator')) is not None
-                     and s.level == DiagnosticStatus.OK, 20.0, 'the compensator OK again')
+                     and s.level == DiagnosticStatus.OK, WAIT, 'the compensator OK again')
     # and the envelope is armed again: a growth now gives the divergence safe command
     x = 0.1
     for k in range(1, 9):
         x *= 30.0
         est.publish(joint_state(names, [x, 0.0, 0.0], 607.0 + 0.05 * k))
-    listener.wait_counter('compensator', 'divergence_safe_commands', 1, 20.0)
+    listener.wait_counter('compensator', 'divergence_safe_commands', 1)
 
 
 def test_overloaded_observer_says_so(observer_setup):  # noqa: F811
@@ -308,7 +308,7 @@ def test_overloaded_observer_says_so(observer_setup):  # noqa: F811
     start = time.monotonic()
     found = None
     while found is None:
-        assert time.monotonic() - start < 60.0, 'no overload report'
+        assert time.monotonic() - start < WAIT, 'no overload report'
         for _ in range(500):
             t += 0.05
             pub.publish(_imu(t, 0.0))
@@ -321,5 +321,5 @@ def test_overloaded_observer_says_so(observer_setup):  # noqa: F811
     n = len(listener.diagnostics)
     probe.spin_until(lambda: any(s.name.endswith('observer') and s.level != DiagnosticStatus.ERROR
                                  for a in listener.diagnostics[n:] for s in a.status),
-                     60.0, 'the overload report cleared')
+                     WAIT, 'the overload report cleared')
     assert proc.alive()

@@ -13,7 +13,7 @@ from observer_ros.bag.reader import BagReader
 from observer_ros.bag.recover import BagRecoveryError, recover_bag
 from observer_ros.nodes.common import STATE_PUB_QOS, STATE_QOS
 import pytest
-from ros_helpers import CONFIG, Probe, Proc
+from ros_helpers import CONFIG, Probe, Proc, WAIT
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
 from sensor_msgs.msg import JointState
@@ -37,10 +37,8 @@ class Feeder:
 
     def wait_recorder(self):
         """Wait until the recorder reads state/true and publishes /diagnostics."""
-        self.probe.spin_until(lambda: self.pub.get_subscription_count() >= 1, 30.0,
-                              'the recorder subscribed to state/true')
-        self.probe.spin_until(lambda: self.sub.get_publisher_count() >= 1, 30.0,
-                              'the recorder publishing /diagnostics')
+        self.probe.wait_matched(self.pub, 'the recorder subscribed to state/true')
+        self.probe.wait_matched(self.sub, 'the recorder publishing /diagnostics')
 
     def publish(self, n, width=1, wait=True, batch=8):
         """
@@ -71,7 +69,7 @@ class Feeder:
                             return int(kv.value)
         return -1
 
-    def wait_recorded(self, n, timeout=30.0):
+    def wait_recorded(self, n, timeout=WAIT):
         """Wait until the recorder reports at least n state/true messages flushed."""
         self.probe.spin_until(lambda: self.recorded() >= n, timeout,
                               f'the recorder reporting {n} messages on {TOPIC}')
@@ -227,7 +225,7 @@ def test_a_full_disk_stops_the_recorder_with_a_clear_error(tmp_path, feeder, sma
         while rec.alive() and feeder.sent < 500:
             feeder.publish(1, width=2500, wait=False)
             feeder.probe.spin_until(
-                lambda: feeder.recorded() >= feeder.sent or not rec.alive(), 30.0,
+                lambda: feeder.recorded() >= feeder.sent or not rec.alive(), WAIT,
                 'the recorder writing the message or stopping')
         code = rec.popen.wait(timeout=60)
     finally:

@@ -10,7 +10,7 @@ from observer_ros.nodes.common import STATE_QOS
 from observer_ros.timeutil import stamp_to_ns
 from observer_ros.vehicle import load_vehicle
 import pytest
-from ros_helpers import CONFIG, Probe, Proc
+from ros_helpers import CONFIG, Probe, Proc, WAIT
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
 from sensor_msgs.msg import JointState
@@ -98,16 +98,16 @@ class Loop:
             return 0
         return int(next((kv.value for kv in status.values if kv.key == key), 0))
 
-    def wait(self, predicate, what, timeout=30.0):
+    def wait(self, predicate, what, timeout=WAIT):
         self.probe.spin_until(predicate, timeout, what)
 
-    def wait_for_more(self, what, count, n, timeout=30.0):
+    def wait_for_more(self, what, count, n, timeout=WAIT):
         """Wait until `what`() has grown by n from `count`."""
         self.wait(lambda: len(what()) >= count + n, f'{n} more messages', timeout)
 
     def wait_converged(self, since, below, what):
         """Wait until the estimation error of an estimate after `since` drops below."""
-        self.wait(lambda: any(e < below for e in self.errors_since(since)[1:]), what, 40.0)
+        self.wait(lambda: any(e < below for e in self.errors_since(since)[1:]), what)
 
 
 @pytest.fixture
@@ -216,7 +216,7 @@ def test_compensator_killed_and_restarted(loop):
     x_restart = np.linalg.norm(lp.true[max(lp.true)])
     assert x_restart > 1e-3
     lp.wait(lambda: np.linalg.norm(lp.true[max(lp.true)]) < 0.3 * x_restart,
-            'the loop driving the state towards zero again', 40.0)
+            'the loop driving the state towards zero again')
     assert len(lp.true) > n_true0
     lp.wait(lambda: len(lp.answered(0, n_cmd)) > 10, 'commands answering estimates')
     for u, x_hat in lp.answered(0, n_cmd)[-10:]:

@@ -91,13 +91,7 @@ class Launch:
 
     def stop(self):
         """SIGINT to the whole group (as a terminal does); return the exit status."""
-        if self.proc.poll() is None:
-            os.killpg(self.proc.pid, signal.SIGINT)
-            try:
-                self.proc.wait(timeout=60)
-            except subprocess.TimeoutExpired:
-                os.killpg(self.proc.pid, signal.SIGKILL)
-                self.proc.wait()
+        _stop_group(self.proc)
         self._out.close()
         return self.proc.returncode
 
@@ -108,31 +102,73 @@ class Launch:
         return Path(self.log).read_text()
 
 
+def _stop_group(proc):
+    """SIGINT to a process group (Ctrl-C), SIGKILL after WAIT s; the group is gone after."""
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGINT)
+        try:
+            proc.wait(timeout=WAIT)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+
+
+def _ros2_until(env, command, done):
+    """
+    Run a ros2 command line until done(result) holds; return the last CompletedProcess.
+
+    What ``ros2`` shows comes from DDS discovery, which on a loaded machine lags: the
+    daemon lists a node before its endpoints (CI once saw ``ros2 node info`` print empty
+    sections for a node ``ros2 node list`` already showed), and ``ros2 param`` gives up
+    after its own 5 s wait for a node's parameter services. Every such query waits for
+    what it is about, with the one deadline; the caller asserts on what came last.
+    """
+    deadline = time.monotonic() + WAIT
+    while True:
+        result = _ros2(env, command)
+        if done(result) or time.monotonic() > deadline:
+            return result
+
+
 def _wait_nodes(env, *names):
     """Wait until `ros2 node list` shows every node (all started: Ctrl-C is safe)."""
-    deadline = time.monotonic() + WAIT
-    while True:
-        listed = _ros2(env, 'ros2 node list').stdout.split()
-        if set(names) <= set(listed):
-            return
-        assert time.monotonic() < deadline, f'nodes {names} not all up: {listed}'
+    listed = _ros2_until(env, 'ros2 node list',
+                         lambda r: set(names) <= set(r.stdout.split())).stdout.split()
+    assert set(names) <= set(listed), f'nodes {names} not all up: {listed}'
 
 
-def _wait_subscribers(env, node, topic):
+def _section(info, name):
+    """Return the lines of one section (Subscribers, Publishers, ...) of `ros2 node info`."""
+    lines = info.splitlines()
+    if f'  {name}:' not in lines:
+        return ''
+    section = []
+    for line in lines[lines.index(f'  {name}:') + 1:]:
+        if not line.startswith('    '):
+            break
+        section.append(line.strip())
+    return '\n'.join(section)
+
+
+def _node_endpoints(env, node, section, topic):
     """
-    Return the Subscribers section of `ros2 node info` once it lists `topic`.
+    Return a section of `ros2 node info` once it lists `topic`, and the whole output.
 
-    The node's name is discovered before its endpoints (CI once saw `ros2 node info` print
-    empty sections for a node `ros2 node list` already showed): wait for discovery, with
-    the same deadline as every other wait, and return what was listed last.
+    After the deadline, what was shown last (and ``ros2 node list``, for the message).
     """
-    deadline = time.monotonic() + WAIT
-    while True:
-        out = _ros2(env, f'ros2 node info {node}').stdout
-        start, end = out.find('Subscribers:'), out.find('Publishers:')
-        subscribers = out[start:end] if 0 <= start < end else out
-        if f'{topic}:' in subscribers or time.monotonic() > deadline:
-            return subscribers
+    out = _ros2_until(env, f'ros2 node info {node}',
+                      lambda r: f'{topic}:' in _section(r.stdout, section))
+    shown = _section(out.stdout, section)
+    if f'{topic}:' not in shown:
+        listed = _ros2(env, 'ros2 node list -a')
+        return shown, out.stdout + out.stderr + '\nros2 node list -a:\n' + listed.stdout
+    return shown, out.stdout
+
+
+def _ros2_param(env, command):
+    """Run a `ros2 param` command line, again while the node's services are not found yet."""
+    return _ros2_until(env, command, lambda r: 'Wait for service timed out' not in r.stderr
+                       and 'Node not found' not in r.stdout + r.stderr)
 
 
 def _assert_stopped_cleanly(launch, nodes, code=None):
@@ -179,7 +215,12 @@ def test_closed_loop_launch_params_and_one_clock(ros2env, tmp_path):
         assert echo.returncode == 0, second.output()[-3000:]
         _wait_nodes(ros2env, '/observer', '/compensator', '/plant_simulator',
                     '/sub2/observer', '/sub2/compensator', '/sub2/plant_simulator')
-        info = _ros2(ros2env, 'ros2 topic info /clock')
+        # the second simulator's publishers are discovered, and /clock is not one of them
+        second_sim, info = _node_endpoints(ros2env, '/sub2/plant_simulator', 'Publishers',
+                                           '/sub2/imu/data')
+        assert '/sub2/imu/data:' in second_sim and '/clock:' not in second_sim, info
+        info = _ros2_until(ros2env, 'ros2 topic info /clock',
+                           lambda r: re.search(r'Publisher count: [1-9]', r.stdout))
         assert 'Publisher count: 1' in info.stdout, info.stdout + first.output()[-2000:]
         _check_parameters(ros2env, tmp_path)
     finally:
@@ -190,25 +231,25 @@ def test_closed_loop_launch_params_and_one_clock(ros2env, tmp_path):
 
 
 def _check_parameters(env, tmp_path):
-    describe = _ros2(env, 'ros2 param describe /observer model.A')
+    describe = _ros2_param(env, 'ros2 param describe /observer model.A')
     assert 'Description: n x n, row-major' in describe.stdout, describe.stdout
     assert 'Read only: true' in describe.stdout, describe.stdout
-    refused = _ros2(env, 'ros2 param set /observer model.A "[0.0]"')
+    refused = _ros2_param(env, 'ros2 param set /observer model.A "[0.0]"')
     assert 'Trying to set a read-only parameter: model.A' in refused.stderr, refused
-    refused = _ros2(env, 'ros2 param set /observer observer.poles "[0.5, -1.0, -2.0]"')
+    refused = _ros2_param(env, 'ros2 param set /observer observer.poles "[0.5, -1.0, -2.0]"')
     said = refused.stdout + refused.stderr
     assert 'Setting parameter failed' in said and 'would not be stable' in said, said
-    applied = _ros2(env, 'ros2 param set /observer observer.poles "[-1.0, -1.1, -1.2]"')
+    applied = _ros2_param(env, 'ros2 param set /observer observer.poles "[-1.0, -1.1, -1.2]"')
     assert applied.stdout.strip() == 'Set parameter successful', applied
     # dump, load, dump: the same values; only the read-only ones are reported as not set
-    result = _ros2(env, 'ros2 param dump /observer > observer.yaml && '
-                   'ros2 param load /observer observer.yaml')
+    result = _ros2_param(env, 'ros2 param dump /observer > observer.yaml && '
+                         'ros2 param load /observer observer.yaml')
     assert result.returncode == 0, result.stderr
     failed = [line for line in result.stderr.splitlines() if 'failed' in line]
     assert failed and all('read-only' in line for line in failed), result.stderr
     assert 'Set parameter observer.poles successful' in result.stdout, result.stdout
     dumped = Path(env['OBSERVER_ROS_WS']) / 'observer.yaml'
-    again = _ros2(env, 'ros2 param dump /observer')
+    again = _ros2_param(env, 'ros2 param dump /observer')
     assert yaml.safe_load(again.stdout) == yaml.safe_load(dumped.read_text())
     assert yaml.safe_load(again.stdout)['/observer']['ros__parameters']['observer'][
         'poles'] == [-1.0, -1.1, -1.2]
@@ -225,14 +266,15 @@ def test_observer_launch_follows_the_remaps(ros2env, tmp_path):
         echo = _ros2(ros2env, 'ros2 topic echo --once /state/estimate sensor_msgs/msg/JointState')
         assert echo.returncode == 0 and 'position:' in echo.stdout, launch.output()[-3000:]
         _wait_nodes(ros2env, '/observer')
-        subscribers = _wait_subscribers(ros2env, '/observer', '/robot/imu')
-        assert re.search(r'/robot/imu: sensor_msgs/msg/Imu', subscribers), subscribers
-        assert '/robot/cmd: sensor_msgs/msg/JointState' in subscribers, subscribers
+        subscribers, info = _node_endpoints(ros2env, '/observer', 'Subscribers', '/robot/imu')
+        assert re.search(r'/robot/imu: sensor_msgs/msg/Imu', subscribers), info
+        assert '/robot/cmd: sensor_msgs/msg/JointState' in subscribers, info
     finally:
-        if pub is not None:
-            os.killpg(pub.pid, signal.SIGINT)
-            pub.wait(timeout=60)
-        _assert_stopped_cleanly(launch, 1)
+        try:
+            if pub is not None:
+                _stop_group(pub)
+        finally:
+            _assert_stopped_cleanly(launch, 1)
 
 
 def test_recorded_lockstep_launch(ros2env, tmp_path):

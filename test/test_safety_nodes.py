@@ -17,7 +17,7 @@ from observer_ros.sensors import extract_measurement
 from observer_ros.timeutil import stamp_to_sec
 from observer_ros.vehicle import load_vehicle
 import pytest
-from ros_helpers import CONFIG, Probe, Proc
+from ros_helpers import CONFIG, Probe, Proc, WAIT
 from sensor_msgs.msg import Imu, JointState
 from test_nodes_faults import _imu, Listener
 
@@ -41,19 +41,13 @@ def _nodes(tmp_path, *nodes, params=()):
         assert code == 0, proc.output()
 
 
-def _matched(probe, pub, topic):
-    probe.spin_until(lambda: pub.get_subscription_count() >= 1, 30.0, f'{topic} matched')
-    return pub
-
-
 @contextlib.contextmanager
 def _observer(tmp_path):
     """Run the observer with publishers of measurements and commands, all matched."""
     with _nodes(tmp_path, 'observer_node') as (procs, probe, listener):
         node = probe.node
-        pub = _matched(probe, node.create_publisher(Imu, 'imu/data', SENSOR_QOS), 'imu/data')
-        cmd = _matched(probe, node.create_publisher(JointState, 'control/u', STATE_QOS),
-                       'control/u')
+        pub = probe.wait_matched(node.create_publisher(Imu, 'imu/data', SENSOR_QOS))
+        cmd = probe.wait_matched(node.create_publisher(JointState, 'control/u', STATE_QOS))
         listener.wait_matched('state/estimate', '/diagnostics')
         listener.wait_alive('observer')
         yield procs, probe, listener, pub, cmd
@@ -63,8 +57,8 @@ def _observer(tmp_path):
 def _compensator(tmp_path, params=()):
     """Run the compensator with a publisher of estimates, all matched."""
     with _nodes(tmp_path, 'compensator', params=params) as (procs, probe, listener):
-        est = _matched(probe, probe.node.create_publisher(JointState, 'state/estimate',
-                                                          STATE_QOS), 'state/estimate')
+        est = probe.wait_matched(probe.node.create_publisher(JointState, 'state/estimate',
+                                                             STATE_QOS))
         listener.wait_matched('control/u', '/diagnostics')
         listener.wait_alive('compensator')
         yield procs, probe, listener, est
@@ -160,7 +154,7 @@ def test_a_huge_command_is_refused_by_its_size_first(tmp_path):
         for k in range(3):
             big.header.stamp.nanosec += 1000
             cmd.publish(big)
-            listener.wait_counter('observer', 'bad_commands', k + 1, timeout=60.0)
+            listener.wait_counter('observer', 'bad_commands', k + 1)
         # the estimator goes on untouched
         for k in range(3):
             t = round(t + 0.05, 6)
@@ -181,7 +175,7 @@ def test_a_huge_command_is_refused_by_its_size_first(tmp_path):
 def _command_at(listener, probe, t):
     def found():
         return any(abs(stamp_to_sec(m.header.stamp) - t) < 1e-9 for m in listener.commands)
-    probe.spin_until(found, 15.0, f'a command stamped {t}')
+    probe.spin_until(found, WAIT, f'a command stamped {t}')
     return [m for m in listener.commands if abs(stamp_to_sec(m.header.stamp) - t) < 1e-9][-1]
 
 
@@ -238,7 +232,7 @@ def test_a_second_publisher_of_the_estimate_is_an_error(tmp_path):
     """Row 8: two observers with one name: both they and the compensator report an ERROR."""
     with _nodes(tmp_path, 'observer_node', 'observer_node', 'compensator') as \
             (procs, probe, listener):
-        probe.wait_publishers('state/estimate', 2, timeout=60.0)
+        probe.wait_publishers('state/estimate', 2)
         listener.wait_matched('/diagnostics')
 
         def error_naming(node, topic):
@@ -247,14 +241,14 @@ def test_a_second_publisher_of_the_estimate_is_an_error(tmp_path):
                 return status is not None and status.level == DiagnosticStatus.ERROR and \
                     f'/{topic} (2 publishers)' in status.message
             return check
-        probe.spin_until(error_naming('compensator', 'state/estimate'), 60.0,
+        probe.spin_until(error_naming('compensator', 'state/estimate'), WAIT,
                          'the compensator reporting two estimate publishers')
-        probe.spin_until(error_naming('observer', 'state/estimate'), 60.0,
+        probe.spin_until(error_naming('observer', 'state/estimate'), WAIT,
                          'an observer reporting two estimate publishers')
         # one observer gone: the error clears
         assert procs[1].stop() == 0
         probe.spin_until(lambda: (s := listener.latest_status('compensator')) is not None
-                         and s.level != DiagnosticStatus.ERROR, 60.0,
+                         and s.level != DiagnosticStatus.ERROR, WAIT,
                          'the compensator error cleared')
 
 

@@ -444,6 +444,7 @@ def run_nodes(node_factories, args=None, names=None):
 
     """
     warnings.filterwarnings('ignore', category=DeprecationWarning)
+    _interrupt_once()
     code = init_ros(node_factories[0], args)
     if code is not None:
         return code
@@ -481,3 +482,24 @@ def run_nodes(node_factories, args=None, names=None):
 def _ignore_sigint():
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _interrupt_once():
+    """
+    Make the first SIGINT a KeyboardInterrupt, and ignore every later one.
+
+    Ctrl-C signals the whole process group and ros2 launch sends SIGINT again: with
+    Python's default handler that second SIGINT could come while the first
+    KeyboardInterrupt was being handled, before the clean-up ignores SIGINT (a traceback
+    and exit status -2 under ros2 launch, seen in test_ros2cli). Installed before
+    ``rclpy.init``, whose SIGINT handler calls it after its own.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return
+    interrupted = []
+
+    def on_sigint(signum, frame):
+        if not interrupted:
+            interrupted.append(signum)
+            raise KeyboardInterrupt
+    signal.signal(signal.SIGINT, on_sigint)
