@@ -175,7 +175,12 @@ def test_observer_killed_and_restarted(loop):
         np.testing.assert_allclose(u, -lp.K @ x_hat, rtol=1e-9, atol=1e-12)
 
     # the recorder ran through it all: the outage is a gap in the estimates, after which
-    # the new observer converges
+    # the new observer converges. The recorder discovers the new observer on its own
+    # (seconds later under load; once, in CI, it had recorded none of the converged
+    # estimates when stopped): wait until it has recorded 2 s more of them
+    recorded = lp.counter('recorder', 'messages /state/estimate')
+    lp.wait(lambda: lp.counter('recorder', 'messages /state/estimate') >= recorded + 40,
+            'the recorder recording the converged estimates')
     lp.procs['recorder'].stop(signal.SIGINT)
     true, est = _read(lp.bag, '/state/true'), _read(lp.bag, '/state/estimate')
     stamps = np.array(sorted(est))

@@ -30,7 +30,7 @@ import time
 from diagnostic_msgs.msg import DiagnosticStatus
 import numpy as np
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.event_handler import PublisherEventCallbacks
+from rclpy.event_handler import PublisherEventCallbacks, UnsupportedEventTypeError
 from sensor_msgs.msg import JointState
 
 from .checks import changed_pole_problem, own_parameter_problem
@@ -82,9 +82,14 @@ class ObserverNode(ObserverHealth, VehicleNode):
         # the residuals' subscribers, as the middleware's matched events count them: an rcl
         # call per message (get_subscription_count, 2-4 us) is the callback's largest part
         self._res_subscribers = 0
-        self._res_pub = self.create_publisher(
-            JointState, TOPICS['residual'], STATE_PUB_QOS,
-            event_callbacks=PublisherEventCallbacks(matched=self._on_residual_matched))
+        try:
+            self._res_pub = self.create_publisher(
+                JointState, TOPICS['residual'], STATE_PUB_QOS,
+                event_callbacks=PublisherEventCallbacks(matched=self._on_residual_matched))
+        except UnsupportedEventTypeError:   # a middleware without them: asked per message
+            self._res_pub = self.create_publisher(JointState, TOPICS['residual'],
+                                                  STATE_PUB_QOS)
+            self._res_subscribers = None
         self._subs = []
         # diagnostics name the topics as remapped and namespaced (/sub1/imu/data)
         self._resolved = {s.name: self.resolve_topic_name(s.topic) for s in v.sensors}
@@ -247,7 +252,10 @@ class ObserverNode(ObserverHealth, VehicleNode):
         residual = history.residual
         if residual is not None:
             self._health.add(sensor.name, residual, history.innovation_covariance, t)
-        if residual is not None and self._res_subscribers:
+        subscribed = self._res_subscribers
+        if subscribed is None:
+            subscribed = self._res_pub.get_subscription_count()
+        if residual is not None and subscribed:
             self._res_pub.publish(joint_state(sensor.outputs, residual, t, sensor.frame_id,
                                               stamp))
 
