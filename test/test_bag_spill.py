@@ -218,3 +218,17 @@ def test_observer_eval_says_when_it_cannot_write_its_temporary_files(
     assert str(tmp_path / 'missing') in err[-1] and 'TMPDIR' in err[-1]
     assert not (tmp_path / 'out').exists()
     assert evaluate.main([*argv, '--in-memory']) == 0
+
+
+def test_observer_eval_says_when_its_disk_fills(tmp_path, monkeypatch, capsys):
+    # every temporary file is /dev/full: the first block written fails with ENOSPC
+    monkeypatch.setattr(replay_outputs, 'SPILL_BLOCK', 50)
+    monkeypatch.setattr(replay_outputs.tempfile, 'TemporaryFile',
+                        lambda **kwargs: open('/dev/full', 'w+b', buffering=0))
+    argv = [str(SAMPLES / 'submarine'), '--vehicle', str(CONFIG / 'submarine.yaml'),
+            '--out', str(tmp_path / 'out'), '--no-plots']
+    assert evaluate.main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith('error: ') and 'temporary files' in err[-1], err
+    assert 'No space left' in err[-1] and '--in-memory' in err[-1], err[-1]
+    assert not (tmp_path / 'out').exists()

@@ -28,7 +28,7 @@ def test_a_late_subscriber_gets_the_residuals(tmp_path):
         listener = Listener(probe)
         node = probe.node
         gyro = node.create_publisher(Imu, 'imu/data', SENSOR_QOS)
-        probe.spin_until(lambda: gyro.get_subscription_count() >= 1, WAIT, 'imu/data matched')
+        probe.wait_matched(gyro, 'imu/data')
         listener.wait_matched('state/estimate', '/diagnostics')
         # its diagnostics heard: the node has been up a while, its side of the gyro's
         # match done too (a message sent on our side's match alone can be lost)

@@ -42,6 +42,7 @@ class SpilledColumn:
         self.dtype = np.dtype(dtype)
         self.row_shape = tuple(row_shape)
         self.row_bytes = self.dtype.itemsize * int(np.prod(self.row_shape, dtype=np.int64))
+        self.directory = directory
         try:
             self.file = tempfile.TemporaryFile(prefix='observer_eval_', dir=directory)
         except OSError as err:
@@ -75,14 +76,23 @@ class SpilledColumn:
         rows = np.ascontiguousarray(rows, dtype=self.dtype)
         if not rows.size:
             return
-        self.file.seek(self.rows * self.row_bytes)
-        self.file.write(rows.data.cast('B'))
+        self._write(self.rows, rows)
         self.rows += rows.shape[0]
 
     def write_row(self, i, row):
         """Overwrite row i (a revised estimate)."""
-        self.file.seek(i * self.row_bytes)
-        self.file.write(np.ascontiguousarray(row, dtype=self.dtype).data.cast('B'))
+        self._write(i, np.ascontiguousarray(row, dtype=self.dtype))
+
+    def _write(self, i, rows):
+        try:
+            self.file.seek(i * self.row_bytes)
+            self.file.write(rows.data.cast('B'))
+        except OSError as err:      # a full disk: said, not a traceback
+            raise BagToolError(f"cannot write the replay's temporary files in "
+                               f'{self.directory or tempfile.gettempdir()}: '
+                               f'{err.strerror or err} (about {self.row_bytes} bytes per '
+                               'estimate per column; set TMPDIR to a folder with room, or '
+                               'keep them in memory: --in-memory)') from None
 
     def read(self, lo, hi):
         """Return rows lo..hi-1 (up to the last row) as a new array."""
