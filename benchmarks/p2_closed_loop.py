@@ -25,7 +25,10 @@ Layouts, each run ``--runs`` times (``--configs``):
 
 Figure per configuration: on-time fraction ``1 - late / checked steps`` per run [>= 0.999].
 Also reported: the loop round trip and the step rate achieved (rcl timers skip periods
-the process was too busy to serve, so a late step is not counted twice).
+the process was too busy to serve, so a late step is not counted twice), and each
+process's CPU time (user + system, /proc) per simulator step over the closed loop:
+which node a slower loop comes from. ``--observer-pythonpath`` runs the observer of
+another version than the simulator and compensator (``processes`` layout).
 
 """
 
@@ -69,7 +72,7 @@ def _command(parts, params, rt_priority=None):
 
 
 def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None,
-             rt_priority=None):
+             rt_priority=None, observer_pythonpath=None):
     """Start the layout's processes, the simulator last; wait for the simulator's end."""
     common = ['simulator.mode:=realtime', f'simulator.rate_hz:={float(rate)}']
     sim_params = [f'simulator.duration:={float(duration)}', 'diagnostics_period:=0.25']
@@ -78,8 +81,9 @@ def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None,
         for parts in LAYOUTS[layout]:
             if 'plant_simulator' in parts:
                 continue
+            own = observer_pythonpath if parts == ('observer_node',) else None
             procs.append(start(_command(parts, common, rt_priority),
-                               logdir / f'{parts[-1]}_{run}.log', pythonpath))
+                               logdir / f'{parts[-1]}_{run}.log', own or pythonpath))
         with state['lock']:
             state['diag'] = []
         deadline = time.monotonic() + 60.0
@@ -97,9 +101,11 @@ def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None,
         sim = start(_command(sim_parts, common + sim_params, rt_priority),
                     logdir / f'{layout}_simulator_{run}.log', pythonpath)
         procs.append(sim)
-        try:
-            sim.wait(duration + 60.0)
-        except Exception:   # noqa: BLE001 - a hung simulator: stop it below
+        names = [parts[-1] if len(parts) == 1 else 'container'
+                 for parts in LAYOUTS[layout] if 'plant_simulator' not in parts]
+        names.append('plant_simulator' if len(sim_parts) == 1 else 'container')
+        samples = _sample_cpu(procs, names, state, duration + 60.0)
+        if sim.poll() is None:
             raise RuntimeError(f'P2: the simulator did not finish; see {logdir}')
         time.sleep(0.3)                     # the last diagnostics
     finally:
@@ -124,7 +130,8 @@ def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None,
             rate_achieved = (int(b['values']['steps']) - int(a['values']['steps'])) / span
     # the simulator's loop timing, one report per diagnostics period (0.25 s)
     windows = [d['values'] for d in running if 'loop_us_p50' in d['values']]
-    return {'loop_median_us': percentile([float(w['loop_us_p50']) for w in windows], 50),
+    return {'cpu_us_per_step': _cpu_per_step(samples, open_loop),
+            'loop_median_us': percentile([float(w['loop_us_p50']) for w in windows], 50),
             'loop_p99_us': percentile([float(w['loop_us_p99']) for w in windows], 50),
             'loop_max_us': max((float(w['loop_us_max']) for w in windows),
                                default=float('nan')),
@@ -133,6 +140,53 @@ def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None,
             'open_loop_steps': open_loop,
             'checked': checked, 'on_time': 1.0 - late / checked if checked else float('nan'),
             'rate_achieved_hz': rate_achieved, 'exit_code': sim.returncode}
+
+
+def _cpu_ticks(pid):
+    """CPU time (user + system) of a process in clock ticks, or None once it is gone."""
+    try:
+        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+    except OSError:
+        return None
+    return int(fields[11]) + int(fields[12])      # utime, stime (fields 14 and 15)
+
+
+def _sample_cpu(procs, names, state, timeout, period=0.25):
+    """Until the simulator (the last process) ends: (steps so far, CPU ticks per process)."""
+    samples = []
+    deadline = time.monotonic() + timeout
+    while procs[-1].poll() is None and time.monotonic() < deadline:
+        with state['lock']:
+            steps = max((int(d['values'].get('steps', 0)) for d in state['diag']), default=0)
+        ticks = {}
+        for name, proc in zip(names, procs):
+            value = _cpu_ticks(proc.pid)
+            if value is not None:
+                ticks[name] = value
+        samples.append((steps, ticks))
+        time.sleep(period)
+    return samples
+
+
+def _cpu_per_step(samples, open_loop):
+    """
+    Return each process's CPU per simulator step (us) over the closed loop.
+
+    From the first sample 500 steps past the open-loop steps (start-up, design and
+    matching excluded) to the last sample in which the process was still alive.
+    """
+    tick_us = 1e6 / os.sysconf('SC_CLK_TCK')
+    start = next((i for i, (steps, _) in enumerate(samples) if steps > open_loop + 500), None)
+    if start is None:
+        return {}
+    first_steps, first = samples[start]
+    out = {}
+    for name in first:
+        last = [(steps, ticks[name]) for steps, ticks in samples[start + 1:] if name in ticks]
+        if last and last[-1][0] > first_steps:
+            steps, value = last[-1]
+            out[name] = (value - first[name]) * tick_us / (steps - first_steps)
+    return out
 
 
 def _fifo_allowed():
@@ -154,7 +208,7 @@ def _parse_config(text):
 
 
 def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=None,
-        configs=None, log=print):
+        configs=None, log=print, observer_pythonpath=None):
     runs = runs or (1 if smoke else 3)
     configs = list(configs or (CONFIGS_SMOKE if smoke else CONFIGS))
     parsed = {c: _parse_config(c) for c in configs}
@@ -199,7 +253,7 @@ def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=Non
             # alternate the order of the layouts from run to run
             for layout in (layouts if r % 2 == 0 else layouts[::-1]):
                 res = _one_run(node, state, parsed[layout][0], duration, rate, logdir, r,
-                               nodes_pythonpath, parsed[layout][1])
+                               nodes_pythonpath, parsed[layout][1], observer_pythonpath)
                 results[layout].append(res)
                 log(f'  P2 {layout:>16} run {r + 1}/{runs}: {res["steps"]} steps at '
                     f'{rate:g} Hz, {res["open_loop_steps"]} before the loop closed, '
@@ -207,7 +261,9 @@ def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=Non
                     f'after a short step) of {res["checked"]} -> on time '
                     f'{res["on_time"]:.5f}; achieved {res["rate_achieved_hz"]:.0f} Hz; '
                     f'loop measurement -> command: median {res["loop_median_us"]:.0f} us, '
-                    f'p99 {res["loop_p99_us"]:.0f} us, max {res["loop_max_us"]:.0f} us')
+                    f'p99 {res["loop_p99_us"]:.0f} us, max {res["loop_max_us"]:.0f} us; '
+                    'CPU per step: ' + ', '.join(
+                        f'{name} {us:.0f} us' for name, us in res['cpu_us_per_step'].items()))
     finally:
         executor.shutdown(timeout_sec=1.0)
         node.destroy_node()
@@ -246,11 +302,15 @@ def main(argv=None):
     parser.add_argument('--nodes-pythonpath', metavar='DIR',
                         help='run the nodes with this copy of observer_ros first on '
                              'PYTHONPATH (to measure a previous version)')
+    parser.add_argument('--observer-pythonpath', metavar='DIR',
+                        help='in the processes layout, run the observer alone with this '
+                             'copy first on PYTHONPATH (the simulator and compensator '
+                             'with --nodes-pythonpath): which node a difference comes from')
     args = parser.parse_args(argv)
     print('P2: closed loop in free-running real time', flush=True)
     return report(args.json, run(
         smoke=args.smoke, runs=args.runs, duration=args.duration, rate=args.rate,
-        nodes_pythonpath=args.nodes_pythonpath,
+        nodes_pythonpath=args.nodes_pythonpath, observer_pythonpath=args.observer_pythonpath,
         configs=[x for x in (args.configs or '').split(',') if x] or None, log=log))
 
 

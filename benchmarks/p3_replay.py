@@ -31,6 +31,11 @@ simulation with every stamp moved by up to +-0.3 ms (seeded), once per round, ag
 the regular bag's eval of that round [median <= 1.5]. Neither runs by default
 (minutes to hours); run them on demand.
 
+``--baseline-pythonpath DIR`` (a checkout of an earlier version, e.g. ``git archive``)
+also runs that version's observer-eval in each round, right after this version's, on
+the same bag (and with ``--big`` on the 10^7 bag): eval / eval of the baseline, per
+round [median <= 1.0: no slower per message than that version], and its peak RSS.
+
 """
 
 import json
@@ -307,10 +312,14 @@ def worker_eval(bag, out):
     return {'seconds': seconds, 'table': buf.getvalue()[-1500:]}
 
 
-def _run_worker(kind, *args, timeout=3600):
+def _run_worker(kind, *args, timeout=3600, pythonpath=None):
     cmd = [sys.executable, '-W', 'ignore', str(Path(__file__).resolve()), '--worker', kind,
            *map(str, args)]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+    env = dict(os.environ)
+    if pythonpath:      # another version of observer_ros first on the path
+        env['PYTHONPATH'] = os.pathsep.join([str(pythonpath), env.get('PYTHONPATH', '')])
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env,
+                          cwd=pythonpath or None)
     if proc.returncode != 0:
         raise RuntimeError(f'P3 worker {kind} failed ({proc.returncode}):\n'
                            f'{proc.stdout[-2000:]}\n{proc.stderr[-3000:]}')
@@ -319,12 +328,13 @@ def _run_worker(kind, *args, timeout=3600):
 
 # ---------------------------------------------------------------- the benchmark
 
-def run(smoke=False, rounds=None, big=False, messages=None, log=print, jitter=False):
+def run(smoke=False, rounds=None, big=False, messages=None, log=print, jitter=False,
+        baseline=None):
     messages = messages or (10_000 if smoke else 1_000_000)
     rounds = rounds or (1 if smoke else 3)
     bag = generate(messages, log=log)
     arrays = bag.parent / 'arrays.npz'
-    results = {'eval': [], 'a': [], 'b': []}
+    results = {'eval': [], 'a': [], 'b': [], 'baseline': []}
     order = ['eval', 'a', 'b']
     with tempfile.TemporaryDirectory(prefix='p3_eval_') as tmp:
         for r in range(rounds):
@@ -338,7 +348,16 @@ def run(smoke=False, rounds=None, big=False, messages=None, log=print, jitter=Fa
                 results[kind].append(res)
                 log(f'  P3 round {r + 1}/{rounds} {kind:>4}: {res["seconds"]:.2f} s, '
                     f'peak RSS {res["maxrss_mib"]:.0f} MiB')
+                if kind == 'eval' and baseline:
+                    res = _run_worker('eval', bag, Path(tmp) / f'base{r}',
+                                      pythonpath=baseline)
+                    results['baseline'].append(res)
+                    log(f'  P3 round {r + 1}/{rounds} eval of {baseline}: '
+                        f'{res["seconds"]:.2f} s, peak RSS {res["maxrss_mib"]:.0f} MiB')
     figures = []
+    if baseline:
+        _versus_baseline(figures, results['eval'], results['baseline'], messages, baseline,
+                         smoke)
     ev = [x['seconds'] for x in results['eval']]
     for base, label in (('a', 'rosbags_read_deserialise'), ('b', 'control_forced_response')):
         ratios = [e / x['seconds'] for e, x in zip(ev, results[base])]
@@ -358,8 +377,22 @@ def run(smoke=False, rounds=None, big=False, messages=None, log=print, jitter=Fa
     if jitter:
         data['jitter'] = _jitter(messages, rounds, smoke, results['eval'], figures, log)
     if big:
-        data['big'] = _big(figures, log)
+        data['big'] = _big(figures, log, baseline)
     return data
+
+
+def _versus_baseline(figures, runs, base_runs, messages, baseline, smoke=False):
+    """Add the figure: this eval / the baseline version's eval, per round; peak RSS."""
+    ev = [x['seconds'] for x in runs]
+    bs = [x['seconds'] for x in base_runs]
+    figures.append(ratio_line(
+        'P3', f'eval/eval_of_baseline[{messages}]', [e / b for e, b in zip(ev, bs)], '<=',
+        1.0, smoke=smoke,
+        note=f'{messages} Imu msgs; eval median {summary(ev)["median"]:.2f} s '
+             f'({summary(ev)["median"] / messages * 1e6:.2f} us per msg), {baseline} '
+             f'{summary(bs)["median"]:.2f} s; peak RSS '
+             f'{summary([x["maxrss_mib"] for x in runs])["median"]:.0f} against '
+             f'{summary([x["maxrss_mib"] for x in base_runs])["median"]:.0f} MiB'))
 
 
 def _jitter(messages, rounds, smoke, regular, figures, log):
@@ -379,14 +412,21 @@ def _jitter(messages, rounds, smoke, regular, figures, log):
     return runs
 
 
-def _big(figures, log):
+def _big(figures, log, baseline=None):
     """observer-eval and rosbags (a) on the 10^7-message bag: time and peak RSS."""
     big_n = 10_000_000
     big_bag = generate(big_n, log=log)
     with tempfile.TemporaryDirectory(prefix='p3_big_') as tmp:
         res = _run_worker('eval', big_bag, Path(tmp) / 'out')
+        base_res = None
+        if baseline:
+            base_res = _run_worker('eval', big_bag, Path(tmp) / 'base', pythonpath=baseline)
     log(f'  P3 big: eval of {big_n} msgs: {res["seconds"]:.1f} s, peak RSS '
         f'{res["maxrss_mib"]:.0f} MiB')
+    if base_res is not None:
+        log(f'  P3 big: eval of {baseline}: {base_res["seconds"]:.1f} s, peak RSS '
+            f'{base_res["maxrss_mib"]:.0f} MiB')
+        _versus_baseline(figures, [res], [base_res], big_n, baseline)
     base = _run_worker('a', big_bag)
     log(f'  P3 big: rosbags (a) of {big_n} msgs: {base["seconds"]:.1f} s, peak RSS '
         f'{base["maxrss_mib"]:.0f} MiB')
@@ -397,7 +437,7 @@ def _big(figures, log):
                               [res['seconds'] / base['seconds']], '<=', 1.0,
                               note=f'rosbags {base["seconds"]:.1f} s, '
                                    f'{base["maxrss_mib"]:.0f} MiB'))
-    return {'eval': res, 'a': base}
+    return {'eval': res, 'a': base, 'baseline': base_res}
 
 
 def main(argv=None):
@@ -416,10 +456,14 @@ def main(argv=None):
                         help='also the 10^7-message bag: peak RSS within 1 GiB')
     parser.add_argument('--jitter', action='store_true',
                         help='also the bag with jittered stamps: within 1.5x of regular')
+    parser.add_argument('--baseline-pythonpath', metavar='DIR',
+                        help="also run this copy's observer-eval (an earlier version) "
+                             'on the same bags: eval / its eval <= 1')
     args = parser.parse_args(argv)
     print('P3: observer-eval on a synthetic Imu bag', flush=True)
     return report(args.json, run(smoke=args.smoke, rounds=args.rounds, big=args.big,
-                                 messages=args.messages, log=log, jitter=args.jitter))
+                                 messages=args.messages, log=log, jitter=args.jitter,
+                                 baseline=args.baseline_pythonpath))
 
 
 if __name__ == '__main__':
