@@ -32,7 +32,9 @@ and the result is that of the stamp order all the same.
 A measurement newer than everything held costs little more than the estimator's own step
 (benchmarks/README.md, session 6): its entry is a plain list placed without a sort key,
 and the old entries are dropped when the oldest checkpoint (kept in a deque) leaves the
-window, not searched for per message.
+window, not searched for per message. A message stamped just before the newest entry
+(the closed loop's command, one step late) re-applies that entry alone
+(:data:`KEEP_PREVIOUS`; benchmarks/README.md, session 7).
 
 The node and the bag replay both use this class: what one estimates from a recording,
 the other estimates live.
@@ -45,7 +47,8 @@ import math
 from .base import TimeOrderError
 from ..spec import HISTORY_LENGTH
 
-__all__ = ['History', 'HISTORY_LENGTH', 'HISTORY_MAX_MESSAGES', 'CHECKPOINT_EVERY']
+__all__ = ['History', 'HISTORY_LENGTH', 'HISTORY_MAX_MESSAGES', 'CHECKPOINT_EVERY',
+           'KEEP_PREVIOUS']
 
 #: At most this many messages are kept, whatever their stamps (a bound on the memory and
 #: on the cost of a rewind when stamps crowd: 2.5e4 is 0.25 s at 100 kHz). When it is
@@ -57,6 +60,13 @@ HISTORY_MAX_MESSAGES = 25000
 #: in between (at most this many more). Copying the state after every message cost
 #: about as much as the correction itself (benchmarks/README.md, P5).
 CHECKPOINT_EVERY = 8
+
+#: After a message stamped just before the newest entry (in the closed loop, the
+#: compensator's command answering the previous estimate arrives after the next
+#: measurement), the state before each in-order measurement is kept for this many more
+#: of them: the next such message then restores it and re-applies the newest entry
+#: alone, not the messages since the last checkpoint. Messages in order keep nothing.
+KEEP_PREVIOUS = 64
 
 _MEASUREMENT, _COMMAND = 0, 1
 
@@ -118,6 +128,8 @@ class History:
         self._base = self._est.save_state()      # the state before the first entry
         self._dropped_t = -math.inf               # the newest stamp no longer kept
         self._checkpoints = deque()               # the entries with a state, in order
+        self._previous = None                     # (newest entry, the state before it)
+        self._keep_previous = 0                   # in-order measurements that keep it
         self._residual = None
         self._S = None
         self._x_at = None
@@ -236,6 +248,11 @@ class History:
             if last[_T] < t or (last[_T] == t and last[_KIND] == _MEASUREMENT):
                 # in order, nothing pending before it: the estimator is at the last entry
                 # and this is its step, an entry and a checkpoint every CHECKPOINT_EVERY
+                if self._keep_previous:             # one-step-late messages seen
+                    self._keep_previous -= 1
+                    previous = est.save_state()
+                else:
+                    previous = None
                 x = est.correct(t, y, rows)         # refuses a non-finite t
                 residual, S = est.last_residual()
                 since = self._since + 1
@@ -247,6 +264,7 @@ class History:
                 # go when the caller is done with them (memory reused, not held)
                 entry = [t, _MEASUREMENT, y, rows, tag, state, None, None, None]
                 entries.append(entry)
+                self._previous = None if previous is None else (entry, previous)
                 checkpoints = self._checkpoints
                 if state is not None:
                     checkpoints.append(entry)
@@ -436,6 +454,12 @@ class History:
     def _rewind(self, pos, entry):
         est = self._est
         entries = self._entries
+        if pos == len(entries) - 1:                   # just before the newest entry
+            self._keep_previous = KEEP_PREVIOUS
+            previous = self._previous
+            if previous is not None and previous[0] is entries[-1]:
+                self._rewind_one(entry, previous[1])
+                return
         # the newest checkpoint before the new entry, and the entries from it on
         start = pos
         while start > 0 and entries[start - 1][_STATE] is None:
@@ -469,7 +493,45 @@ class History:
         self._since = count % CHECKPOINT_EVERY
         self.reapplied += len(later) + pos - start
         entries.insert(pos, entry)
-        self._find_checkpoints()
+        # the checkpoints before the one restored are unchanged; those after it moved
+        checkpoints = self._checkpoints
+        kept = entries[start - 1] if start else None
+        while checkpoints and checkpoints[-1] is not kept:
+            checkpoints.pop()
+        if kept is not None and not checkpoints:     # not listed: list them all again
+            self._find_checkpoints()
+        else:
+            checkpoints.extend(e for e in entries[start:] if e[_STATE] is not None)
+
+    def _rewind_one(self, entry, state):
+        """
+        Insert an entry just before the newest one, from the state kept before that one.
+
+        The same calls on the same states as :meth:`_rewind` from a checkpoint makes
+        (the result is the same to the last bit), but only the newest entry is applied
+        again. Its checkpoint, if it has one, stays one (the new entry gets none).
+        """
+        est = self._est
+        entries = self._entries
+        last = entries[-1]
+        self._previous = None
+        est.restore_state(state)                  # copied: kept for a bad message below
+        try:
+            self._apply(entry, False)
+        except Exception:
+            # a bad message changes nothing: the newest entry again, on the same state
+            est.restore_state(state)
+            self._apply(last, last[_STATE] is not None)
+            self._previous = (last, state)
+            raise
+        self._apply(last, last[_STATE] is not None)
+        if last[_KIND] == _MEASUREMENT:
+            self.revised = [(last[_TAG], last[_X], last[_RESIDUAL], last[_S])]
+        if last[_STATE] is None:
+            self._since += 1
+        self.rewinds += 1
+        self.reapplied += 1
+        entries.insert(len(entries) - 1, entry)
 
     def _find_checkpoints(self):
         """List the entries with a state again (after a rewind moved the checkpoints)."""

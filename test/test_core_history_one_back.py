@@ -1,0 +1,116 @@
+# test_core_history_one_back: a message stamped just before the newest entry (closed loop).
+"""Tests of the history's one-step-late messages: one entry re-applied, the stamp order."""
+
+import numpy as np
+from numpy.testing import assert_array_equal
+from observer_ros.core.errors import DimensionError
+from observer_ros.core.estimators import History, KEEP_PREVIOUS
+import pytest
+from test_core_history import feed, GYRO, KINDS, make, messages, PITCH, stamp_order
+
+DT = 0.01
+
+
+def closed_loop(steps, seed=0):
+    """
+    Gyro at 100 Hz and the command answering each estimate, as the closed loop sends them.
+
+    The command stamped t_k (computed from the estimate at t_k) arrives after the gyro
+    measurement stamped t_{k+1}. Returns (stamp order, arrival order) of
+    ``(stamp, arrival, kind, value, rows)``.
+    """
+    rng = np.random.default_rng(seed)
+    msgs = []
+    for k in range(steps):
+        t = 1.0 + k * DT
+        msgs.append((t, t, 'y', rng.normal(0.0, 1e-2, 1), GYRO))
+        msgs.append((t, t + 1.5 * DT, 'u', rng.normal(0.0, 0.1, 1), ()))
+    return stamp_order(msgs), sorted(msgs, key=lambda m: m[1])
+
+
+def checkpoints_listed(history):
+    """Tell whether the history's deque of checkpoints is its entries with a state."""
+    entries = history._entries
+    return list(history._checkpoints) == [e for e in entries if e[5] is not None]
+
+
+@pytest.mark.parametrize('kind', KINDS)
+def test_a_command_one_step_late_reapplies_one_message_and_gives_the_stamp_order(kind):
+    in_stamp_order, arrival = closed_loop(300)
+    history = History(make(kind), length=0.25)
+    reference = make(kind)
+    late_commands = 0
+    for m in arrival:
+        before_rewinds, before_reapplied = history.rewinds, history.reapplied
+        feed(history, [m])
+        if m[2] == 'u' and history.rewinds > before_rewinds:
+            late_commands += 1
+            if late_commands > 1:           # the first one turns on the state kept
+                assert history.reapplied - before_reapplied == 1
+    assert late_commands == 300 - 1          # the last command is in order
+    # the same calls on the same states: the stamp order to the last bit
+    assert_array_equal(history.x_hat, feed(reference, in_stamp_order))
+    assert checkpoints_listed(history)
+
+
+@pytest.mark.parametrize('kind', KINDS)
+def test_a_measurement_one_step_late_reapplies_one_message(kind):
+    history = History(make(kind), length=0.25)
+    reference = make(kind)
+    rng = np.random.default_rng(1)
+    msgs = []
+    for k in range(100):
+        t = 1.0 + k * DT
+        msgs.append((t, t, 'y', rng.normal(0.0, 1e-2, 1), GYRO))
+        if k % 2:                             # pitch arrives after the next gyro
+            msgs.append((t, t + 1.5 * DT, 'y', rng.normal(0.0, 1e-2, 1), PITCH))
+    arrival = sorted(msgs, key=lambda m: m[1])
+    counts, revised = [], []
+    for m in arrival:
+        before = history.reapplied
+        feed(history, [m])
+        counts.append(history.reapplied - before)
+        revised.append(len(history.revised))
+    late = [(c, r) for m, c, r in zip(arrival, counts, revised) if m[4] == PITCH]
+    # one re-applied, the gyro after it (revised); the last pitch arrives in order
+    assert late[1:-1] == [(1, 1)] * (len(late) - 2)
+    assert late[-1] == (0, 0)
+    assert_array_equal(history.x_hat, feed(reference, stamp_order(msgs)))
+
+
+def test_a_bad_command_one_step_late_leaves_the_history_as_it_was():
+    _, arrival = closed_loop(50)
+    history = History(make('kalman'), length=0.25)
+    feed(history, arrival[:-2])              # ends with a gyro, the command before it due
+    head_t = history.t
+    x, P = history.x_hat, history.estimator.P
+    with pytest.raises(DimensionError):
+        history.set_input(head_t - DT, [1.0, 2.0])
+    assert_array_equal(history.x_hat, x)
+    assert_array_equal(history.estimator.P, P)
+    # the state kept survives: the good command after it is still one re-application
+    before = history.reapplied
+    history.set_input(head_t - DT, [0.3])
+    assert history.reapplied - before == 1
+
+
+def test_messages_in_order_keep_no_previous_state():
+    history = History(make('full'), length=0.25)
+    feed(history, stamp_order(messages(duration=1.0)))
+    assert history._previous is None and history.rewinds == 0
+    # one message one step late keeps it for the next KEEP_PREVIOUS measurements only
+    t = history.t
+    history.set_input(t - 0.005, [0.1])
+    for k in range(KEEP_PREVIOUS + 1):
+        history.correct(t + (k + 1) * DT, [0.0], GYRO)
+    assert history._previous is None
+
+
+@pytest.mark.parametrize('kind', ['full', 'kalman'])
+def test_checkpoints_stay_listed_through_rewinds_of_any_depth(kind):
+    msgs = messages(duration=2.0)
+    rng = np.random.default_rng(7)
+    history = History(make(kind), length=0.25)
+    for m in sorted(msgs, key=lambda m: m[0] + rng.uniform(0.0, 0.2)):
+        feed(history, [m])
+        assert checkpoints_listed(history)
