@@ -118,20 +118,47 @@ def _expect_ready(proc):
         raise RuntimeError(f'driver said {line!r} instead of ready')
 
 
+def version_parser(doc):
+    """Return an argument parser of NAME=DIR versions, described by doc's first line."""
+    parser = argparse.ArgumentParser(description=doc.splitlines()[1])
+    parser.add_argument('versions', nargs='+', metavar='NAME=DIR',
+                        help='a name, and a directory holding an observer_ros package')
+    return parser
+
+
+def parse_versions(parser, argv):
+    """
+    Parse the command line of :func:`version_parser`; check its versions.
+
+    Returns
+    -------
+    args : argparse.Namespace
+        The arguments.
+    versions : list of [name, directory], or None
+        None after an ``error:`` line naming a version that is not NAME=DIR of an
+        observer_ros package (the caller exits 2).
+
+    """
+    args = parser.parse_args(argv)
+    versions = [v.split('=', 1) for v in args.versions]
+    for version in versions:
+        if len(version) != 2 or not (Path(version[1]) / 'observer_ros').is_dir():
+            print(f'error: {"=".join(version)}: not NAME=DIR of an observer_ros package',
+                  file=sys.stderr)
+            return args, None
+    return args, versions
+
+
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
-    parser.add_argument('versions', nargs='+', metavar='NAME=DIR')
+    parser = version_parser(__doc__)
     parser.add_argument('--count', type=int, default=1000, help='messages per block')
     parser.add_argument('--reps', type=int, default=15, help='blocks per run')
     parser.add_argument('--rounds', type=int, default=4, help='runs of each version')
     parser.add_argument('--interleave', action='store_true',
                         help='run the versions side by side, a block of each in turn')
-    args = parser.parse_args(argv)
-    versions = [v.split('=', 1) for v in args.versions]
-    for name, directory in versions:
-        if not (Path(directory) / 'observer_ros').is_dir():
-            print(f'error: {name}: {directory} holds no observer_ros package', file=sys.stderr)
-            return 2
+    args, versions = parse_versions(parser, argv)
+    if versions is None:
+        return 2
     print(f'load average at start: {os.getloadavg()[0]:.2f}')
     blocks = {name: [] for name, _ in versions}
     for r in range(args.rounds):

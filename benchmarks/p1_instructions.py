@@ -19,7 +19,6 @@ Usage: ``python benchmarks/p1_instructions.py NAME=DIR [NAME=DIR ...]``.
 
 """
 
-import argparse
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 import shutil
@@ -27,7 +26,7 @@ import subprocess
 import sys
 import tempfile
 
-from p1_callback import driver_command
+from p1_callback import driver_command, parse_versions, version_parser
 
 
 def main_thread_ir(out_dir):
@@ -58,24 +57,19 @@ def count_instructions(directory, count):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
-    parser.add_argument('versions', nargs='+', metavar='NAME=DIR')
+    parser = version_parser(__doc__)
     parser.add_argument('--short', type=int, default=1000, help='messages of the short run')
     parser.add_argument('--long', type=int, default=3000, help='messages of the long run')
     parser.add_argument('--jobs', type=int, default=2, help='callgrind runs at once')
-    args = parser.parse_args(argv)
+    args, versions = parse_versions(parser, argv)
+    if versions is None:
+        return 2
     if args.long <= args.short or args.short < 1:
         print('error: --long must exceed --short, both positive', file=sys.stderr)
         return 2
     if shutil.which('valgrind') is None:
         print('error: valgrind: not found on PATH', file=sys.stderr)
         return 2
-    versions = [v.split('=', 1) for v in args.versions]
-    for version in versions:
-        if len(version) != 2 or not (Path(version[1]) / 'observer_ros').is_dir():
-            print(f'error: {"=".join(version)}: not NAME=DIR of an observer_ros package',
-                  file=sys.stderr)
-            return 2
     runs = [(d, n) for _, d in versions for n in (args.short, args.long)]
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         ir = list(pool.map(lambda run: count_instructions(*run), runs))

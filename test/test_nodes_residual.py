@@ -93,7 +93,7 @@ observer_node.PublisherEventCallbacks = unsupported
 rclpy.init(args=['--ros-args', '--params-file', sys.argv[1], '-p', 'simulator.mode:=realtime',
                  '-r', '__ns:=/residual_fallback'])
 node = observer_node.ObserverNode()
-assert node._res_subscribers is None, node._res_subscribers
+assert node._res_pub.subscribers is None, node._res_pub.subscribers
 residuals = []
 node.create_subscription(JointState, 'observer/residual', residuals.append, STATE_QOS)
 sensor = next(s for s in node.vehicle.sensors if s.topic.endswith('imu/data'))

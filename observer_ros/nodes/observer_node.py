@@ -77,19 +77,9 @@ class ObserverNode(ObserverHealth, VehicleNode):
         self._init_health()
         self._est_pub = self.create_publisher(JointState, TOPICS['estimate'], STATE_PUB_QOS)
         # Kalman: P of each estimate answering a measurement (covariance_names)
-        self._cov_pub = self.create_publisher(JointState, TOPICS['covariance'], STATE_PUB_QOS) \
+        self._cov_pub = _CountedPublisher(self, TOPICS['covariance']) \
             if v.observer.kind == 'kalman' else None
-        # the residuals' subscribers, as the middleware's matched events count them: an rcl
-        # call per message (get_subscription_count, 2-4 us) is the callback's largest part
-        self._res_subscribers = 0
-        try:
-            self._res_pub = self.create_publisher(
-                JointState, TOPICS['residual'], STATE_PUB_QOS,
-                event_callbacks=PublisherEventCallbacks(matched=self._on_residual_matched))
-        except UnsupportedEventTypeError:   # a middleware without them: asked per message
-            self._res_pub = self.create_publisher(JointState, TOPICS['residual'],
-                                                  STATE_PUB_QOS)
-            self._res_subscribers = None
+        self._res_pub = _CountedPublisher(self, TOPICS['residual'])
         self._subs = []
         # diagnostics name the topics as remapped and namespaced (/sub1/imu/data)
         self._resolved = {s.name: self.resolve_topic_name(s.topic) for s in v.sensors}
@@ -252,15 +242,9 @@ class ObserverNode(ObserverHealth, VehicleNode):
         residual = history.residual
         if residual is not None:
             self._health.add(sensor.name, residual, history.innovation_covariance, t)
-        subscribed = self._res_subscribers
-        if subscribed is None:
-            subscribed = self._res_pub.get_subscription_count()
-        if residual is not None and subscribed:
-            self._res_pub.publish(joint_state(sensor.outputs, residual, t, sensor.frame_id,
-                                              stamp))
-
-    def _on_residual_matched(self, info):
-        self._res_subscribers = info.current_count
+        if residual is not None and self._res_pub.subscribed():
+            self._res_pub.publisher.publish(joint_state(sensor.outputs, residual, t,
+                                                        sensor.frame_id, stamp))
 
     def _publish_estimate(self, t, frame_id, stamp=None, x_hat=None):
         x_hat = self.estimator.x_hat if x_hat is None else x_hat
@@ -275,7 +259,7 @@ class ObserverNode(ObserverHealth, VehicleNode):
     def _publish_covariance(self):
         """Kalman: publish P of the estimate just published, with its stamp."""
         pub = self._cov_pub
-        if pub is None or not pub.get_subscription_count():
+        if not pub.subscribed():
             return
         P = getattr(self.estimator, 'P', None)
         msg = self._last_estimate
@@ -285,7 +269,7 @@ class ObserverNode(ObserverHealth, VehicleNode):
         upper = np.triu_indices(len(names))
         cov = JointState(header=msg.header, name=covariance_names(names),
                          position=P[upper].tolist())
-        pub.publish(cov)
+        pub.publisher.publish(cov)
 
     def _answer_without_correction(self, sensor, t, stamp=None):
         """
@@ -371,22 +355,28 @@ class ObserverNode(ObserverHealth, VehicleNode):
             return
         try:
             u = vector_from_joint_state(msg, self.vehicle.plant.input_names, topic)
-            now = self.get_clock().now().nanoseconds * 1e-9
             last = self.history.t
-            jump = self.param('clock_jump_tolerance')
+            # the clock and the parameters are read only for a stamp that may be ahead: in
+            # the closed loop every command is at or before the estimate's stamp, and a
+            # stamp not after the measurements' bound (the clock once read + tolerance)
+            # is not ahead of the clock
+            bound = self._future_bound
+            now = 0.0 if bound is not None and t <= bound else \
+                self.get_clock().now().nanoseconds * 1e-9
             # a command is not a time source: it never moves the estimator's time (one
             # stamped ahead is held until the estimate reaches it) nor resets it; only the
             # sensors' stamps can
             if now > 0.0 and t - now > self.param('future_tolerance'):
                 self._reject('future_stamps', f'{topic}: stamp {t:.3f} is {t - now:.1f} s '
                              'ahead of the clock; skipped')
-            elif last is not None and t - last > jump:
+            elif last is not None and t > last and \
+                    t - last > self.param('clock_jump_tolerance'):
                 self._reject('future_stamps', f'{topic}: stamp {t:.6f} is {t - last:.3f} s '
                              'ahead of the estimate; skipped')
             # ahead: pending; inside the history: from its stamp on; older: held from the
             # estimate's time
             elif self.history.set_input(t, u, tag=msg.header.stamp):
-                if last - t > jump:
+                if last - t > self.param('clock_jump_tolerance'):
                     self._reject('late_commands', f'{topic}: stamp {t:.6f} is {last - t:.3f} '
                                  's older than the estimate; held from now on')
                 else:
@@ -485,6 +475,34 @@ class ObserverNode(ObserverHealth, VehicleNode):
                 'nis_bounds': f'{h.nis_low:.4g}..{h.nis_high:.4g}',
                 'whiteness_p': f'{h.whiteness_p:.3g}'}))
         return out
+
+
+class _CountedPublisher:
+    """
+    A JointState publisher that knows whether anyone subscribes, without an rcl call.
+
+    The subscribers are counted from the middleware's matched events: asking for them per
+    message (get_subscription_count, 2-4 us) was the measurement callback's largest part.
+    A middleware without matched events: asked per message.
+    """
+
+    def __init__(self, node, topic):
+        self.subscribers = 0
+        try:
+            self.publisher = node.create_publisher(
+                JointState, topic, STATE_PUB_QOS,
+                event_callbacks=PublisherEventCallbacks(matched=self._on_matched))
+        except UnsupportedEventTypeError:
+            self.publisher = node.create_publisher(JointState, topic, STATE_PUB_QOS)
+            self.subscribers = None
+
+    def _on_matched(self, info):
+        self.subscribers = info.current_count
+
+    def subscribed(self):
+        """Return the number of subscribers (0: no message need be built)."""
+        count = self.subscribers
+        return self.publisher.get_subscription_count() if count is None else count
 
 
 def _innovation_monitor(vehicle, design):
