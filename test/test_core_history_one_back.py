@@ -4,19 +4,19 @@
 import numpy as np
 from numpy.testing import assert_array_equal
 from observer_ros.core.errors import DimensionError
-from observer_ros.core.estimators import History, KEEP_PREVIOUS
+from observer_ros.core.estimators import CHECKPOINT_EVERY, DENSE_DEPTH, DENSE_FOR, History
 import pytest
 from test_core_history import feed, GYRO, KINDS, make, messages, PITCH, stamp_order
 
 DT = 0.01
 
 
-def closed_loop(steps, seed=0):
+def closed_loop(steps, seed=0, lag=1):
     """
     Gyro at 100 Hz and the command answering each estimate, as the closed loop sends them.
 
     The command stamped t_k (computed from the estimate at t_k) arrives after the gyro
-    measurement stamped t_{k+1}. Returns (stamp order, arrival order) of
+    measurement stamped t_{k+lag}. Returns (stamp order, arrival order) of
     ``(stamp, arrival, kind, value, rows)``.
     """
     rng = np.random.default_rng(seed)
@@ -24,7 +24,7 @@ def closed_loop(steps, seed=0):
     for k in range(steps):
         t = 1.0 + k * DT
         msgs.append((t, t, 'y', rng.normal(0.0, 1e-2, 1), GYRO))
-        msgs.append((t, t + 1.5 * DT, 'u', rng.normal(0.0, 0.1, 1), ()))
+        msgs.append((t, t + (lag + 0.5) * DT, 'u', rng.normal(0.0, 0.1, 1), ()))
     return stamp_order(msgs), sorted(msgs, key=lambda m: m[1])
 
 
@@ -94,16 +94,43 @@ def test_a_bad_command_one_step_late_leaves_the_history_as_it_was():
     assert history.reapplied - before == 1
 
 
-def test_messages_in_order_keep_no_previous_state():
+@pytest.mark.parametrize('kind', ['full', 'reduced', 'kalman'])
+@pytest.mark.parametrize('lag', [2, 5])
+def test_commands_a_few_steps_late_reapply_only_the_entries_after_them(kind, lag):
+    in_stamp_order, arrival = closed_loop(200, seed=lag, lag=lag)
+    history = History(make(kind), length=0.25)
+    deltas = []
+    for m in arrival:
+        before = history.reapplied
+        feed(history, [m])
+        if m[2] == 'u':
+            deltas.append(history.reapplied - before)
+    # once the dense checkpoints are on: the lag's measurements (and the commands
+    # between them), not those since a regular checkpoint as well
+    steady = deltas[CHECKPOINT_EVERY:-lag]
+    assert set(steady) == {lag}, steady
+    assert_array_equal(history.x_hat, feed(make(kind), in_stamp_order))
+    assert checkpoints_listed(history)
+
+
+def test_dense_checkpoints_only_after_a_shallow_rewind_and_for_a_while():
     history = History(make('full'), length=0.25)
-    feed(history, stamp_order(messages(duration=1.0)))
-    assert history._previous is None and history.rewinds == 0
-    # one message one step late keeps it for the next KEEP_PREVIOUS measurements only
+    msgs = stamp_order(messages(duration=1.0))
+    feed(history, msgs)
+    states = sum(e[5] is not None for e in history._entries)
+    assert history._dense == 0 and states <= len(history) // CHECKPOINT_EVERY + 1
+    # a deep rewind (more than DENSE_DEPTH entries back) keeps the regular checkpoints
     t = history.t
-    history.set_input(t - 0.005, [0.1])
-    for k in range(KEEP_PREVIOUS + 1):
-        history.correct(t + (k + 1) * DT, [0.0], GYRO)
-    assert history._previous is None
+    history.set_input(t - 0.2, [0.1])                   # about 44 entries back
+    assert DENSE_DEPTH < 40
+    assert history._dense == 0
+    # a shallow one: the next DENSE_FOR measurements are all checkpoints, then no more
+    history.set_input(t - 0.5 * DT, [0.2])
+    for k in range(DENSE_FOR + CHECKPOINT_EVERY):        # 1 kHz: all inside the window
+        history.correct(t + (k + 1) * 0.001, [0.0], GYRO)
+    states = [e[5] is not None for e in history._entries[-(DENSE_FOR + CHECKPOINT_EVERY):]]
+    assert all(states[:DENSE_FOR]) and not all(states[DENSE_FOR:])
+    assert history._dense == 0
 
 
 @pytest.mark.parametrize('kind', ['full', 'kalman'])

@@ -53,8 +53,8 @@ Modules
 from .base import Estimator, OpenLoopEstimator, TimeOrderError
 from .factory import make_estimator
 from .full_order import FullOrderEstimator
-from .history import CHECKPOINT_EVERY, History, HISTORY_LENGTH, HISTORY_MAX_MESSAGES, \
-    KEEP_PREVIOUS
+from .history import CHECKPOINT_EVERY, DENSE_DEPTH, DENSE_FOR, History, HISTORY_LENGTH, \
+    HISTORY_MAX_MESSAGES
 from .kalman import KalmanEstimator
 from .reduced_order import ReducedOrderEstimator
 from .steps import CACHE_SIZE, DT_DIGITS, GAIN_CACHE_SIZE, GAIN_DIGITS, \
@@ -64,4 +64,5 @@ __all__ = ['DT_DIGITS', 'GAIN_DIGITS', 'CACHE_SIZE', 'GAIN_CACHE_SIZE', 'TimeOrd
            'StepCache', 'Estimator', 'FullOrderEstimator',
            'ReducedOrderEstimator', 'OpenLoopEstimator', 'KalmanEstimator',
            'make_estimator', 'process_noise_covariance', 'History', 'HISTORY_LENGTH',
-           'HISTORY_MAX_MESSAGES', 'CHECKPOINT_EVERY', 'KEEP_PREVIOUS']
+           'HISTORY_MAX_MESSAGES', 'CHECKPOINT_EVERY', 'DENSE_DEPTH',
+           'DENSE_FOR']

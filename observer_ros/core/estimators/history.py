@@ -32,9 +32,9 @@ and the result is that of the stamp order all the same.
 A measurement newer than everything held costs little more than the estimator's own step
 (benchmarks/README.md, session 6): its entry is a plain list placed without a sort key,
 and the old entries are dropped when the oldest checkpoint (kept in a deque) leaves the
-window, not searched for per message. A message stamped just before the newest entry
-(the closed loop's command, one step late) re-applies that entry alone
-(:data:`KEEP_PREVIOUS`; benchmarks/README.md, session 7).
+window, not searched for per message. A message stamped a few entries before the newest
+(the closed loop's command, a step or a few late) re-applies only the entries after it
+(:data:`DENSE_DEPTH`; benchmarks/README.md, session 7).
 
 The node and the bag replay both use this class: what one estimates from a recording,
 the other estimates live.
@@ -48,7 +48,7 @@ from .base import TimeOrderError
 from ..spec import HISTORY_LENGTH
 
 __all__ = ['History', 'HISTORY_LENGTH', 'HISTORY_MAX_MESSAGES', 'CHECKPOINT_EVERY',
-           'KEEP_PREVIOUS']
+           'DENSE_DEPTH', 'DENSE_FOR']
 
 #: At most this many messages are kept, whatever their stamps (a bound on the memory and
 #: on the cost of a rewind when stamps crowd: 2.5e4 is 0.25 s at 100 kHz). When it is
@@ -61,12 +61,17 @@ HISTORY_MAX_MESSAGES = 25000
 #: about as much as the correction itself (benchmarks/README.md, P5).
 CHECKPOINT_EVERY = 8
 
-#: After a message stamped just before the newest entry (in the closed loop, the
-#: compensator's command answering the previous estimate arrives after the next
-#: measurement), the state before each in-order measurement is kept for this many more
-#: of them: the next such message then restores it and re-applies the newest entry
-#: alone, not the messages since the last checkpoint. Messages in order keep nothing.
-KEEP_PREVIOUS = 64
+#: A message inserted at most this many entries before the newest (in the closed loop,
+#: the compensator's command answering an estimate arrives after the next measurement,
+#: or a few of them on a loaded host) turns on dense checkpoints: the state after every
+#: message is kept for the next :data:`DENSE_FOR` messages. The next such message then
+#: restores the state just before its place and re-applies only the entries after it, not
+#: those since the last regular checkpoint. Messages in order keep the regular ones.
+DENSE_DEPTH = 32
+
+#: Messages that keep the state after them once a shallow rewind (:data:`DENSE_DEPTH`)
+#: turned dense checkpoints on.
+DENSE_FOR = 64
 
 _MEASUREMENT, _COMMAND = 0, 1
 
@@ -128,8 +133,7 @@ class History:
         self._base = self._est.save_state()      # the state before the first entry
         self._dropped_t = -math.inf               # the newest stamp no longer kept
         self._checkpoints = deque()               # the entries with a state, in order
-        self._previous = None                     # (newest entry, the state before it)
-        self._keep_previous = 0                   # in-order measurements that keep it
+        self._dense = 0                           # messages still checkpointed each
         self._residual = None
         self._S = None
         self._x_at = None
@@ -248,23 +252,19 @@ class History:
             if last[_T] < t or (last[_T] == t and last[_KIND] == _MEASUREMENT):
                 # in order, nothing pending before it: the estimator is at the last entry
                 # and this is its step, an entry and a checkpoint every CHECKPOINT_EVERY
-                if self._keep_previous:             # one-step-late messages seen
-                    self._keep_previous -= 1
-                    previous = est.save_state()
-                else:
-                    previous = None
                 x = est.correct(t, y, rows)         # refuses a non-finite t
                 residual, S = est.last_residual()
                 since = self._since + 1
                 state = None
-                if since >= CHECKPOINT_EVERY:
+                if since >= CHECKPOINT_EVERY or self._dense:
                     since, state = 0, est.save_state()
+                    if self._dense:
+                        self._dense -= 1
                 self._since = since
                 # x, residual and S are not kept: a rewind computes them again, and they
                 # go when the caller is done with them (memory reused, not held)
                 entry = [t, _MEASUREMENT, y, rows, tag, state, None, None, None]
                 entries.append(entry)
-                self._previous = None if previous is None else (entry, previous)
                 checkpoints = self._checkpoints
                 if state is not None:
                     checkpoints.append(entry)
@@ -445,7 +445,7 @@ class History:
         since_counted = checkpoint is None
         if since_counted:
             since = self._since + 1
-            checkpoint = since >= CHECKPOINT_EVERY
+            checkpoint = since >= CHECKPOINT_EVERY or self._dense > 0
             self._since = 0 if checkpoint else since
         entry[_STATE] = est.save_state() if checkpoint else None
         if checkpoint and since_counted:
@@ -454,12 +454,12 @@ class History:
     def _rewind(self, pos, entry):
         est = self._est
         entries = self._entries
-        if pos == len(entries) - 1:                   # just before the newest entry
-            self._keep_previous = KEEP_PREVIOUS
-            previous = self._previous
-            if previous is not None and previous[0] is entries[-1]:
-                self._rewind_one(entry, previous[1])
+        if len(entries) - pos <= DENSE_DEPTH:        # shallow: the closed loop's lag
+            self._dense = DENSE_FOR
+            if pos == len(entries) - 1 and pos and entries[pos - 1][_STATE] is not None:
+                self._rewind_one(entry, entries[pos - 1][_STATE])
                 return
+        dense = self._dense > 0
         # the newest checkpoint before the new entry, and the entries from it on
         start = pos
         while start > 0 and entries[start - 1][_STATE] is None:
@@ -471,9 +471,9 @@ class History:
         try:
             for e in entries[start:pos]:                  # unchanged: before the new one
                 count += 1
-                self._apply(e, count % CHECKPOINT_EVERY == 0)
+                self._apply(e, dense or count % CHECKPOINT_EVERY == 0)
             count += 1
-            self._apply(entry, count % CHECKPOINT_EVERY == 0)
+            self._apply(entry, dense or count % CHECKPOINT_EVERY == 0)
         except Exception:
             # a bad message changes nothing (the states the entries before it got are
             # those they had: the same messages from the same checkpoint)
@@ -485,12 +485,12 @@ class History:
         revised = []
         for e in later:
             count += 1
-            self._apply(e, count % CHECKPOINT_EVERY == 0)
+            self._apply(e, dense or count % CHECKPOINT_EVERY == 0)
             if e[_KIND] == _MEASUREMENT:
                 revised.append((e[_TAG], e[_X], e[_RESIDUAL], e[_S]))
         if revised:
             self.revised = revised
-        self._since = count % CHECKPOINT_EVERY
+        self._since = 0 if dense else count % CHECKPOINT_EVERY
         self.reapplied += len(later) + pos - start
         entries.insert(pos, entry)
         # the checkpoints before the one restored are unchanged; those after it moved
@@ -505,7 +505,7 @@ class History:
 
     def _rewind_one(self, entry, state):
         """
-        Insert an entry just before the newest one, from the state kept before that one.
+        Insert an entry just before the newest one, from the checkpoint before that one.
 
         The same calls on the same states as :meth:`_rewind` from a checkpoint makes
         (the result is the same to the last bit), but only the newest entry is applied
@@ -514,15 +514,13 @@ class History:
         est = self._est
         entries = self._entries
         last = entries[-1]
-        self._previous = None
-        est.restore_state(state)                  # copied: kept for a bad message below
+        est.restore_state(state)                  # copied: the checkpoint stays as it was
         try:
             self._apply(entry, False)
         except Exception:
             # a bad message changes nothing: the newest entry again, on the same state
             est.restore_state(state)
             self._apply(last, last[_STATE] is not None)
-            self._previous = (last, state)
             raise
         self._apply(last, last[_STATE] is not None)
         if last[_KIND] == _MEASUREMENT:
