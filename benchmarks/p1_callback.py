@@ -20,7 +20,12 @@ blocks then meet the same load of the host, and each block of a version is paire
 the next version's. Also printed: the median and spread of the per-block ratios against
 the first version (the figure a shared host moves least).
 
-Usage: ``python benchmarks/p1_callback.py NAME=DIR [NAME=DIR ...] [--interleave]``.
+With ``--commands late`` each measurement is followed by the command answering the previous
+estimate (P2's closed loop: stamped one step back, a rewind of the history each), with
+``--commands inorder`` by the command answering this one; the figures are then per pair.
+
+Usage: ``python benchmarks/p1_callback.py NAME=DIR [NAME=DIR ...] [--interleave]
+[--commands late]``.
 
 """
 
@@ -46,11 +51,21 @@ node = ObserverNode()
 sensor = next(s for s in node.vehicle.sensors if s.topic.endswith('imu/data'))
 msg = gyro_imu()
 t0 = time.time_ns() - (500 + count * reps + 1000) * 4_000_000
-def one(i):
+commands = os.environ.get('P1_COMMANDS', 'none')
+if commands != 'none':
+    from sensor_msgs.msg import JointState
+    cmd = JointState(name=list(node.vehicle.plant.input_names), position=[0.0])
+def stamp(i):
     ns = t0 + i * 4_000_000 + (i * 7919 % 1000) * 1000
-    msg.header.stamp = Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+def one(i):
+    msg.header.stamp = stamp(i)
     msg.angular_velocity.y = 0.001 * ((i % 200) - 100) / 100.0
     node._on_measurement(sensor, msg)
+    if commands != 'none':      # the closed loop's answer: to this estimate or the previous
+        cmd.header.stamp = stamp(i - 1 if commands == 'late' else i)
+        cmd.position = [0.01 * ((i % 50) - 25) / 25.0]
+        node._on_command(cmd)
 for i in range(500):
     one(i)
 interleave = len(sys.argv) > 5
@@ -67,28 +82,28 @@ rclpy.try_shutdown()
 """
 
 
-def driver_command(directory, count, reps):
+def driver_command(directory, count, reps, commands='none'):
     """Return the environment and command line of the driver on one version."""
-    env = dict(os.environ, PYTHONPATH=str(directory), ROS_DOMAIN_ID='48')
+    env = dict(os.environ, PYTHONPATH=str(directory), ROS_DOMAIN_ID='48', P1_COMMANDS=commands)
     config = Path(directory) / 'config' / 'submarine.yaml'
     bench = str(Path(__file__).resolve().parent)     # the driver's _common
     return env, [sys.executable, '-W', 'ignore', '-c', DRIVER, str(count), str(reps),
                  str(config), bench]
 
 
-def _blocks(directory, count, reps):
+def _blocks(directory, count, reps, commands):
     """Run the driver on one version; return its blocks' CPU per message (us)."""
-    env, argv = driver_command(directory, count, reps)
+    env, argv = driver_command(directory, count, reps, commands)
     out = subprocess.run(argv, env=env, cwd=str(directory),
                          capture_output=True, text=True, check=True).stdout
     return [float(line) for line in out.split()]
 
 
-def _interleaved(versions, count, reps):
+def _interleaved(versions, count, reps, commands):
     """Run every version at once, a block at a time in turn; return their blocks (us)."""
     procs = []
     for _, directory in versions:
-        env, argv = driver_command(directory, count, reps)
+        env, argv = driver_command(directory, count, reps, commands)
         procs.append(subprocess.Popen(argv + ['interleave'], env=env, cwd=str(directory),
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                       stderr=subprocess.DEVNULL, text=True))
@@ -156,6 +171,11 @@ def main(argv=None):
     parser.add_argument('--rounds', type=int, default=4, help='runs of each version')
     parser.add_argument('--interleave', action='store_true',
                         help='run the versions side by side, a block of each in turn')
+    parser.add_argument('--commands', choices=('none', 'late', 'inorder'), default='none',
+                        help="after each measurement, the compensator's command: stamped "
+                        'like it (inorder) or like the previous one (late: the closed '
+                        "loop's, one step late, a rewind of the history each); the figures "
+                        'are then per measurement and command')
     args, versions = parse_versions(parser, argv)
     if versions is None:
         return 2
@@ -163,12 +183,13 @@ def main(argv=None):
     blocks = {name: [] for name, _ in versions}
     for r in range(args.rounds):
         if args.interleave:
-            for (name, _), got in zip(versions, _interleaved(versions, args.count, args.reps)):
+            got_all = _interleaved(versions, args.count, args.reps, args.commands)
+            for (name, _), got in zip(versions, got_all):
                 blocks[name] += got
                 _print_round(r, name, got)
             continue
         for name, directory in (versions if r % 2 == 0 else versions[::-1]):
-            got = _blocks(directory, args.count, args.reps)
+            got = _blocks(directory, args.count, args.reps, args.commands)
             blocks[name] += got
             _print_round(r, name, got)
     first = versions[0][0]
