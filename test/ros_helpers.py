@@ -1,5 +1,5 @@
 # Shared helpers of the tests that start ROS 2 processes.
-"""Processes, a probe node and discovery waits for the node tests (no fixed sleeps)."""
+"""Processes, a probe node, discovery waits and one set-up for the node tests (no sleeps)."""
 
 import contextlib
 import ctypes
@@ -12,13 +12,29 @@ import sys
 import time
 import warnings
 
+from diagnostic_msgs.msg import DiagnosticArray
+import numpy as np
+from observer_ros.nodes.common import SENSOR_QOS, STATE_QOS
+from observer_ros.timeutil import stamp_to_sec
 from observer_ros.tools.run_closed_loop import node_command
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
+from sensor_msgs.msg import Imu, JointState
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / 'config'
+SUBMARINE = CONFIG / 'submarine.yaml'
+
+# The parameters of the nodes a test starts unless it says otherwise: no lock-step waiting
+# for commands, and diagnostics 5 times a second (waits on their counters end sooner).
+REALTIME = 'simulator.mode:=realtime'
+NODE_PARAMS = (REALTIME, 'diagnostics_period:=0.2')
+
+# The probe's publishers of the nodes' inputs: (topic, type, QoS).
+GYRO = ('imu/data', Imu, SENSOR_QOS)
+COMMANDS = ('control/u', JointState, STATE_QOS)
+ESTIMATES = ('state/estimate', JointState, STATE_QOS)
 
 # One DDS domain per test session, so concurrent runs on the machine do not cross-talk.
 DOMAIN_ID = random.SystemRandom().randint(100, 199)
@@ -140,6 +156,190 @@ class Probe:
         self.executor.shutdown()
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
+
+
+class Listener:
+    """Collect the estimates, commands and diagnostics of the nodes under test."""
+
+    def __init__(self, probe):
+        self.probe = probe
+        self.estimates, self.commands, self.diagnostics = [], [], []
+        node = probe.node
+        self.subs = {
+            'state/estimate': node.create_subscription(
+                JointState, 'state/estimate', self.estimates.append, STATE_QOS),
+            'control/u': node.create_subscription(
+                JointState, 'control/u', self.commands.append, STATE_QOS),
+            '/diagnostics': node.create_subscription(
+                DiagnosticArray, '/diagnostics', self.diagnostics.append, 50)}
+
+    def wait_alive(self, node_name, timeout=WAIT):
+        """Wait for a diagnostics message from the node under test (it is up and matched)."""
+        self.probe.spin_until(lambda: self.latest_status(node_name) is not None, timeout,
+                              f'diagnostics from {node_name}')
+
+    def wait_matched(self, *topics):
+        """Wait until each topic's subscription has a matched publisher."""
+        for topic in topics:
+            self.probe.wait_matched(self.subs[topic], topic)
+
+    def estimate_at(self, t, timeout=WAIT):
+        """Wait for an estimate stamped t; return its values."""
+        def found():
+            return any(abs(stamp_to_sec(m.header.stamp) - t) < 1e-6 for m in self.estimates)
+        self.probe.spin_until(found, timeout, f'an estimate stamped {t}')
+        msg = [m for m in self.estimates if abs(stamp_to_sec(m.header.stamp) - t) < 1e-6][-1]
+        return np.array(msg.position)
+
+    def counter(self, node_name, key):
+        """Latest value of a diagnostics counter of a node (0 if never reported)."""
+        for array in reversed(self.diagnostics):
+            for status in array.status:
+                if status.name.endswith(node_name):
+                    for kv in status.values:
+                        if kv.key == key:
+                            return int(kv.value)
+        return 0
+
+    def wait_counter(self, node_name, key, at_least, timeout=WAIT):
+        """Wait until a diagnostics counter reaches a value."""
+        self.probe.spin_until(lambda: self.counter(node_name, key) >= at_least, timeout,
+                              f'{node_name} diagnostics {key} >= {at_least}')
+
+    def latest_status(self, node_name):
+        """Return the node's latest DiagnosticStatus."""
+        for array in reversed(self.diagnostics):
+            for status in array.status:
+                if status.name.endswith(node_name):
+                    return status
+        return None
+
+
+class NodesUnderTest:
+    """
+    The node processes a test runs, the probe and its listener and publishers.
+
+    Attributes
+    ----------
+    procs : list of Proc
+        The node processes, in the order they were named.
+    probe : Probe
+        The test's in-process node.
+    listener : Listener
+        The probe's subscriptions to the nodes' outputs.
+    pubs : dict
+        The probe's publishers by topic, each matched before the test starts.
+
+    """
+
+    def __init__(self, procs, probe, listener):
+        self.procs, self.probe, self.listener = procs, probe, listener
+        self.pubs = {}
+
+    @property
+    def proc(self):
+        """Return the first (often the only) node process."""
+        return self.procs[0]
+
+    def report(self):
+        """Return what the listener heard, and each node's state and last log lines."""
+        heard = sorted({s.name for a in self.listener.diagnostics for s in a.status})
+        lines = [f'the probe heard {len(self.listener.estimates)} estimates, '
+                 f'{len(self.listener.commands)} commands, diagnostics from {heard}']
+        for proc in self.procs:
+            state = 'running' if proc.alive() else f'exited {proc.popen.returncode}'
+            log = '\n'.join(proc.output().splitlines()[-40:])
+            lines.append(f'--- {proc.log_path.name} ({state}), its last lines:\n{log}')
+        return '\n'.join(lines)
+
+
+@contextlib.contextmanager
+def nodes_under_test(tmp_path, *nodes, vehicle=SUBMARINE, params=NODE_PARAMS, remaps=(),
+                     publish=(), listen=(), alive=(), probe_name='probe'):
+    """
+    Run node processes and a probe matched to them; each node must exit 0 after a pass.
+
+    Every wait is on a condition, with the deadline WAIT. A wait that fails says what the
+    probe heard and shows each node's last log lines; so does a failing test (on stdout).
+
+    Parameters
+    ----------
+    tmp_path : pathlib.Path
+        The folder of the nodes' logs.
+    *nodes : str
+        The nodes' executables (``observer_node``, ``compensator``, ...).
+    vehicle : pathlib.Path
+        Their parameters file.
+    params : sequence of str
+        The ``name:=value`` overrides of every node.
+    remaps : sequence of str
+        The ``from:=to`` remappings of every node.
+    publish : sequence of tuple
+        The ``(topic, type, qos)`` of each probe publisher, waited for until matched.
+    listen : sequence of str
+        The listener's topics (state/estimate, control/u, /diagnostics) to wait for until
+        matched.
+    alive : sequence of str
+        The node names whose diagnostics to wait for: the node is up, its side of the
+        matching done too (a message sent on the probe's side's match alone can be lost).
+    probe_name : str
+        The probe node's name.
+
+    Yields
+    ------
+    NodesUnderTest
+        The processes, the probe, its listener and its publishers by topic.
+
+    """
+    procs = [Proc(node, vehicle, *params, log_dir=tmp_path, remaps=remaps) for node in nodes]
+    probe = None
+    try:
+        probe = Probe(probe_name)
+        run = NodesUnderTest(procs, probe, Listener(probe))
+        try:
+            for topic, msg_type, qos in publish:
+                run.pubs[topic] = probe.wait_matched(
+                    probe.node.create_publisher(msg_type, topic, qos), topic)
+            run.listener.wait_matched(*listen)
+            for name in alive:
+                run.listener.wait_alive(name)
+        except AssertionError as err:
+            raise AssertionError(f'{err}\n{run.report()}') from None
+        try:
+            yield run
+        except Exception:
+            print(run.report())         # pytest shows it with the failure
+            raise
+    finally:
+        if probe is not None:
+            probe.close()
+        codes = [proc.stop() for proc in procs]
+    for proc, code in zip(procs, codes):
+        assert code == 0, proc.output()
+
+
+def observer_under_test(tmp_path, publish=(GYRO, COMMANDS), **options):
+    """
+    Run the observer node, its estimates and diagnostics heard: nodes_under_test.
+
+    The probe publishes gyro measurements and commands unless ``publish`` says otherwise;
+    ``options`` are those of nodes_under_test.
+    """
+    return nodes_under_test(tmp_path, 'observer_node', publish=publish,
+                            listen=('state/estimate', '/diagnostics'), alive=('observer',),
+                            **options)
+
+
+def compensator_under_test(tmp_path, publish=(ESTIMATES,), **options):
+    """
+    Run the compensator, its commands and diagnostics heard: nodes_under_test.
+
+    The probe publishes estimates unless ``publish`` says otherwise; ``options`` are those
+    of nodes_under_test.
+    """
+    return nodes_under_test(tmp_path, 'compensator', publish=publish,
+                            listen=('control/u', '/diagnostics'), alive=('compensator',),
+                            **options)
 
 
 def python():

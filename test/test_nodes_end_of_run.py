@@ -2,9 +2,8 @@
 """The simulator ends a realtime run cleanly; peers then report stale data; one /clock."""
 
 from diagnostic_msgs.msg import DiagnosticStatus
-from ros_helpers import CONFIG, Probe, Proc, WAIT
+from ros_helpers import CONFIG, Listener, Probe, Proc, WAIT
 from rosgraph_msgs.msg import Clock
-from test_nodes_faults import Listener
 
 # long enough for the loop to close on a loaded machine (DDS matching can take seconds)
 REALTIME = ('simulator.mode:=realtime', 'simulator.duration:=5.0', 'diagnostics_period:=0.2')

@@ -1,78 +1,20 @@
 # The nodes against bad messages, bad files, stale estimates and run-time parameter changes.
 """Each node survives bad input, reports it, and keeps its design unless a change is sound."""
 
-import contextlib
 import time
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticStatus
 import numpy as np
-from observer_ros.nodes.common import joint_state, SENSOR_QOS, STATE_QOS
+from observer_ros.nodes.common import joint_state, SENSOR_QOS
 from observer_ros.timeutil import sec_to_stamp_parts, stamp_to_sec
 import pytest
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
-from ros_helpers import CONFIG, Probe, Proc, WAIT
-from sensor_msgs.msg import Imu, JointState
+# Listener: still importable from here, where test files found it before ros_helpers had it
+from ros_helpers import (compensator_under_test, CONFIG, Listener,  # noqa: F401
+                         observer_under_test, Proc, REALTIME, WAIT)
+from sensor_msgs.msg import Imu
 import yaml
-
-REALTIME = 'simulator.mode:=realtime'   # no lock-step waiting for commands in these tests
-
-
-class Listener:
-    """Collect the estimates, commands and diagnostics of the nodes under test."""
-
-    def __init__(self, probe):
-        self.probe = probe
-        self.estimates, self.commands, self.diagnostics = [], [], []
-        node = probe.node
-        self.subs = {
-            'state/estimate': node.create_subscription(
-                JointState, 'state/estimate', self.estimates.append, STATE_QOS),
-            'control/u': node.create_subscription(
-                JointState, 'control/u', self.commands.append, STATE_QOS),
-            '/diagnostics': node.create_subscription(
-                DiagnosticArray, '/diagnostics', self.diagnostics.append, 50)}
-
-    def wait_alive(self, node_name, timeout=WAIT):
-        """Wait for a diagnostics message from the node under test (it is up and matched)."""
-        self.probe.spin_until(lambda: self.latest_status(node_name) is not None, timeout,
-                              f'diagnostics from {node_name}')
-
-    def wait_matched(self, *topics):
-        """Wait until each topic's subscription has a matched publisher."""
-        for topic in topics:
-            self.probe.wait_matched(self.subs[topic], topic)
-
-    def estimate_at(self, t, timeout=WAIT):
-        """Wait for an estimate stamped t; return its values."""
-        def found():
-            return any(abs(stamp_to_sec(m.header.stamp) - t) < 1e-6 for m in self.estimates)
-        self.probe.spin_until(found, timeout, f'an estimate stamped {t}')
-        msg = [m for m in self.estimates if abs(stamp_to_sec(m.header.stamp) - t) < 1e-6][-1]
-        return np.array(msg.position)
-
-    def counter(self, node_name, key):
-        """Latest value of a diagnostics counter of a node (0 if never reported)."""
-        for array in reversed(self.diagnostics):
-            for status in array.status:
-                if status.name.endswith(node_name):
-                    for kv in status.values:
-                        if kv.key == key:
-                            return int(kv.value)
-        return 0
-
-    def wait_counter(self, node_name, key, at_least, timeout=WAIT):
-        """Wait until a diagnostics counter reaches a value."""
-        self.probe.spin_until(lambda: self.counter(node_name, key) >= at_least, timeout,
-                              f'{node_name} diagnostics {key} >= {at_least}')
-
-    def latest_status(self, node_name):
-        """Return the node's latest DiagnosticStatus."""
-        for array in reversed(self.diagnostics):
-            for status in array.status:
-                if status.name.endswith(node_name):
-                    return status
-        return None
 
 
 def _imu(t, q):
@@ -83,29 +25,10 @@ def _imu(t, q):
     return msg
 
 
-@contextlib.contextmanager
-def _node_under_test(tmp_path, node):
-    """Run the node (submarine, realtime) with a probe listening; the node must exit 0."""
-    proc = Proc(node, CONFIG / 'submarine.yaml', REALTIME, 'diagnostics_period:=0.2',
-                log_dir=tmp_path)
-    probe = Probe()
-    try:
-        yield proc, probe, Listener(probe)
-    finally:
-        probe.close()
-    assert proc.stop() == 0, proc.output()
-
-
 @pytest.fixture
 def observer_setup(tmp_path):
-    with _node_under_test(tmp_path, 'observer_node') as (proc, probe, listener):
-        pub = probe.wait_matched(probe.node.create_publisher(Imu, 'imu/data', SENSOR_QOS))
-        cmd = probe.wait_matched(probe.node.create_publisher(JointState, 'control/u',
-                                                             STATE_QOS))
-        probe.wait_publishers('state/estimate')
-        listener.wait_matched('state/estimate', '/diagnostics')
-        listener.wait_alive('observer')
-        yield proc, probe, listener, pub, cmd
+    with observer_under_test(tmp_path) as run:
+        yield run.proc, run.probe, run.listener, run.pubs['imu/data'], run.pubs['control/u']
 
 
 def test_observer_survives_every_bad_message(observer_setup):
@@ -204,12 +127,8 @@ def test_observer_pole_change_is_validated(observer_setup):
 
 @pytest.fixture
 def compensator_setup(tmp_path):
-    with _node_under_test(tmp_path, 'compensator') as (proc, probe, listener):
-        est = probe.wait_matched(probe.node.create_publisher(JointState, 'state/estimate',
-                                                             STATE_QOS))
-        listener.wait_matched('control/u', '/diagnostics')
-        listener.wait_alive('compensator')
-        yield proc, probe, listener, est
+    with compensator_under_test(tmp_path) as run:
+        yield run.proc, run.probe, run.listener, run.pubs['state/estimate']
 
 
 def test_compensator_stale_and_bad_estimates_give_the_safe_command(compensator_setup):
@@ -339,18 +258,10 @@ def test_silent_sensor_means_predict_only(observer_setup):
 
 def test_observer_follows_remaps_and_overrides(tmp_path):
     """`-r imu/data:=robot/gyro` points it at another topic; `-p` changes its poles."""
-    proc = Proc('observer_node', CONFIG / 'submarine.yaml', REALTIME,
-                'observer.poles:=[-2.0, -2.1, -2.2]', log_dir=tmp_path,
-                remaps=['imu/data:=robot/gyro'])
-    probe = Probe()
-    try:
-        listener = Listener(probe)
-        pub = probe.wait_matched(probe.node.create_publisher(Imu, 'robot/gyro', SENSOR_QOS))
-        listener.wait_matched('state/estimate', '/diagnostics')
-        listener.wait_alive('observer')
-        pub.publish(_imu(50.0, 0.0))
-        assert np.all(np.isfinite(listener.estimate_at(50.0)))
-    finally:
-        probe.close()
-        assert proc.stop() == 0, proc.output()
-    assert '-2.2, -2.1, -2' in proc.output() or '[-2.2' in proc.output(), proc.output()
+    with observer_under_test(tmp_path, publish=[('robot/gyro', Imu, SENSOR_QOS)],
+                             params=[REALTIME, 'observer.poles:=[-2.0, -2.1, -2.2]'],
+                             remaps=['imu/data:=robot/gyro']) as run:
+        run.pubs['robot/gyro'].publish(_imu(50.0, 0.0))
+        assert np.all(np.isfinite(run.listener.estimate_at(50.0)))
+    out = run.proc.output()
+    assert '-2.2, -2.1, -2' in out or '[-2.2' in out, out

@@ -7,13 +7,11 @@ estimate converges from its 30 deg error the node says so, then the gyro is cons
 (it was a WARN before the transient was discounted); a bias after that is named.
 """
 
-from observer_ros.nodes.common import joint_state, SENSOR_QOS, STATE_QOS
+from observer_ros.nodes.common import joint_state
 from observer_ros.timeutil import ns_to_sec
 import pytest
-from ros_helpers import CONFIG, Probe, Proc, WAIT
-from sensor_msgs.msg import Imu, JointState
+from ros_helpers import observer_under_test, WAIT
 from test_core_innovation_transient import _run, NOISE, submarine  # noqa: F401
-from test_nodes_faults import Listener
 from test_nodes_late import _gyro, _health, _level
 
 OK, WARN = 0, 1
@@ -28,18 +26,9 @@ def test_the_demo_design_is_consistent_after_its_transient(submarine, fault,  # 
                                                            tmp_path):
     monitor, _, _, _ = _run(submarine, steps=350, onset=300, **fault)
     expected = monitor.health('gyro')
-    proc = Proc('observer_node', CONFIG / 'submarine.yaml', 'simulator.mode:=realtime',
-                'diagnostics_period:=0.2', log_dir=tmp_path)
-    probe = Probe()
-    try:
-        listener = Listener(probe)
-        node = probe.node
-        gyro = node.create_publisher(Imu, 'imu/data', SENSOR_QOS)
-        command = node.create_publisher(JointState, 'control/u', STATE_QOS)
-        for pub in (gyro, command):
-            probe.wait_matched(pub)
-        listener.wait_matched('state/estimate', '/diagnostics')
-        listener.wait_alive('observer')
+    with observer_under_test(tmp_path) as run:
+        probe, listener = run.probe, run.listener
+        gyro, command = run.pubs['imu/data'], run.pubs['control/u']
         answered = 0
         for topic, _, ns, msg in _run.messages:
             if topic == 'imu/data':                  # the bag's message, as rclpy's
@@ -67,6 +56,3 @@ def test_the_demo_design_is_consistent_after_its_transient(submarine, fault,  # 
         else:
             assert _level(status) == OK
             assert status.message == 'gyro: consistent'
-    finally:
-        probe.close()
-    assert proc.stop() == 0, proc.output()

@@ -9,9 +9,8 @@ from observer_ros.nodes.common import joint_state, SENSOR_QOS, STATE_QOS
 from observer_ros.nodes.observer_node import covariance_names
 from observer_ros.timeutil import ns_to_sec, stamp_to_sec
 import pytest
-from ros_helpers import Probe, Proc, WAIT
+from ros_helpers import COMMANDS, GYRO, observer_under_test, WAIT
 from sensor_msgs.msg import Imu, JointState
-from test_nodes_faults import Listener
 
 
 def _stamp(msg, ns):
@@ -36,22 +35,12 @@ def _pitch(ns, theta):
 def late_observer(tmp_path, request):
     kind, params = request.param
     path = late_sensors.write_vehicle(tmp_path, kind)
-    proc = Proc('observer_node', path, 'diagnostics_period:=0.2', *params, log_dir=tmp_path)
-    probe = Probe()
-    try:
-        listener = Listener(probe)
-        node = probe.node
-        pubs = {'gyro': node.create_publisher(Imu, 'imu/data', SENSOR_QOS),
-                'pitch': node.create_publisher(JointState, 'pitch', SENSOR_QOS),
-                'u': node.create_publisher(JointState, 'control/u', STATE_QOS)}
-        for name, pub in pubs.items():
-            probe.wait_matched(pub, name)
-        listener.wait_matched('state/estimate', '/diagnostics')
-        listener.wait_alive('observer')
-        yield proc, probe, listener, pubs, late_sensors.vehicle(tmp_path, kind)
-    finally:
-        probe.close()
-    assert proc.stop() == 0, proc.output()
+    pitch = ('pitch', JointState, SENSOR_QOS)
+    with observer_under_test(tmp_path, publish=[GYRO, pitch, COMMANDS], vehicle=path,
+                             params=['diagnostics_period:=0.2', *params]) as run:
+        pubs = {'gyro': run.pubs['imu/data'], 'pitch': run.pubs['pitch'],
+                'u': run.pubs['control/u']}
+        yield run.proc, run.probe, run.listener, pubs, late_sensors.vehicle(tmp_path, kind)
 
 
 @pytest.mark.parametrize('late_observer', [('full', ())], indirect=True)

@@ -15,9 +15,9 @@ from observer_ros.vehicle import load_vehicle
 import pytest
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
-from ros_helpers import CONFIG, Probe, Proc, WAIT
+from ros_helpers import compensator_under_test, CONFIG, ESTIMATES, Probe, Proc, WAIT
 from sensor_msgs.msg import JointState
-from test_nodes_faults import (_imu, compensator_setup, Listener,  # noqa: F401
+from test_nodes_faults import (_imu, compensator_setup,  # noqa: F401
                                observer_setup)
 
 REALTIME = ['simulator.mode:=realtime', 'simulator.duration:=3000.0']
@@ -141,16 +141,11 @@ def test_paused_observer_loop_recovers_on_the_prediction(loop_of):
 
 def test_compensator_predicts_a_late_estimate_to_when_its_command_applies(tmp_path):
     cart = CONFIG / 'cart_pendulum.yaml'
-    proc = Proc('compensator', cart, REALTIME[0], 'diagnostics_period:=0.2', log_dir=tmp_path)
-    probe = Probe('delay_probe')
-    try:
-        listener = Listener(probe)
-        node = probe.node
-        est = node.create_publisher(JointState, 'state/estimate', STATE_QOS)
-        enc = node.create_publisher(JointState, 'joint_states', SENSOR_QOS)
-        for pub in (est, enc):
-            probe.wait_matched(pub)
-        listener.wait_matched('control/u', '/diagnostics')
+    encoder = ('joint_states', JointState, SENSOR_QOS)
+    with compensator_under_test(tmp_path, vehicle=cart, publish=[ESTIMATES, encoder],
+                                probe_name='delay_probe') as run:
+        probe, listener = run.probe, run.listener
+        est, enc = run.pubs['state/estimate'], run.pubs['joint_states']
         names = ['theta', 'x', 'theta_dot', 'x_dot']
         x_hat = np.array([0.01, 0.2, -0.03, 0.1])
 
@@ -189,9 +184,6 @@ def test_compensator_predicts_a_late_estimate_to_when_its_command_applies(tmp_pa
             and 'later than observer.history_length' in s.message
             for a in listener.diagnostics for s in a.status), WAIT, 'the ERROR')
         assert listener.counter('compensator', 'safe_commands_predict') >= 1
-    finally:
-        probe.close()
-        assert proc.stop() == 0, proc.output()
 
 
 def _set(probe, node, name, value):

@@ -12,27 +12,19 @@ import subprocess
 import sys
 import time
 
-from observer_ros.nodes.common import SENSOR_QOS, STATE_QOS
+from observer_ros.nodes.common import STATE_QOS
 from observer_ros.timeutil import stamp_to_ns
-from ros_helpers import CONFIG, DOMAIN_ID, Probe, Proc, REPO, WAIT
-from sensor_msgs.msg import Imu, JointState
-from test_nodes_faults import Listener
+from ros_helpers import CONFIG, DOMAIN_ID, GYRO, observer_under_test, REPO, WAIT
+from sensor_msgs.msg import JointState
 from test_nodes_late import _gyro
 
 
 def test_a_late_subscriber_gets_the_residuals(tmp_path):
-    proc = Proc('observer_node', CONFIG / 'submarine.yaml', 'simulator.mode:=realtime',
-                'diagnostics_period:=0.2', log_dir=tmp_path)
-    probe = Probe()
-    try:
-        listener = Listener(probe)
-        node = probe.node
-        gyro = node.create_publisher(Imu, 'imu/data', SENSOR_QOS)
-        probe.wait_matched(gyro, 'imu/data')
-        listener.wait_matched('state/estimate', '/diagnostics')
-        # its diagnostics heard: the node has been up a while, its side of the gyro's
-        # match done too (a message sent on our side's match alone can be lost)
-        listener.wait_alive('observer')
+    # the probe sends gyro messages only; the observer's diagnostics heard: the node has been
+    # up a while, its side of the gyro's match done too
+    with observer_under_test(tmp_path, publish=[GYRO]) as run:
+        probe, listener, node = run.probe, run.listener, run.probe.node
+        gyro = run.pubs['imu/data']
         # an hour in the past of the clock: the stamps (4 ms apart) never reach it, however
         # many messages the wait for the node's matched event takes
         ns = time.time_ns() - 3_600_000_000_000
@@ -69,9 +61,6 @@ def test_a_late_subscriber_gets_the_residuals(tmp_path):
         stamps = [stamp_to_ns(m.header.stamp) for m in residuals]
         assert stamps == [ns + k * 4_000_000 for k in range(first, sent + 1)], stamps
         assert all(list(m.name) == ['q'] for m in residuals), residuals[0].name
-    finally:
-        probe.close()
-    assert proc.stop() == 0, proc.output()
 
 
 FALLBACK = """

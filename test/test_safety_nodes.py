@@ -10,58 +10,33 @@ from diagnostic_msgs.msg import DiagnosticStatus
 import numpy as np
 from observer_ros.core.errors import ObserverError
 from observer_ros.core.estimators import make_estimator
-from observer_ros.nodes.common import (joint_state, SENSOR_QOS, STATE_QOS,
-                                       vector_from_joint_state)
+from observer_ros.nodes.common import joint_state, vector_from_joint_state
 from observer_ros.nodes.compensator import command_problem
 from observer_ros.sensors import extract_measurement
 from observer_ros.timeutil import stamp_to_sec
 from observer_ros.vehicle import load_vehicle
 import pytest
-from ros_helpers import CONFIG, Probe, Proc, WAIT
+from ros_helpers import (compensator_under_test, CONFIG, NODE_PARAMS, nodes_under_test,
+                         observer_under_test, WAIT)
 from sensor_msgs.msg import Imu, JointState
-from test_nodes_faults import _imu, Listener
+from test_nodes_faults import _imu
 
-REALTIME = 'simulator.mode:=realtime'
 VEHICLE = load_vehicle(CONFIG / 'submarine.yaml')
 STATES = list(VEHICLE.plant.state_names)
 
 
 @contextlib.contextmanager
-def _nodes(tmp_path, *nodes, params=()):
-    """Run node processes (submarine, realtime) and a probe; each must exit 0."""
-    procs = [Proc(node, CONFIG / 'submarine.yaml', REALTIME, 'diagnostics_period:=0.2',
-                  *params, log_dir=tmp_path) for node in nodes]
-    probe = Probe()
-    try:
-        yield procs, probe, Listener(probe)
-    finally:
-        probe.close()
-        codes = [proc.stop() for proc in procs]
-    for proc, code in zip(procs, codes):
-        assert code == 0, proc.output()
-
-
-@contextlib.contextmanager
 def _observer(tmp_path):
     """Run the observer with publishers of measurements and commands, all matched."""
-    with _nodes(tmp_path, 'observer_node') as (procs, probe, listener):
-        node = probe.node
-        pub = probe.wait_matched(node.create_publisher(Imu, 'imu/data', SENSOR_QOS))
-        cmd = probe.wait_matched(node.create_publisher(JointState, 'control/u', STATE_QOS))
-        listener.wait_matched('state/estimate', '/diagnostics')
-        listener.wait_alive('observer')
-        yield procs, probe, listener, pub, cmd
+    with observer_under_test(tmp_path) as run:
+        yield run.procs, run.probe, run.listener, run.pubs['imu/data'], run.pubs['control/u']
 
 
 @contextlib.contextmanager
 def _compensator(tmp_path, params=()):
     """Run the compensator with a publisher of estimates, all matched."""
-    with _nodes(tmp_path, 'compensator', params=params) as (procs, probe, listener):
-        est = probe.wait_matched(probe.node.create_publisher(JointState, 'state/estimate',
-                                                             STATE_QOS))
-        listener.wait_matched('control/u', '/diagnostics')
-        listener.wait_alive('compensator')
-        yield procs, probe, listener, est
+    with compensator_under_test(tmp_path, params=[*NODE_PARAMS, *params]) as run:
+        yield run.procs, run.probe, run.listener, run.pubs['state/estimate']
 
 
 def _rss_kib(proc):
@@ -230,10 +205,10 @@ def test_the_compensator_saturates_inside_the_limits(tmp_path):
 
 def test_a_second_publisher_of_the_estimate_is_an_error(tmp_path):
     """Row 8: two observers with one name: both they and the compensator report an ERROR."""
-    with _nodes(tmp_path, 'observer_node', 'observer_node', 'compensator') as \
-            (procs, probe, listener):
+    with nodes_under_test(tmp_path, 'observer_node', 'observer_node', 'compensator',
+                          listen=['/diagnostics']) as run:
+        procs, probe, listener = run.procs, run.probe, run.listener
         probe.wait_publishers('state/estimate', 2)
-        listener.wait_matched('/diagnostics')
 
         def error_naming(node, topic):
             def check():
