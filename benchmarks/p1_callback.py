@@ -67,28 +67,28 @@ rclpy.try_shutdown()
 """
 
 
-def driver_command(directory, count, reps):
-    """Return the environment and command line of the driver on one version."""
+def driver_command(directory, count, reps, driver=DRIVER):
+    """Return the environment and command line of a driver (``DRIVER``) on one version."""
     env = dict(os.environ, PYTHONPATH=str(directory), ROS_DOMAIN_ID='48')
     config = Path(directory) / 'config' / 'submarine.yaml'
     bench = str(Path(__file__).resolve().parent)     # the driver's _common
-    return env, [sys.executable, '-W', 'ignore', '-c', DRIVER, str(count), str(reps),
+    return env, [sys.executable, '-W', 'ignore', '-c', driver, str(count), str(reps),
                  str(config), bench]
 
 
-def _blocks(directory, count, reps):
+def _blocks(directory, count, reps, driver=DRIVER):
     """Run the driver on one version; return its blocks' CPU per message (us)."""
-    env, argv = driver_command(directory, count, reps)
+    env, argv = driver_command(directory, count, reps, driver)
     out = subprocess.run(argv, env=env, cwd=str(directory),
                          capture_output=True, text=True, check=True).stdout
     return [float(line) for line in out.split()]
 
 
-def _interleaved(versions, count, reps):
+def _interleaved(versions, count, reps, driver=DRIVER):
     """Run every version at once, a block at a time in turn; return their blocks (us)."""
     procs = []
     for _, directory in versions:
-        env, argv = driver_command(directory, count, reps)
+        env, argv = driver_command(directory, count, reps, driver)
         procs.append(subprocess.Popen(argv + ['interleave'], env=env, cwd=str(directory),
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                       stderr=subprocess.DEVNULL, text=True))
@@ -118,8 +118,9 @@ def _expect_ready(proc):
         raise RuntimeError(f'driver said {line!r} instead of ready')
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
+def main(argv=None, driver=DRIVER, description=__doc__.splitlines()[1]):
+    """Time ``driver`` (default: the observer's callback) on each version; print the blocks."""
+    parser = argparse.ArgumentParser(description=description)
     parser.add_argument('versions', nargs='+', metavar='NAME=DIR')
     parser.add_argument('--count', type=int, default=1000, help='messages per block')
     parser.add_argument('--reps', type=int, default=15, help='blocks per run')
@@ -136,12 +137,13 @@ def main(argv=None):
     blocks = {name: [] for name, _ in versions}
     for r in range(args.rounds):
         if args.interleave:
-            for (name, _), got in zip(versions, _interleaved(versions, args.count, args.reps)):
+            for (name, _), got in zip(versions, _interleaved(versions, args.count, args.reps,
+                                                             driver)):
                 blocks[name] += got
                 _print_round(r, name, got)
             continue
         for name, directory in (versions if r % 2 == 0 else versions[::-1]):
-            got = _blocks(directory, args.count, args.reps)
+            got = _blocks(directory, args.count, args.reps, driver)
             blocks[name] += got
             _print_round(r, name, got)
     first = versions[0][0]
