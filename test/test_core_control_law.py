@@ -4,9 +4,8 @@
 import math
 
 import numpy as np
-import pytest
-
 from observer_ros.core.control_law import command_problem, control_law, ControlLaw
+import pytest
 
 
 def _case(rng, n, m):

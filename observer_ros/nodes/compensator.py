@@ -84,7 +84,8 @@ class CompensatorNode(VehicleNode):
         self._publish_reference()
         # realtime: the newest sensor stamp is the plant's time (how late an estimate is);
         # subscribed first, so that an executor takes a waiting sensor message first
-        self._sensor_time = {}
+        self._sensor_time = {}              # each sensor's newest stamp (its clock's jumps)
+        self._plant_time = None             # the newest of them
         self._sensor_subs = [self.create_subscription(
             MESSAGE_CLASSES[s.msg_type], s.topic,
             lambda msg, name=s.name: self._on_sensor(name, msg), SENSOR_QOS)
@@ -194,7 +195,8 @@ class CompensatorNode(VehicleNode):
             self._publish_safe(t, msg.header.stamp)
             return
         self._diverging = None
-        self._stop_safe_timer()
+        if self._safe_timer is not None:    # (a call per estimate otherwise)
+            self._stop_safe_timer()
         if self._publish(u, t_apply, stamp):    # on time: the estimate's stamp, to the ns
             self.safe.trusted(t_apply, x_apply, u)
             self.count('commands')
@@ -214,14 +216,16 @@ class CompensatorNode(VehicleNode):
         t = stamp_to_sec(msg.header.stamp)
         if t < self._sensor_time.get(name, t) - self._jump_tolerance:
             self._sensor_time.clear()       # a clock that started over
+            self._plant_time = None
         self._sensor_time[name] = t
+        if self._plant_time is None or t > self._plant_time:
+            self._plant_time = t
 
     def _steps_late(self, t):
         """Return the steps the estimate stamped t is late (0 without compensation)."""
         if self.delay is None:
             return 0
-        now = max(self._sensor_time.values()) if self._sensor_time else None
-        return self.delay.steps_late(now, t)
+        return self.delay.steps_late(self._plant_time, t)
 
     def _at_application(self, t, x_hat, stamp, steps):
         """Return (time, estimate, stamp) at which a command answering x_hat takes effect."""
@@ -291,8 +295,8 @@ class CompensatorNode(VehicleNode):
         until their time, and which the observer's estimate would follow ahead of the
         measurements.
         """
-        if self.delay is not None and self._sensor_time:
-            return max(self._sensor_time.values()) + self.delay.lead * self.delay.dt
+        if self.delay is not None and self._plant_time is not None:
+            return self._plant_time + self.delay.lead * self.delay.dt
         if self._last_stamp is None:
             return self._now()
         sim = self.vehicle.simulator
@@ -410,8 +414,8 @@ class CompensatorNode(VehicleNode):
     def _on_diagnostics(self):
         values = {'u': np.array2string(self.safe.last_command),
                   'max_steps_predicted': self._max_steps_late}
-        if self._sensor_time:
-            values['plant_time'] = f'{max(self._sensor_time.values()):.6f}'
+        if self._plant_time is not None:
+            values['plant_time'] = f'{self._plant_time:.6f}'
         self._max_steps_late = 0
         too_late, self._too_late = self._too_late, 0
         self._duplicates = self.duplicate_publishers((TOPICS['command'], TOPICS['estimate']))
