@@ -7,11 +7,17 @@ plant's time it reads for delay compensation is the newest sensor stamp (one num
 maximum per estimate), started over when a sensor's clock jumps back.
 """
 
+import math
 import os
 import subprocess
 import sys
 
+import numpy as np
+from observer_ros.core.errors import ObserverError
+from observer_ros.nodes.common import vector_from_joint_state
+import pytest
 from ros_helpers import CONFIG, DOMAIN_ID, REPO, WAIT
+from sensor_msgs.msg import JointState
 
 SCRIPT = """
 import random, sys, time, warnings
@@ -106,3 +112,14 @@ def test_commands_equal_numpy_law_with_binding_limits():
 
 def test_plant_time_is_the_newest_sensor_stamp_started_over_on_a_clock_jump():
     assert 'jumps' in _run(CONFIG / 'cart_pendulum.yaml', 'plant_time')
+
+
+@pytest.mark.parametrize('bad', [math.nan, math.inf, -math.inf])
+def test_estimate_with_a_non_finite_value_is_refused_naming_the_topic(bad):
+    names = ['theta', 'w', 'q']
+    good = vector_from_joint_state(JointState(name=names, position=[0.1, -2.0, 3e300]),
+                                   names, 'state/estimate')
+    assert isinstance(good, np.ndarray) and good.tolist() == [0.1, -2.0, 3e300]
+    msg = JointState(name=names, position=[0.1, bad, 0.3])
+    with pytest.raises(ObserverError, match='state/estimate: non-finite value'):
+        vector_from_joint_state(msg, names, 'state/estimate')

@@ -182,7 +182,8 @@ class CompensatorNode(VehicleNode):
         if self._recovering:
             self._recover(t, x_hat, msg.header.stamp, steps)
             return
-        t_apply, x_apply, stamp = self._at_application(t, x_hat, msg.header.stamp, steps)
+        t_apply, x_apply, stamp = (t, x_hat, msg.header.stamp) if not steps else \
+            self._at_application(t, x_hat, msg.header.stamp, steps)
         u_law, u = self._laws(x_hat, x_apply)
         # an overflowing law is the command gate's (refused, or saturated by the limits)
         problem = None if not all(map(math.isfinite, u_law)) else (
