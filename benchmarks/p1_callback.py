@@ -82,28 +82,28 @@ rclpy.try_shutdown()
 """
 
 
-def driver_command(directory, count, reps, commands='none'):
-    """Return the environment and command line of the driver on one version."""
+def driver_command(directory, count, reps, commands='none', driver=DRIVER):
+    """Return the environment and command line of a driver (``DRIVER``) on one version."""
     env = dict(os.environ, PYTHONPATH=str(directory), ROS_DOMAIN_ID='48', P1_COMMANDS=commands)
     config = Path(directory) / 'config' / 'submarine.yaml'
     bench = str(Path(__file__).resolve().parent)     # the driver's _common
-    return env, [sys.executable, '-W', 'ignore', '-c', DRIVER, str(count), str(reps),
+    return env, [sys.executable, '-W', 'ignore', '-c', driver, str(count), str(reps),
                  str(config), bench]
 
 
-def _blocks(directory, count, reps, commands):
+def _blocks(directory, count, reps, commands, driver=DRIVER):
     """Run the driver on one version; return its blocks' CPU per message (us)."""
-    env, argv = driver_command(directory, count, reps, commands)
+    env, argv = driver_command(directory, count, reps, commands, driver)
     out = subprocess.run(argv, env=env, cwd=str(directory),
                          capture_output=True, text=True, check=True).stdout
     return [float(line) for line in out.split()]
 
 
-def _interleaved(versions, count, reps, commands):
+def _interleaved(versions, count, reps, commands, driver=DRIVER):
     """Run every version at once, a block at a time in turn; return their blocks (us)."""
     procs = []
     for _, directory in versions:
-        env, argv = driver_command(directory, count, reps, commands)
+        env, argv = driver_command(directory, count, reps, commands, driver)
         procs.append(subprocess.Popen(argv + ['interleave'], env=env, cwd=str(directory),
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                       stderr=subprocess.DEVNULL, text=True))
@@ -164,8 +164,11 @@ def parse_versions(parser, argv):
     return args, versions
 
 
-def main(argv=None):
+def main(argv=None, driver=DRIVER, description=None):
+    """Time ``driver`` (default: the observer's callback) on each version; print the blocks."""
     parser = version_parser(__doc__)
+    if description:
+        parser.description = description
     parser.add_argument('--count', type=int, default=1000, help='messages per block')
     parser.add_argument('--reps', type=int, default=15, help='blocks per run')
     parser.add_argument('--rounds', type=int, default=4, help='runs of each version')
@@ -183,13 +186,13 @@ def main(argv=None):
     blocks = {name: [] for name, _ in versions}
     for r in range(args.rounds):
         if args.interleave:
-            got_all = _interleaved(versions, args.count, args.reps, args.commands)
+            got_all = _interleaved(versions, args.count, args.reps, args.commands, driver)
             for (name, _), got in zip(versions, got_all):
                 blocks[name] += got
                 _print_round(r, name, got)
             continue
         for name, directory in (versions if r % 2 == 0 else versions[::-1]):
-            got = _blocks(directory, args.count, args.reps, args.commands)
+            got = _blocks(directory, args.count, args.reps, args.commands, driver)
             blocks[name] += got
             _print_round(r, name, got)
     first = versions[0][0]

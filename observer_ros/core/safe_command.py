@@ -65,7 +65,7 @@ class SafeCommand:
     @property
     def last_command(self):
         """Return the last command sent (a copy; zeros before the first)."""
-        return self._last_u.copy()
+        return np.array(self._last_u, dtype=float)
 
     def reset(self):
         """Forget the estimate and the commands (a clock that starts over)."""
@@ -73,15 +73,23 @@ class SafeCommand:
         self._trusted_t = self._t = self._x = self._u = None
 
     def sent(self, u):
-        """Remember the last command sent: the one ``hold`` repeats."""
-        self._last_u = np.array(u, dtype=float)
+        """
+        Remember the last command sent: the one ``hold`` repeats.
+
+        ``u`` (m floats: a list or an ndarray) is kept as it is, not copied (once per
+        command): the caller does not change it afterwards.
+        """
+        self._last_u = u
 
     def trusted(self, t, x_hat, u):
-        """Note a trusted estimate at t and the command u sent in answer (held from t)."""
+        """
+        Note a trusted estimate at t and the command u sent in answer (held from t).
+
+        Kept as they are, not copied, like :meth:`sent`'s ``u``.
+        """
         self._trusted_t = self._t = float(t)
-        self._x = np.array(x_hat, dtype=float)
-        self._u = np.array(u, dtype=float)
-        self.sent(u)
+        self._x = x_hat
+        self._u = self._last_u = u
 
     def command(self, t):
         """
@@ -104,8 +112,10 @@ class SafeCommand:
         if self._x is not None and t - self._trusted_t <= self.predict_timeout:
             # the plant held self._u since self._t: propagate on whole steps
             steps = int(np.floor((t - self._t) / self.dt + 1e-9))
+            self._x = np.asarray(self._x, dtype=float)
+            held = np.asarray(self._u, dtype=float)
             for _ in range(max(steps, 0)):
-                self._x = self.Ad @ self._x + self.Bd @ self._u
+                self._x = self.Ad @ self._x + self.Bd @ held
             self._t += max(steps, 0) * self.dt
             u = np.asarray(self.law(self._x), dtype=float)
             if np.isfinite(u).all():
@@ -113,6 +123,6 @@ class SafeCommand:
                 self.sent(u)
                 return u.copy(), 'predict'
             self._x = None      # a prediction gone non-finite is not used again
-        u = self._last_u if self.fallback == 'hold' else np.zeros(self._m)
+        u = self.last_command if self.fallback == 'hold' else np.zeros(self._m)
         self.sent(u)
         return u.copy(), self.fallback

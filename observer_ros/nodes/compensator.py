@@ -22,6 +22,8 @@ unmodelled delay. One later than ``observer.history_length`` gets the safe comma
 
 """
 
+import math
+
 from diagnostic_msgs.msg import DiagnosticStatus
 import numpy as np
 from rcl_interfaces.msg import SetParametersResult
@@ -33,6 +35,7 @@ from .common import (checked_stamp, joint_state, LATCHED_QOS, MESSAGE_CLASSES, r
                      SAFE_COMMAND_FRAME, SENSOR_QOS, stamp_to_sec, STATE_PUB_QOS, STATE_QOS,
                      TOPICS, vector_from_joint_state, VehicleNode)
 from ..core.compensator import design_vehicle
+from ..core.control_law import command_problem, control_law, ControlLaw
 from ..core.delay_compensation import DelayCompensation
 from ..core.errors import ObserverError
 from ..core.health import SettleCheck, settling_time
@@ -42,54 +45,6 @@ __all__ = ['CompensatorNode', 'command_problem', 'control_law', 'main']
 
 # After an outage, wait at most this many observer settling times for it to settle again.
 RESYNC_SETTLINGS = 10.0
-
-
-def control_law(K, x_hat, x_d, Kd, u_min=None, u_max=None):
-    """
-    Return u = K (x_d - x_hat) - Kd x_d, clipped to [u_min, u_max].
-
-    Parameters
-    ----------
-    K, Kd : (m, n) ndarray
-        Feedback gain and desired-state gain.
-    x_hat, x_d : (n,) ndarray
-        State estimate and desired state.
-    u_min, u_max : (m,) ndarray, optional
-        Input limits (None: no limit on that side).
-
-    Returns
-    -------
-    u : (m,) ndarray
-
-    """
-    u = K @ (x_d - x_hat) - Kd @ x_d
-    if u_min is not None or u_max is not None:
-        u = np.clip(u, u_min, u_max)
-    return u
-
-
-def command_problem(u, m, u_min=None, u_max=None):
-    """
-    Return why a command must not be sent, or None when it may.
-
-    A command is sent only when it has ``m`` values, all finite and inside
-    ``[u_min, u_max]`` (None: no limit on that side).
-
-    Returns
-    -------
-    str or None
-
-    """
-    u = np.asarray(u, dtype=float)
-    if u.shape != (m,):
-        return f'{u.size} values for {m} inputs'
-    if not np.isfinite(u).all():
-        return f'not finite: {u.tolist()}'
-    low = -np.inf if u_min is None else np.asarray(u_min, dtype=float)
-    high = np.inf if u_max is None else np.asarray(u_max, dtype=float)
-    if np.any(u < low) or np.any(u > high):
-        return f'{u.tolist()} outside the limits [{u_min}, {u_max}]'
-    return None
 
 
 class CompensatorNode(VehicleNode):
@@ -119,6 +74,7 @@ class CompensatorNode(VehicleNode):
         self._duplicates = []                # other publishers of our topics
         self._max_steps_late = 0             # since the last report (delay compensation)
         self._too_late = 0                   # estimates too late to predict, since then
+        self._jump_tolerance = self.param('clock_jump_tolerance')   # read once per change
         self._cmd_pub = self.create_publisher(JointState, TOPICS['command'], STATE_PUB_QOS)
         self._array_pub = None
         if self.param('publish_array'):
@@ -128,7 +84,8 @@ class CompensatorNode(VehicleNode):
         self._publish_reference()
         # realtime: the newest sensor stamp is the plant's time (how late an estimate is);
         # subscribed first, so that an executor takes a waiting sensor message first
-        self._sensor_time = {}
+        self._sensor_time = {}              # each sensor's newest stamp (its clock's jumps)
+        self._plant_time = None             # the newest of them
         self._sensor_subs = [self.create_subscription(
             MESSAGE_CLASSES[s.msg_type], s.topic,
             lambda msg, name=s.name: self._on_sensor(name, msg), SENSOR_QOS)
@@ -150,6 +107,7 @@ class CompensatorNode(VehicleNode):
         self.x_d = np.zeros(n) if c.reference is None else np.asarray(c.reference, float)
         self.Kd = np.zeros((m, n)) if c.Kd is None else np.asarray(c.Kd, float).reshape(m, n)
         self.u_min, self.u_max = c.u_min, c.u_max
+        self.law = ControlLaw(self.K, self.x_d, self.Kd, self.u_min, self.u_max)   # floats
         self.design = design
         last = getattr(self, 'safe', None)
         self.safe = SafeCommand(vehicle.plant, self._law, vehicle.sample_time, c.safe_command,
@@ -193,7 +151,7 @@ class CompensatorNode(VehicleNode):
             self._publish_safe(t, msg.header.stamp)
             return
         restarted = self._last_stamp is not None and \
-            self._last_stamp - t > self.param('clock_jump_tolerance')
+            self._last_stamp - t > self._jump_tolerance
         if restarted:
             self._clock_restarted(t)
         steps = self._steps_late(t)
@@ -224,12 +182,11 @@ class CompensatorNode(VehicleNode):
         if self._recovering:
             self._recover(t, x_hat, msg.header.stamp, steps)
             return
-        t_apply, x_apply, stamp = self._at_application(t, x_hat, msg.header.stamp, steps)
-        with np.errstate(all='ignore'):     # an overflow gives inf/NaN: caught below
-            u_law = control_law(self.K, x_hat, self.x_d, self.Kd)    # before the limits
-            u = control_law(self.K, x_apply, self.x_d, self.Kd, self.u_min, self.u_max)
+        t_apply, x_apply, stamp = (t, x_hat, msg.header.stamp) if not steps else \
+            self._at_application(t, x_hat, msg.header.stamp, steps)
+        u_law, u = self._laws(x_hat, x_apply)
         # an overflowing law is the command gate's (refused, or saturated by the limits)
-        problem = None if not np.isfinite(u_law).all() else (
+        problem = None if not all(map(math.isfinite, u_law)) else (
             self.x_envelope.check(t, x_hat) or self.u_envelope.check(t, u_law))
         if problem is not None:
             if self._diverging is None:
@@ -239,23 +196,37 @@ class CompensatorNode(VehicleNode):
             self._publish_safe(t, msg.header.stamp)
             return
         self._diverging = None
-        self._stop_safe_timer()
+        if self._safe_timer is not None:    # (a call per estimate otherwise)
+            self._stop_safe_timer()
         if self._publish(u, t_apply, stamp):    # on time: the estimate's stamp, to the ns
             self.safe.trusted(t_apply, x_apply, u)
             self.count('commands')
 
+    def _laws(self, x_hat, x_apply):
+        """
+        Return the law's u on x_hat before the limits, and the command for x_apply.
+
+        Floats (core/control_law.py); one evaluation when x_apply is x_hat (on time).
+        """
+        u_law = self.law.unclipped(x_hat.tolist())
+        if x_apply is not x_hat:
+            return u_law, self.law(x_apply.tolist())
+        return u_law, self.law.clip(u_law)
+
     def _on_sensor(self, name, msg):
         t = stamp_to_sec(msg.header.stamp)
-        if t < self._sensor_time.get(name, t) - self.param('clock_jump_tolerance'):
+        if t < self._sensor_time.get(name, t) - self._jump_tolerance:
             self._sensor_time.clear()       # a clock that started over
+            self._plant_time = None
         self._sensor_time[name] = t
+        if self._plant_time is None or t > self._plant_time:
+            self._plant_time = t
 
     def _steps_late(self, t):
         """Return the steps the estimate stamped t is late (0 without compensation)."""
         if self.delay is None:
             return 0
-        now = max(self._sensor_time.values()) if self._sensor_time else None
-        return self.delay.steps_late(now, t)
+        return self.delay.steps_late(self._plant_time, t)
 
     def _at_application(self, t, x_hat, stamp, steps):
         """Return (time, estimate, stamp) at which a command answering x_hat takes effect."""
@@ -278,9 +249,7 @@ class CompensatorNode(VehicleNode):
         envelope (:meth:`Envelope.inside`) for an observer settling time, it is armed again.
         """
         t_apply, x_apply, stamp = self._at_application(t, x_hat, stamp, steps)
-        with np.errstate(all='ignore'):
-            u_law = control_law(self.K, x_hat, self.x_d, self.Kd)
-            u = control_law(self.K, x_apply, self.x_d, self.Kd, self.u_min, self.u_max)
+        u_law, u = self._laws(x_hat, x_apply)
         # back only when strictly inside both bounds for an observer settling time: the
         # envelope's check lets values beyond the bound pass while they do not grow, and
         # a loop reopened by a divergence safe command in mid-recovery diverges for good
@@ -327,8 +296,8 @@ class CompensatorNode(VehicleNode):
         until their time, and which the observer's estimate would follow ahead of the
         measurements.
         """
-        if self.delay is not None and self._sensor_time:
-            return max(self._sensor_time.values()) + self.delay.lead * self.delay.dt
+        if self.delay is not None and self._plant_time is not None:
+            return self._plant_time + self.delay.lead * self.delay.dt
         if self._last_stamp is None:
             return self._now()
         sim = self.vehicle.simulator
@@ -340,7 +309,7 @@ class CompensatorNode(VehicleNode):
 
     def _publish(self, u, t, stamp=None):
         """Send a command that passes the gate; else the safe command. Return True if sent."""
-        problem = command_problem(u, self.vehicle.plant.m, self.u_min, self.u_max)
+        problem = self.law.problem(u)
         if problem is not None:
             self.count('refused_commands')
             self._refused = f'command {problem}: safe command sent instead'
@@ -416,6 +385,8 @@ class CompensatorNode(VehicleNode):
         for p in params:
             if p.name == 'command_lead_steps' and self.delay is not None:
                 self.delay.lead = int(p.value)
+            if p.name == 'clock_jump_tolerance':     # checked above: finite and > 0
+                self._jump_tolerance = float(p.value)
         changed = [p for p in params if p.name.startswith('controller.')]
         if not changed:
             return SetParametersResult(successful=True)
@@ -444,8 +415,8 @@ class CompensatorNode(VehicleNode):
     def _on_diagnostics(self):
         values = {'u': np.array2string(self.safe.last_command),
                   'max_steps_predicted': self._max_steps_late}
-        if self._sensor_time:
-            values['plant_time'] = f'{max(self._sensor_time.values()):.6f}'
+        if self._plant_time is not None:
+            values['plant_time'] = f'{self._plant_time:.6f}'
         self._max_steps_late = 0
         too_late, self._too_late = self._too_late, 0
         self._duplicates = self.duplicate_publishers((TOPICS['command'], TOPICS['estimate']))
