@@ -128,7 +128,8 @@ class CompensatorNode(VehicleNode):
             self.param('command_lead_steps')) if compensate else None
 
     def _law(self, x_hat):
-        return control_law(self.K, x_hat, self.x_d, self.Kd, self.u_min, self.u_max)
+        """Return the law's command for x_hat (an ndarray): the safe command's prediction."""
+        return self.law(x_hat.tolist())
 
     def _publish_reference(self):
         now = self.get_clock().now().nanoseconds * 1e-9
