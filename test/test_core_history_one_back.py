@@ -1,5 +1,10 @@
 # test_core_history_one_back: a message stamped just before the newest entry (closed loop).
-"""Tests of the history's one-step-late messages: one entry re-applied, the stamp order."""
+"""
+Tests of the history's one-step-late messages: one entry re-applied, the stamp order.
+
+Late commands here go through the rewind (``History.superpose = False``, as for the
+observers given a gain); test_core_superposition.py tests the default for the others.
+"""
 
 import numpy as np
 from numpy.testing import assert_array_equal
@@ -34,10 +39,17 @@ def checkpoints_listed(history):
     return list(history._checkpoints) == [e for e in entries if e[5] is not None]
 
 
+def rewinding(estimator):
+    """Return a History that re-applies the messages after a late command (no superposition)."""
+    history = History(estimator, length=0.25)
+    history.superpose = False
+    return history
+
+
 @pytest.mark.parametrize('kind', KINDS)
 def test_a_command_one_step_late_reapplies_one_message_and_gives_the_stamp_order(kind):
     in_stamp_order, arrival = closed_loop(300)
-    history = History(make(kind), length=0.25)
+    history = rewinding(make(kind))
     reference = make(kind)
     late_commands = 0
     for m in arrival:
@@ -80,7 +92,7 @@ def test_a_measurement_one_step_late_reapplies_one_message(kind):
 
 def test_a_bad_command_one_step_late_leaves_the_history_as_it_was():
     _, arrival = closed_loop(50)
-    history = History(make('kalman'), length=0.25)
+    history = rewinding(make('kalman'))
     feed(history, arrival[:-2])              # ends with a gyro, the command before it due
     head_t = history.t
     x, P = history.x_hat, history.estimator.P
@@ -98,7 +110,7 @@ def test_a_bad_command_one_step_late_leaves_the_history_as_it_was():
 @pytest.mark.parametrize('lag', [2, 5])
 def test_commands_a_few_steps_late_reapply_only_the_entries_after_them(kind, lag):
     in_stamp_order, arrival = closed_loop(200, seed=lag, lag=lag)
-    history = History(make(kind), length=0.25)
+    history = rewinding(make(kind))
     deltas = []
     for m in arrival:
         before = history.reapplied

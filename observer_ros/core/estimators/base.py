@@ -110,6 +110,10 @@ class Estimator:
     #: corrections skipped because their gain failed its verification (observers given
     #: poles count them; the others never skip one)
     unverified_corrections = 0
+    #: Whether a late input change can be added to saved states (see
+    #: :mod:`.superposition`): the kinds linear in (x, u, y) with gains that do not
+    #: depend on u, which give ``_shift_correction``.
+    _superposable = False
 
     def __init__(self, plant, x0=None, t0=None, measured_rows=None,
                  dt_digits=DT_DIGITS, cache_size=CACHE_SIZE, gain_digits=GAIN_DIGITS):
@@ -137,6 +141,7 @@ class Estimator:
         self._t_anchor = None
         self._residual = None
         self._residual_rows = None
+        self._D_zero = not np.any(plant.D)
 
     # ------------------------------------------------------------ properties
 
@@ -524,6 +529,22 @@ class Estimator:
                       set(value) if type(value) is set else value
                       for value in map(self.__getattribute__, self._STATE)])
 
+    @property
+    def _slots(self):
+        """Return the place of each attribute of :attr:`_STATE` in a saved state."""
+        cls = type(self)
+        slots = cls.__dict__.get('_slot_index')
+        if slots is None:
+            slots = {name: i for i, name in enumerate(cls._STATE)}
+            cls._slot_index = slots
+        return slots
+
+    def _restore_shifted(self, state):
+        """Restore the parts of a state a late input moves (the rest is as saved)."""
+        names = self._STATE
+        for i in (self._slots['_x'], self._slots['_u']) + self._shifted_slots:
+            setattr(self, names[i], _copy(state[i]))     # None before a first residual
+
     def restore_state(self, state):
         """
         Go back to a state returned by :meth:`save_state` of this estimator.
@@ -583,6 +604,21 @@ class OpenLoopEstimator(Estimator):
         super().__init__(plant, x0, t0, measured_rows, dt_digits, cache_size, gain_digits)
         self.reset(t0=self._t0)
 
+    _superposable = True
+
+    @property
+    def _shifted_slots(self):
+        return (self._slots['_residual'],)
+
     def _correct(self, y, info):
         self._residual = y - info.D @ self._u - info.C @ self._x
         self._t_anchor = self._t
+
+    def _shift_correction(self, state, new, dx, dyb, info, t, carry):
+        """Move a saved state by a late input change: only the residual moves."""
+        slots = self._slots
+        ix, ires = slots['_x'], slots['_residual']
+        dres = -(info.C @ dx) if dyb is None else dyb - info.C @ dx
+        new[ix] = x = state[ix] + dx
+        new[ires] = residual = state[ires] + dres
+        return dx, x.copy(), residual, None

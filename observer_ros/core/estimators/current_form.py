@@ -31,7 +31,8 @@ class _CurrentForm(Estimator):
 
     """
 
-    _STATE = Estimator._STATE + ('_x_prior', '_acc', '_acc_rows', '_acc_key', '_t_corr')
+    _STATE = Estimator._STATE + ('_x_prior', '_acc', '_acc_rows', '_acc_key', '_t_corr',
+                                 '_gain_used')
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
@@ -42,6 +43,7 @@ class _CurrentForm(Estimator):
         self._acc_rows = set()
         self._acc_key = None
         self._t_corr = None
+        self._gain_used = None          # (M, rows) of the last correction (superposition)
         self._init_gains = {}
         self.unverified_corrections = 0
         self.gain_failures = {}
@@ -69,6 +71,7 @@ class _CurrentForm(Estimator):
         self._residual = ybar - info.C @ self._x_prior
         self._t_anchor = t
         M = self._gain(self._acc_key, union)
+        self._gain_used = (M, union)
         if M is None:
             if self._acc_key is not None:
                 self.unverified_corrections += 1
@@ -78,6 +81,51 @@ class _CurrentForm(Estimator):
         np.dot(M, innov, out=self._buf)
         self._buf += self._x_prior
         self._x, self._buf = self._buf, self._x
+
+    @property
+    def _shifted_slots(self):
+        slots = self._slots
+        return slots['_residual'], slots['_x_prior'], slots['_acc']
+
+    def _shift_correction(self, state, new, dx, dyb, info, t, carry):
+        """
+        Move a saved state by a late input change (see :mod:`.superposition`).
+
+        The prior moves by dx (at the first correction of a stamp; the later ones at that
+        stamp share it, in ``carry``), ybar by dyb (-D du; None when zero or after a later
+        command), and the estimate by ``dx_prior + M (dybar - C dx_prior)`` with the M the
+        correction used. ``carry`` keeps ybar's change per row as last set, as ``_acc``
+        keeps ybar.
+        """
+        slots = self._slots
+        if carry[0] != t:
+            carry[0], carry[1] = t, dx
+        dx_prior = carry[1]
+        dacc = carry[2]                 # ybar's change per row, as last set (any stamp)
+        if dyb is None:
+            dres = -(info.C @ dx_prior)
+            if dacc is not None:
+                dacc[info.idx] = 0.0    # after a later command: no change from here
+        else:
+            if dacc is None:
+                carry[2] = dacc = np.zeros(self._plant.p)
+            dacc[info.idx] = dyb
+            dres = dyb - info.C @ dx_prior
+        if dacc is not None:
+            i = slots['_acc']
+            new[i] = state[i] + dacc
+        M, union = state[slots['_gain_used']]
+        if M is None:
+            dx = dx_prior
+        elif dacc is None:
+            dx = dx_prior - M @ (union.C @ dx_prior)
+        else:
+            dx = dx_prior + M @ (dacc[union.idx] - union.C @ dx_prior)
+        ix, ires, ip = slots['_x'], slots['_residual'], slots['_x_prior']
+        new[ix] = x = state[ix] + dx
+        new[ires] = residual = state[ires] + dres
+        new[ip] = state[ip] + dx_prior
+        return dx, x.copy(), residual, None
 
     def _gain(self, key, info):
         """Return M (n x len(info.rows)) for the interval key, or None (no correction)."""

@@ -115,6 +115,8 @@ class FullOrderEstimator(_CurrentForm):
             self._mode = 'predictor' if plant.is_discrete else 'held'
         self._held = np.zeros(p)
         self._held_rows = ()
+        # given a gain, the measured outputs are held between samples: rewound, not shifted
+        self._superposable = self._mode == 'poles'
         self.reset(t0=self._t0)
 
     @property

@@ -21,7 +21,7 @@ estimator are those of the stamp order, on the states it had then
 (:meth:`Estimator.save_state`), hence the same to the last bit. Only measurements of
 several sensors at one stamp may then come in another order: the full- and reduced-order
 observers fuse them into one correction (the same result), a Kalman filter updates with
-them in turn (the same to round-off).
+them in turn (the same to round-off). A late command is the other exception, below.
 
 A command stamped ahead of the estimate (the compensator's delay compensation stamps its
 commands a few steps ahead) is held *pending*: it is applied when the estimate passes its
@@ -36,6 +36,14 @@ window, not searched for per message. A message stamped a few entries before the
 (the closed loop's command, a step or a few late) re-applies only the entries after it
 (:data:`DENSE_DEPTH`; benchmarks/README.md, session 7).
 
+Such a late command is not even applied again with the entries after it where the
+estimator is linear with gains that do not depend on the input (observers given poles,
+the Kalman filter, the model alone): its input change is added to the states kept after
+it (:mod:`.superposition`, :meth:`History._superpose`), the stamp order's result to
+round-off rather than to the last bit. The observers given a gain (which hold the
+measured outputs between samples), and a command older than the states kept densely, are
+rewound.
+
 The node and the bag replay both use this class: what one estimates from a recording,
 the other estimates live.
 
@@ -45,6 +53,7 @@ from collections import deque
 import math
 
 from .base import TimeOrderError
+from .superposition import shifted_states
 from ..spec import HISTORY_LENGTH
 
 __all__ = ['History', 'HISTORY_LENGTH', 'HISTORY_MAX_MESSAGES', 'CHECKPOINT_EVERY',
@@ -124,6 +133,10 @@ class History:
         self.revised = []
         self.rewinds = 0
         self.reapplied = 0
+        self.superposed = 0
+        #: Insert a late command by superposition where the estimator allows it (see
+        #: :meth:`_superpose`); False: re-apply the messages after it (to the last bit).
+        self.superpose = True
         self._clear()
 
     def _clear(self):
@@ -454,8 +467,13 @@ class History:
     def _rewind(self, pos, entry):
         est = self._est
         entries = self._entries
-        if len(entries) - pos <= DENSE_DEPTH:        # shallow: the closed loop's lag
+        shallow = len(entries) - pos <= DENSE_DEPTH
+        if shallow:                                   # the closed loop's lag
             self._dense = DENSE_FOR
+        if entry[_KIND] == _COMMAND and self.superpose and est._superposable and \
+                self._superpose(pos, entry):
+            return
+        if shallow:
             if pos == len(entries) - 1 and pos and entries[pos - 1][_STATE] is not None:
                 self._rewind_one(entry, entries[pos - 1][_STATE])
                 return
@@ -502,6 +520,47 @@ class History:
             self._find_checkpoints()
         else:
             checkpoints.extend(e for e in entries[start:] if e[_STATE] is not None)
+
+    def _superpose(self, pos, entry):
+        """
+        Insert a late command by adding its input change to the states after it.
+
+        Every entry after the command must have its state (the dense checkpoints of the
+        closed loop give them); the states, estimates and residuals after it become
+        those of the stamp order, to round-off (:mod:`.superposition`), and no message
+        is applied again. Returns False, changing nothing, when it cannot be done (the
+        caller rewinds); raises, changing nothing, for a bad input.
+        """
+        est = self._est
+        entries = self._entries
+        later = entries[pos:]
+        for e in later:
+            if e[_STATE] is None:
+                return False
+        iu = est._slots['_u']
+        if later[0][_KIND] == _MEASUREMENT:         # the input held at the command's stamp
+            u_old = later[0][_STATE][iu]
+        elif pos and entries[pos - 1][_STATE] is not None:
+            u_old = entries[pos - 1][_STATE][iu]
+        else:
+            return False
+        u_new = est.check_input(entry[_VALUE])
+        shifted = shifted_states(est, entry[_T], u_new, u_new - u_old, [
+            (e[_T], e[_ROWS] if e[_KIND] == _MEASUREMENT else None, e[_STATE])
+            for e in later])
+        revised = []
+        for e, (state, x, residual, S) in zip(later, shifted):
+            e[_STATE] = state
+            if x is not None:
+                e[_X], e[_RESIDUAL], e[_S] = x, residual, S
+                revised.append((e[_TAG], x, residual, S))
+        est._restore_shifted(later[-1][_STATE])   # the estimator was at the newest entry
+        entries.insert(pos, entry)                # no state: a rewind applies it again
+        if revised:
+            self.revised = revised
+        self.rewinds += 1
+        self.superposed += 1
+        return True
 
     def _rewind_one(self, entry, state):
         """

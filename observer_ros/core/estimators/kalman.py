@@ -62,7 +62,8 @@ class KalmanEstimator(Estimator):
     """
 
     kind = 'kalman'
-    _STATE = Estimator._STATE + ('_P', '_S')
+    _STATE = Estimator._STATE + ('_P', '_S', '_gain_used')
+    _superposable = True            # P and K do not depend on u
 
     def __init__(self, plant, Qd, Rd, Bd=None, P0=None, x0=None, t0=None,
                  measured_rows=None, dt_digits=DT_DIGITS, cache_size=CACHE_SIZE,
@@ -84,6 +85,7 @@ class KalmanEstimator(Estimator):
         self._I = np.eye(n)
         self._rows_R = {}
         self._S = None
+        self._gain_used = None          # K of the last correction (superposition)
         self.reset(t0=self._t0)
 
     @property
@@ -144,6 +146,7 @@ class KalmanEstimator(Estimator):
         self._residual = innov
         R = self._R_rows(info)
         self._S = None
+        self._gain_used = None
         if self._P is None:
             h = self._t - self._t_anchor
             if h <= 0.0:
@@ -155,11 +158,28 @@ class KalmanEstimator(Estimator):
         S = C @ PCt + R
         self._S = S
         K = np.linalg.solve(S, PCt.T).T
+        self._gain_used = K
         self._x = self._x + K @ innov
         IKC = self._I - K @ C
         P = IKC @ P @ IKC.T + K @ R @ K.T
         self._P = 0.5 * (P + P.T)
         self._t_anchor = self._t
+
+    @property
+    def _shifted_slots(self):
+        return (self._slots['_residual'],)
+
+    def _shift_correction(self, state, new, dx, dyb, info, t, carry):
+        """Move a saved state by a late input change: ``dx + K (dybar - C dx)``, K as used."""
+        slots = self._slots
+        dres = -(info.C @ dx) if dyb is None else dyb - info.C @ dx
+        K = state[slots['_gain_used']]
+        if K is not None:
+            dx = dx + K @ dres
+        ix, ires = slots['_x'], slots['_residual']
+        new[ix] = x = state[ix] + dx
+        new[ires] = residual = state[ires] + dres
+        return dx, x.copy(), residual, state[slots['_S']]
 
 
 def _as_covariance(X, name, size):

@@ -112,6 +112,8 @@ class ReducedOrderEstimator(_CurrentForm):
                 self._setup_held()
         self._ybar = np.zeros(pm)
         self._z = np.zeros(n - pm)
+        # the z-form of a continuous plant's given gain holds ybar: rewound, not shifted
+        self._superposable = self._mode != 'held'
         self.reset(t0=self._t0)
 
     @property
