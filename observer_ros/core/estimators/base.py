@@ -114,6 +114,8 @@ class Estimator:
     #: :mod:`.superposition`): the kinds linear in (x, u, y) with gains that do not
     #: depend on u, which give ``_shift_correction``.
     _superposable = False
+    #: The parts of the state besides x and u that a late input moves (superposition).
+    _MOVED = ('_residual',)
 
     def __init__(self, plant, x0=None, t0=None, measured_rows=None,
                  dt_digits=DT_DIGITS, cache_size=CACHE_SIZE, gain_digits=GAIN_DIGITS):
@@ -142,6 +144,9 @@ class Estimator:
         self._residual = None
         self._residual_rows = None
         self._D_zero = not np.any(plant.D)
+        #: the place of each attribute of _STATE in a saved state, and those of _MOVED
+        self._slots = {name: i for i, name in enumerate(self._STATE)}
+        self._moved = tuple((self._slots[name], name) for name in self._MOVED)
 
     # ------------------------------------------------------------ properties
 
@@ -529,21 +534,13 @@ class Estimator:
                       set(value) if type(value) is set else value
                       for value in map(self.__getattribute__, self._STATE)])
 
-    @property
-    def _slots(self):
-        """Return the place of each attribute of :attr:`_STATE` in a saved state."""
-        cls = type(self)
-        slots = cls.__dict__.get('_slot_index')
-        if slots is None:
-            slots = {name: i for i, name in enumerate(cls._STATE)}
-            cls._slot_index = slots
-        return slots
-
     def _restore_shifted(self, state):
         """Restore the parts of a state a late input moves (the rest is as saved)."""
-        names = self._STATE
-        for i in (self._slots['_x'], self._slots['_u']) + self._shifted_slots:
-            setattr(self, names[i], _copy(state[i]))     # None before a first residual
+        slots = self._slots
+        self._x = state[slots['_x']].copy()
+        self._u = state[slots['_u']].copy()
+        for i, name in self._moved:
+            setattr(self, name, _copy(state[i]))        # None before a first residual
 
     def restore_state(self, state):
         """
@@ -605,10 +602,6 @@ class OpenLoopEstimator(Estimator):
         self.reset(t0=self._t0)
 
     _superposable = True
-
-    @property
-    def _shifted_slots(self):
-        return (self._slots['_residual'],)
 
     def _correct(self, y, info):
         self._residual = y - info.D @ self._u - info.C @ self._x

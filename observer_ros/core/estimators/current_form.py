@@ -33,6 +33,7 @@ class _CurrentForm(Estimator):
 
     _STATE = Estimator._STATE + ('_x_prior', '_acc', '_acc_rows', '_acc_key', '_t_corr',
                                  '_gain_used')
+    _MOVED = ('_residual', '_x_prior', '_acc')
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
@@ -82,11 +83,6 @@ class _CurrentForm(Estimator):
         self._buf += self._x_prior
         self._x, self._buf = self._buf, self._x
 
-    @property
-    def _shifted_slots(self):
-        slots = self._slots
-        return slots['_residual'], slots['_x_prior'], slots['_acc']
-
     def _shift_correction(self, state, new, dx, dyb, info, t, carry):
         """
         Move a saved state by a late input change (see :mod:`.superposition`).
@@ -102,25 +98,28 @@ class _CurrentForm(Estimator):
             carry[0], carry[1] = t, dx
         dx_prior = carry[1]
         dacc = carry[2]                 # ybar's change per row, as last set (any stamp)
+        C_dx = info.C @ dx_prior
         if dyb is None:
-            dres = -(info.C @ dx_prior)
+            dres = -C_dx
             if dacc is not None:
                 dacc[info.idx] = 0.0    # after a later command: no change from here
         else:
             if dacc is None:
                 carry[2] = dacc = np.zeros(self._plant.p)
             dacc[info.idx] = dyb
-            dres = dyb - info.C @ dx_prior
+            dres = dyb - C_dx
         if dacc is not None:
             i = slots['_acc']
             new[i] = state[i] + dacc
         M, union = state[slots['_gain_used']]
+        if union is not info:           # fused with the rows before it at this stamp
+            C_dx = union.C @ dx_prior
         if M is None:
             dx = dx_prior
         elif dacc is None:
-            dx = dx_prior - M @ (union.C @ dx_prior)
+            dx = dx_prior - M @ C_dx
         else:
-            dx = dx_prior + M @ (dacc[union.idx] - union.C @ dx_prior)
+            dx = dx_prior + M @ (dacc[union.idx] - C_dx)
         ix, ires, ip = slots['_x'], slots['_residual'], slots['_x_prior']
         new[ix] = x = state[ix] + dx
         new[ires] = residual = state[ires] + dres

@@ -165,10 +165,6 @@ class KalmanEstimator(Estimator):
         self._P = 0.5 * (P + P.T)
         self._t_anchor = self._t
 
-    @property
-    def _shifted_slots(self):
-        return (self._slots['_residual'],)
-
     def _shift_correction(self, state, new, dx, dyb, info, t, carry):
         """Move a saved state by a late input change: ``dx + K (dybar - C dx)``, K as used."""
         slots = self._slots

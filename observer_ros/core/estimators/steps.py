@@ -47,6 +47,11 @@ GAIN_DIGITS = 2
 #: dropped).
 CACHE_SIZE = 64
 
+#: Steps remembered by the exact float dt they were asked for (:meth:`StepCache.step`):
+#: stamps on a regular grid give a handful of distinct dt, so the key's decimal rounding
+#: is skipped for most messages. Emptied when full or when a step leaves the cache.
+BY_DT_SIZE = 64
+
 #: Number of grid steps whose gains are kept: all those a jittering rate meets
 #: must fit (about 90 per decade of step lengths), or gains would be designed again.
 GAIN_CACHE_SIZE = 1024
@@ -212,6 +217,7 @@ class StepCache:
         self._fmt = f'.{int(digits)}g'
         self._size = int(size)
         self._steps = OrderedDict()
+        self._by_dt = {}                # dt as given -> its step (the key's rounding skipped)
         self._Ts = plant.dt
         n, m = plant.n, plant.m
         # [[A, B], [0, 0]]: expm(aug * h) holds Ad and Bd (zoh_matrices, without its checks)
@@ -286,6 +292,7 @@ class StepCache:
         steps[key] = step
         if len(steps) > self._size:
             steps.popitem(last=False)
+            self._by_dt.clear()         # none of them holds a step no longer kept
         return step
 
     def _exponential(self, key):
@@ -331,4 +338,11 @@ class StepCache:
             See :meth:`get`.
 
         """
-        return self.get(self.key(dt))
+        step = self._by_dt.get(dt)
+        if step is None:
+            step = self.get(self.key(dt))
+            by_dt = self._by_dt
+            if len(by_dt) >= BY_DT_SIZE:
+                by_dt.clear()
+            by_dt[dt] = step
+        return step

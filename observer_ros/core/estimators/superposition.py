@@ -18,7 +18,7 @@ t_k is stamped t_k and arrives after the measurements of the next few steps
 (benchmarks/README.md, session 8).
 
 An estimator kind that can be shifted sets ``_superposable``, gives
-``_shift_correction`` and names in ``_shifted_slots`` the parts of its state besides x and
+``_shift_correction`` and names in ``_MOVED`` the parts of its state besides x and
 u that the input moves (a later command's state keeps them from the measurement before
 it). The others (the observers given a gain, which hold the measured outputs between
 samples) are rewound as before.
@@ -57,8 +57,11 @@ def shifted_states(est, t, u_new, du, later):
     """
     slots = est._slots
     ix, iu = slots['_x'], slots['_u']
+    moving = [i for i, _ in est._moved]
     cache = est._cache
     shift = est._shift_correction
+    rows_info = est._rows_info
+    infos = {}
     dyb_zero = est._D_zero
     dx = np.zeros(est._plant.n)
     active = True                   # the input change holds until a later command
@@ -81,10 +84,12 @@ def shifted_states(est, t, u_new, du, later):
                 new[i] = value
             out.append((tuple(new), None, None, None))
             continue
-        info = est._rows_info(rows, 'rows')
+        info = infos.get(rows)
+        if info is None:
+            info = infos[rows] = rows_info(rows, 'rows')
         dyb = None if dyb_zero or not active else -(info.D @ du)
         dx, x, residual, S = shift(state, new, dx, dyb, info, t_e, carry)
-        moved = [(i, new[i]) for i in est._shifted_slots]
+        moved = [(i, new[i]) for i in moving]
         if active:
             new[iu] = u_new
         out.append((tuple(new), x, residual, S))
