@@ -3,7 +3,7 @@
 
 import control
 import numpy as np
-from numpy.testing import assert_allclose
+from numpy.testing import assert_allclose, assert_array_equal
 from observer_ros.core.errors import (DesignError, DimensionError, NotDetectableError,
                                       ObserverError)
 from observer_ros.core.estimators import (FullOrderEstimator, KalmanEstimator,
@@ -795,6 +795,19 @@ def test_step_cache_keys():
     assert disc.key(0.3000000001) == 3
     Ad3 = disc.get(3).Ad
     assert_allclose(Ad3, np.linalg.matrix_power(submarine().discretize(0.1).A, 3))
+
+
+def test_a_step_remembered_by_its_dt_is_the_one_its_key_gives():
+    cache = StepCache(submarine(), digits=12, size=2)
+    dt = 0.1 + 1e-16
+    first = cache.step(dt)
+    assert cache.step(dt) is first is cache.get(cache.key(dt))
+    assert cache.step(0.1) is first                         # the same key
+    cache.step(0.2)
+    cache.step(0.3)                                         # 0.1 leaves the cache...
+    again = cache.step(dt)
+    assert again is not first and again is cache.get(0.1)   # ...and is not remembered
+    assert_array_equal(again.Ad, first.Ad)
 
 
 # ---------------------------------------------------------------- factory
