@@ -8,6 +8,7 @@ there with the held input (:class:`Estimator`).
 """
 
 import math
+from operator import attrgetter
 
 import numpy as np
 
@@ -146,6 +147,7 @@ class Estimator:
         self._D_zero = not np.any(plant.D)
         #: the place of each attribute of _STATE in a saved state, and those of _MOVED
         self._slots = {name: i for i, name in enumerate(self._STATE)}
+        self._state_values = attrgetter(*self._STATE)
         self._moved = tuple((self._slots[name], name) for name in self._MOVED)
 
     # ------------------------------------------------------------ properties
@@ -463,7 +465,7 @@ class Estimator:
         if u.size != self._plant.m:
             raise DimensionError(f'u has {u.size} elements; expected {self._plant.m} '
                                  f'({list(self._plant.input_names)})')
-        if not np.isfinite(u).all():
+        if not all(map(math.isfinite, u.tolist())):     # a few floats: no ufunc
             raise DimensionError(f'u has non-finite entries: {u}')
         return u
 
@@ -472,7 +474,7 @@ class Estimator:
         if y.size != len(info.rows):
             raise DimensionError(f'y has {y.size} elements; expected {len(info.rows)} '
                                  f'(outputs {info.names})')
-        if not np.isfinite(y).all():
+        if not all(map(math.isfinite, y.tolist())):
             raise DimensionError(f'y has non-finite entries: {y} (outputs {info.names})')
         return y
 
@@ -532,7 +534,7 @@ class Estimator:
         # _copy inlined: this runs every CHECKPOINT_EVERY messages of the history
         return tuple([value.copy() if type(value) is np.ndarray else
                       set(value) if type(value) is set else value
-                      for value in map(self.__getattribute__, self._STATE)])
+                      for value in self._state_values(self)])
 
     def _restore_shifted(self, state):
         """Restore the parts of a state a late input moves (the rest is as saved)."""

@@ -63,7 +63,7 @@ def shifted_states(est, t, u_new, du, later):
     rows_info = est._rows_info
     infos = {}
     dyb_zero = est._D_zero
-    dx = np.zeros(est._plant.n)
+    dx = None                       # zero until the first step after the command
     active = True                   # the input change holds until a later command
     t_prev, dt_prev, step = t, None, None
     carry = [None, None, None]      # what a fused correction at one stamp shares
@@ -74,8 +74,13 @@ def shifted_states(est, t, u_new, du, later):
             dt = t_e - t_prev
             if dt != dt_prev:
                 step, dt_prev = cache.step(dt), dt
-            dx = step.Ad @ dx + step.Bd @ du if active else step.Ad @ dx
+            if dx is None:
+                dx = step.Bd @ du
+            else:
+                dx = step.Ad @ dx + step.Bd @ du if active else step.Ad @ dx
             t_prev = t_e
+        elif dx is None:            # not after the command's stamp: cannot happen (sorted)
+            dx = np.zeros(est._plant.n)
         new = list(state)
         if rows is None:                            # a later command: its own input
             active = False
