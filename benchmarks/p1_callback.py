@@ -23,6 +23,8 @@ the first version (the figure a shared host moves least).
 With ``--commands late`` each measurement is followed by the command answering the previous
 estimate (P2's closed loop: stamped one step back, a rewind of the history each), with
 ``--commands inorder`` by the command answering this one; the figures are then per pair.
+``--lag N`` makes the late command answer the estimate N messages back (P2's loop on a
+loaded host: several steps late).
 
 Usage: ``python benchmarks/p1_callback.py NAME=DIR [NAME=DIR ...] [--interleave]
 [--commands late]``.
@@ -52,6 +54,7 @@ sensor = next(s for s in node.vehicle.sensors if s.topic.endswith('imu/data'))
 msg = gyro_imu()
 t0 = time.time_ns() - (500 + count * reps + 1000) * 4_000_000
 commands = os.environ.get('P1_COMMANDS', 'none')
+lag = int(os.environ.get('P1_LAG', '1'))
 if commands != 'none':
     from sensor_msgs.msg import JointState
     cmd = JointState(name=list(node.vehicle.plant.input_names), position=[0.0])
@@ -63,7 +66,7 @@ def one(i):
     msg.angular_velocity.y = 0.001 * ((i % 200) - 100) / 100.0
     node._on_measurement(sensor, msg)
     if commands != 'none':      # the closed loop's answer: to this estimate or the previous
-        cmd.header.stamp = stamp(i - 1 if commands == 'late' else i)
+        cmd.header.stamp = stamp(i - lag if commands == 'late' else i)
         cmd.position = [0.01 * ((i % 50) - 25) / 25.0]
         node._on_command(cmd)
 for i in range(500):
@@ -179,9 +182,16 @@ def main(argv=None, driver=DRIVER, description=None):
                         'like it (inorder) or like the previous one (late: the closed '
                         "loop's, one step late, a rewind of the history each); the figures "
                         'are then per measurement and command')
+    parser.add_argument('--lag', type=int, default=1,
+                        help='with --commands late: the command answers the estimate this '
+                        'many messages back (default 1)')
     args, versions = parse_versions(parser, argv)
     if versions is None:
         return 2
+    if args.lag < 1:
+        print(f'error: --lag must be at least 1; got {args.lag}', file=sys.stderr)
+        return 2
+    os.environ['P1_LAG'] = str(args.lag)         # read by the drivers
     print(f'load average at start: {os.getloadavg()[0]:.2f}')
     blocks = {name: [] for name, _ in versions}
     for r in range(args.rounds):
