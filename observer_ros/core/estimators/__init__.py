@@ -45,6 +45,9 @@ Modules
     One observer each.
 ``history``
     :class:`History`: late and out-of-order messages, by rewinding.
+``rewind``, ``superposition``
+    How the history inserts a late message: a rewind from a checkpoint; a late command's
+    input change added to the states kept after it.
 ``factory``
     :func:`make_estimator` from an ObserverSpec.
 
