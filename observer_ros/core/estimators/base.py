@@ -597,13 +597,12 @@ class OpenLoopEstimator(Estimator):
     """
 
     kind = 'open_loop'
+    _superposable = True
 
     def __init__(self, plant, x0=None, t0=None, measured_rows=None,
                  dt_digits=DT_DIGITS, cache_size=CACHE_SIZE, gain_digits=GAIN_DIGITS):
         super().__init__(plant, x0, t0, measured_rows, dt_digits, cache_size, gain_digits)
         self.reset(t0=self._t0)
-
-    _superposable = True
 
     def _correct(self, y, info):
         self._residual = y - info.D @ self._u - info.C @ self._x
