@@ -4,6 +4,7 @@
 import json
 
 from bag_synth import blank, IMU, JOINT_STATE, vector_msg, write_bag
+import control
 import late_sensors
 import numpy as np
 from numpy.testing import assert_allclose, assert_array_equal
@@ -70,16 +71,21 @@ def test_bulk_replay_is_off_for_a_bag_with_late_messages(bags):
     assert replay(rec, veh).bulk_steps == 0
 
 
-def test_observer_eval_on_receive_order_reports_the_stamp_order_error(bags):
-    veh, received, stamped, tmp = bags
-    vehicle_file = late_sensors.write_vehicle(tmp, veh.observer.kind)
-    results = {}
+def _evaluated(tmp, vehicle_file, received, stamped):
+    """Run observer-eval on both bags; return their results.json (received, stamped)."""
+    results = []
     for name, bag in (('received', received), ('stamped', stamped)):
         out = tmp / f'eval_{name}'
         assert eval_main([str(bag), '--vehicle', str(vehicle_file), '--out', str(out),
                           '--no-plots', '--no-bag', '--force']) == 0
-        results[name] = json.loads((out / 'results.json').read_text())
-    got, want = results['received'], results['stamped']
+        results.append(json.loads((out / 'results.json').read_text()))
+    return results
+
+
+def test_observer_eval_on_receive_order_reports_the_stamp_order_error(bags):
+    veh, received, stamped, tmp = bags
+    vehicle_file = late_sensors.write_vehicle(tmp, veh.observer.kind)
+    got, want = _evaluated(tmp, vehicle_file, received, stamped)
     a = got['variants']['design']['states']
     b = want['variants']['design']['states']
     assert list(a) == ['theta', 'w', 'q']
@@ -87,3 +93,53 @@ def test_observer_eval_on_receive_order_reports_the_stamp_order_error(bags):
         assert a[state]['rmse'] == pytest.approx(b[state]['rmse'], rel=1e-9, abs=1e-15)
     assert got['variants']['design']['counts']['out_of_order'] == 0
     assert np.isfinite([a[state]['rmse'] for state in a]).all()
+
+
+def _closed_loop_lag(msgs):
+    """Make each command arrive 1 to 5 steps after its stamp (a closed loop under load)."""
+    out = []
+    for kind, ns, arrival, value in msgs:
+        if kind == 'u':
+            lag = 1 + (ns // 10_000_000) % 5                  # steps of 10 ms, 1..5
+            arrival = ns + lag * 10_000_000 + late_sensors.GYRO_LATENCY_NS + 500_000
+        out.append((kind, ns, arrival, value))
+    return out
+
+
+def _gain_design(veh):
+    """Return an ``observer.gain`` line: L placing the continuous poles of FULL_POLES."""
+    poles = [float(p) for p in late_sensors.FULL_POLES.strip('[]').split(',')]
+    L = control.place(veh.plant.A.T, veh.plant.C.T, poles).T
+    return 'gain: [' + ', '.join(f'{v:.17g}' for v in L.reshape(-1)) + ']'
+
+
+@pytest.mark.parametrize('kind', ['full', 'kalman', 'full_gain'])
+def test_late_commands_revise_every_row_to_the_stamp_order(kind, tmp_path):
+    # the command answering the estimate at t_k is stamped t_k and arrives after the
+    # measurements of the next 1-5 steps: every row between its stamp and its arrival
+    # must become the stamp order's (superposition for poles and Kalman, a rewind for a
+    # gain), not keep the estimate made before the command came
+    base = late_sensors.vehicle(tmp_path, 'kalman' if kind == 'kalman' else 'full')
+    design = _gain_design(base) if kind == 'full_gain' else None
+    path = late_sensors.write_vehicle(tmp_path, 'kalman' if kind == 'kalman' else 'full',
+                                      design=design)
+    veh = load_vehicle(path)
+    msgs, truth = late_sensors.messages(veh)
+    msgs = late_sensors.stamp_order(_closed_loop_lag(msgs))
+    received = _bag(tmp_path / 'received', veh, msgs, truth)
+    stamped = _bag(tmp_path / 'stamped', veh, msgs, truth, latency=False)
+    late = replay(read_recording(received, veh), veh, exact=True)
+    ref = replay(read_recording(stamped, veh), veh, exact=True)
+    assert late.counts['commands'] == ref.counts['commands'] == 300
+    assert late.counts['out_of_order'] == 0
+    assert_array_equal(late.stamp_ns, ref.stamp_ns)
+    assert_allclose(late.x_hat, ref.x_hat, rtol=0.0, atol=1e-9)
+    assert_allclose(late.residual, ref.residual, rtol=0.0, atol=1e-9)
+    if kind == 'kalman':
+        assert_allclose(late.whitened, ref.whitened, rtol=0.0, atol=1e-6)
+    # and observer-eval reports the stamp order's error
+    got, want = _evaluated(tmp_path, path, received, stamped)
+    a = got['variants']['design']['states']
+    b = want['variants']['design']['states']
+    for state in a:
+        assert a[state]['rmse'] == pytest.approx(b[state]['rmse'], rel=1e-9, abs=1e-15)

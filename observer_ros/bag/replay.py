@@ -17,8 +17,10 @@ as ``observer_ros.nodes.observer_node`` handles it:
   repeated stamp of the same sensor and a stamp more than ``future_tolerance`` ahead of
   the receive time. Otherwise ``x_hat = est.correct(t, y, plant.output_rows(outputs))``;
   a non-finite estimate resets the estimator at t.
-- a command at stamp t: ``est.set_input(t, u)``; a stamp before the estimate's time is
-  held from the estimate's time on, or resets the estimator if it is a clock jump.
+- a command at stamp t: ``est.set_input(t, u)``; a stamp older than the history is held
+  from the estimate's time on, or resets the estimator if it is a clock jump. Inside the
+  history it applies from its stamp (below), and the rows of the measurements after it
+  are revised as for a late measurement.
 - a measurement or command stamped before the estimate's time but inside the vehicle's
   ``observer.history_length`` is used at its own stamp, through the same
   :class:`~observer_ros.core.estimators.History` as the node (``out_of_order`` counts
@@ -234,6 +236,8 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
                     counts['clock_jumps'] += 1
                     epoch += 1
                 history.set_input(t, u)     # older than the history: from the estimate's t
+                if history.revised:         # a late one: the estimates after its stamp
+                    _revise(out, history.revised, rows_idx, kalman)
                 counts['commands'] += 1
             except (ObserverError, ValueError):
                 counts['bad_commands'] += 1
@@ -272,9 +276,7 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
             continue
         if last is not None and t < last:
             counts['late_measurements'] += 1
-            for r, x_r, res_r, S_r in history.revised:     # estimates the late one changed
-                out.revise(r, x_r, rows_idx[out.sensor_of(r)], res_r,
-                           _whitened(res_r, S_r) if kalman else None)
+            _revise(out, history.revised, rows_idx, kalman)   # estimates the late one changed
         last_stamp[k] = max(t, last_stamp.get(k, t))
         counts['measurements'] += 1
         b = out.local(m)
@@ -323,6 +325,13 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
                   sensor=cols['sensor'], counts=counts, overrides=tuple(overrides),
                   bulk_steps=bulk_steps, warnings=warnings, whitened=cols['e'],
                   kalman=kalman, noise_std=std)
+
+
+def _revise(out, revised, rows_idx, kalman):
+    """Overwrite the rows of the estimates a late message changed (``History.revised``)."""
+    for r, x_r, res_r, S_r in revised:
+        out.revise(r, x_r, rows_idx[out.sensor_of(r)], res_r,
+                   _whitened(res_r, S_r) if kalman else None)
 
 
 def _whitened(residual, S):
