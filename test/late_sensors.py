@@ -142,6 +142,22 @@ def _fault(faults, name, value, k):
     return sign * value + bias if k >= onset else value
 
 
+def commands_late(msgs, steps=5):
+    """
+    Make each command arrive 1 to ``steps`` steps after its stamp (a closed loop under load).
+
+    The command answering the estimate at t_k is stamped t_k; it arrives after the gyro
+    messages of the next few steps (half a millisecond after the last of them).
+    """
+    out = []
+    for kind, ns, arrival, value in msgs:
+        if kind == 'u':
+            lag = 1 + (ns // 10_000_000) % steps              # steps of 10 ms
+            arrival = ns + lag * 10_000_000 + GYRO_LATENCY_NS + 500_000
+        out.append((kind, ns, arrival, value))
+    return out
+
+
 def receive_order(msgs):
     """Return the messages in the order they arrive (by arrival time)."""
     return sorted(msgs, key=lambda m: (m[2], m[1]))

@@ -95,17 +95,6 @@ def test_observer_eval_on_receive_order_reports_the_stamp_order_error(bags):
     assert np.isfinite([a[state]['rmse'] for state in a]).all()
 
 
-def _closed_loop_lag(msgs):
-    """Make each command arrive 1 to 5 steps after its stamp (a closed loop under load)."""
-    out = []
-    for kind, ns, arrival, value in msgs:
-        if kind == 'u':
-            lag = 1 + (ns // 10_000_000) % 5                  # steps of 10 ms, 1..5
-            arrival = ns + lag * 10_000_000 + late_sensors.GYRO_LATENCY_NS + 500_000
-        out.append((kind, ns, arrival, value))
-    return out
-
-
 def _gain_design(veh):
     """Return an ``observer.gain`` line: L placing the continuous poles of FULL_POLES."""
     poles = [float(p) for p in late_sensors.FULL_POLES.strip('[]').split(',')]
@@ -125,7 +114,7 @@ def test_late_commands_revise_every_row_to_the_stamp_order(kind, tmp_path):
                                       design=design)
     veh = load_vehicle(path)
     msgs, truth = late_sensors.messages(veh)
-    msgs = late_sensors.stamp_order(_closed_loop_lag(msgs))
+    msgs = late_sensors.stamp_order(late_sensors.commands_late(msgs))
     received = _bag(tmp_path / 'received', veh, msgs, truth)
     stamped = _bag(tmp_path / 'stamped', veh, msgs, truth, latency=False)
     late = replay(read_recording(received, veh), veh, exact=True)

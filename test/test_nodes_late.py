@@ -43,13 +43,20 @@ def late_observer(tmp_path, request):
         yield run.proc, run.probe, run.listener, pubs, late_sensors.vehicle(tmp_path, kind)
 
 
-@pytest.mark.parametrize('late_observer', [('full', ())], indirect=True)
-def test_messages_out_of_order_over_dds_give_the_stamp_order_estimate(late_observer):
+@pytest.mark.parametrize('late_observer,commands_late', [
+    (('full', ()), False),
+    (('full', ()), True),           # the closed loop's commands, 1-5 steps late
+    (('kalman', ()), True),
+], indirect=['late_observer'])
+def test_messages_out_of_order_over_dds_give_the_stamp_order_estimate(late_observer,
+                                                                      commands_late):
     proc, probe, listener, pubs, veh = late_observer
     msgs, _ = late_sensors.messages(veh, steps=150)
+    if commands_late:               # inserted by superposition, not re-applied
+        msgs = late_sensors.commands_late(msgs)
     # one more gyro message after all the others: its answer holds every message before
     last_ns = msgs[-1][1] + 10_000_000
-    msgs.append(('gyro', last_ns, last_ns + 1_000_000, 0.001))
+    msgs.append(('gyro', last_ns, max(m[2] for m in msgs) + 1_000_000, 0.001))
     answered = 0
     for kind, ns, _, value in late_sensors.receive_order(msgs):
         if kind == 'u':
