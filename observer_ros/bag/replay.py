@@ -235,7 +235,7 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
                     history.reset(None, None)
                     counts['clock_jumps'] += 1
                     epoch += 1
-                history.set_input(t, u)     # older than the history: from the estimate's t
+                history.set_input(t, u)     # inside the history: from its stamp
                 if history.revised:         # a late one: the estimates after its stamp
                     _revise(out, history.revised, rows_idx, kalman)
                 counts['commands'] += 1

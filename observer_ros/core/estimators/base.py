@@ -536,6 +536,14 @@ class Estimator:
                       set(value) if type(value) is set else value
                       for value in self._state_values(self)])
 
+    def _shifted(self, state, new, dx, dres):
+        """Put x + dx and residual + dres into ``new``; return (a copy of x, the residual)."""
+        slots = self._slots
+        ix, ires = slots['_x'], slots['_residual']
+        new[ix] = x = state[ix] + dx
+        new[ires] = residual = state[ires] + dres
+        return x.copy(), residual
+
     def _restore_shifted(self, state):
         """Restore the parts of a state a late input moves (the rest is as saved)."""
         slots = self._slots
@@ -610,9 +618,5 @@ class OpenLoopEstimator(Estimator):
 
     def _shift_correction(self, state, new, dx, dyb, info, t, carry):
         """Move a saved state by a late input change: only the residual moves."""
-        slots = self._slots
-        ix, ires = slots['_x'], slots['_residual']
         dres = -(info.C @ dx) if dyb is None else dyb - info.C @ dx
-        new[ix] = x = state[ix] + dx
-        new[ires] = residual = state[ires] + dres
-        return dx, x.copy(), residual, None
+        return (dx,) + self._shifted(state, new, dx, dres) + (None,)

@@ -120,11 +120,9 @@ class _CurrentForm(Estimator):
             dx = dx_prior - M @ C_dx
         else:
             dx = dx_prior + M @ (dacc[union.idx] - C_dx)
-        ix, ires, ip = slots['_x'], slots['_residual'], slots['_x_prior']
-        new[ix] = x = state[ix] + dx
-        new[ires] = residual = state[ires] + dres
+        ip = slots['_x_prior']
         new[ip] = state[ip] + dx_prior
-        return dx, x.copy(), residual, None
+        return (dx,) + self._shifted(state, new, dx, dres) + (None,)
 
     def _gain(self, key, info):
         """Return M (n x len(info.rows)) for the interval key, or None (no correction)."""

@@ -172,10 +172,7 @@ class KalmanEstimator(Estimator):
         K = state[slots['_gain_used']]
         if K is not None:
             dx = dx + K @ dres
-        ix, ires = slots['_x'], slots['_residual']
-        new[ix] = x = state[ix] + dx
-        new[ires] = residual = state[ires] + dres
-        return dx, x.copy(), residual, state[slots['_S']]
+        return (dx,) + self._shifted(state, new, dx, dres) + (state[slots['_S']],)
 
 
 def _as_covariance(X, name, size):
