@@ -30,6 +30,14 @@ process's CPU time (user + system, /proc) per simulator step over the closed loo
 which node a slower loop comes from. ``--observer-pythonpath`` runs the observer of
 another version than the simulator and compensator (``processes`` layout).
 
+``--baseline-observer-pythonpath DIR`` (a checkout of an earlier version, e.g. ``git
+archive``) follows each ``processes`` run with one whose observer is that version's, the
+simulator and compensator the same (the order alternates from run to run), and reports
+the observer's CPU per step against the baseline's, per pair of runs: as measured, and
+divided in each run by the simulator's CPU per step (the same code in both runs of a
+pair, so what the host's speed does to both cancels; on this host it drifted by 20 %
+from one run to the next).
+
 """
 
 import os
@@ -208,7 +216,7 @@ def _parse_config(text):
 
 
 def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=None,
-        configs=None, log=print, observer_pythonpath=None):
+        configs=None, log=print, observer_pythonpath=None, baseline_observer=None):
     runs = runs or (1 if smoke else 3)
     configs = list(configs or (CONFIGS_SMOKE if smoke else CONFIGS))
     parsed = {c: _parse_config(c) for c in configs}
@@ -248,14 +256,22 @@ def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=Non
     spinner = threading.Thread(target=executor.spin, daemon=True)
     spinner.start()
     results = {layout: [] for layout in layouts}
+    baseline_runs = []
     try:
         for r in range(runs):
             # alternate the order of the layouts from run to run
-            for layout in (layouts if r % 2 == 0 else layouts[::-1]):
+            order = [(layout, None) for layout in layouts]
+            if baseline_observer and 'processes' in layouts:
+                # the baseline's observer just after this one's (before it every other run)
+                i = layouts.index('processes')
+                order.insert(i + 1, ('processes', baseline_observer))
+            for layout, base in (order if r % 2 == 0 else order[::-1]):
                 res = _one_run(node, state, parsed[layout][0], duration, rate, logdir, r,
-                               nodes_pythonpath, parsed[layout][1], observer_pythonpath)
-                results[layout].append(res)
-                log(f'  P2 {layout:>16} run {r + 1}/{runs}: {res["steps"]} steps at '
+                               nodes_pythonpath, parsed[layout][1],
+                               base or observer_pythonpath)
+                (baseline_runs if base else results[layout]).append(res)
+                label = f'{layout} [observer {base}]' if base else layout
+                log(f'  P2 {label:>16} run {r + 1}/{runs}: {res["steps"]} steps at '
                     f'{rate:g} Hz, {res["open_loop_steps"]} before the loop closed, '
                     f'{res["late_commands"]} late ({res["late_after_short_step"]} of them '
                     f'after a short step) of {res["checked"]} -> on time '
@@ -285,8 +301,33 @@ def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=Non
                  f'median {summary([r["loop_median_us"] for r in res])["median"]:.0f} us, '
                  f'p99 {summary([r["loop_p99_us"] for r in res])["median"]:.0f} us; period '
                  f'{period_us:.0f} us'))
+    if baseline_runs:
+        _versus_baseline(figures, results['processes'], baseline_runs, baseline_observer)
     return {'benchmark': 'P2', 'smoke': smoke, 'rate_hz': rate, 'duration_s': duration,
-            'figures': figures, 'runs': results, 'logs': str(logdir)}
+            'figures': figures, 'runs': results, 'baseline_runs': baseline_runs,
+            'logs': str(logdir)}
+
+
+def _versus_baseline(figures, runs, base_runs, baseline):
+    """Add the figures: this observer's CPU per step / the baseline's, per pair of runs."""
+    pairs = [(r['cpu_us_per_step'], b['cpu_us_per_step']) for r, b in zip(runs, base_runs)]
+    pairs = [(r, b) for r, b in pairs if 'observer_node' in r and 'observer_node' in b and
+             r.get('plant_simulator') and b.get('plant_simulator')]
+    if not pairs:
+        return
+    obs = [r['observer_node'] for r, _ in pairs]
+    base = [b['observer_node'] for _, b in pairs]
+    figures.append(ratio_line(
+        'P2', 'observer_cpu_per_step/baseline_observer[processes]',
+        [o / b for o, b in zip(obs, base)], '<=', None,
+        note=f'this observer {summary(obs)["median"]:.0f} us, {baseline} '
+             f'{summary(base)["median"]:.0f} us per step (medians of the runs)'))
+    figures.append(ratio_line(
+        'P2', 'observer_cpu_per_simulator_cpu/baseline_observer[processes]',
+        [(r['observer_node'] / r['plant_simulator']) /
+         (b['observer_node'] / b['plant_simulator']) for r, b in pairs], '<=', None,
+        note="each run's observer CPU divided by its simulator's (the same code in both "
+             "runs): the host's speed from one run to the next cancels"))
 
 
 def main(argv=None):
@@ -306,11 +347,16 @@ def main(argv=None):
                         help='in the processes layout, run the observer alone with this '
                              'copy first on PYTHONPATH (the simulator and compensator '
                              'with --nodes-pythonpath): which node a difference comes from')
+    parser.add_argument('--baseline-observer-pythonpath', metavar='DIR',
+                        help='after (or before) each processes run, run it again with the '
+                             'observer of this copy (e.g. git archive of an earlier commit) '
+                             'and report the observer CPU per step against it')
     args = parser.parse_args(argv)
     print('P2: closed loop in free-running real time', flush=True)
     return report(args.json, run(
         smoke=args.smoke, runs=args.runs, duration=args.duration, rate=args.rate,
         nodes_pythonpath=args.nodes_pythonpath, observer_pythonpath=args.observer_pythonpath,
+        baseline_observer=args.baseline_observer_pythonpath,
         configs=[x for x in (args.configs or '').split(',') if x] or None, log=log))
 
 

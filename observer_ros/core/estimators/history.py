@@ -281,6 +281,18 @@ class History(Rewinding):
             self.revised = []
         head = est.t
         pending = self._pending
+        entries = self._entries
+        if t == head and not pending and entries and entries[-1][_T] == t:
+            # the closed loop's command in order (it answers the newest measurement): the
+            # estimator is at the last entry and this is the next, as _insert would find
+            entry = _entry(t, _COMMAND, u, (), tag)
+            self._apply(entry)                  # a bad input raises, changing nothing
+            entries.append(entry)
+            checkpoints = self._checkpoints
+            if (checkpoints and checkpoints[0][_T] < t - self._length) or \
+                    len(entries) > self._max:
+                self._drop_old()
+            return False
         if head is not None and (t > head or (pending and pending[0][_T] <= t)):
             # ahead of the estimate (or after commands held at its stamp): held
             self._hold(_entry(t, _COMMAND, est.check_input(u), (), tag))

@@ -18,7 +18,9 @@ filter, the model alone): its input change is added to the states kept after it
 (:mod:`.superposition`, :meth:`Rewinding._superpose`), the stamp order's result to
 round-off rather than to the last bit. The observers given a gain (which hold the
 measured outputs between samples), and a command older than the states kept densely, are
-rewound.
+rewound. A command just before the newest entry, a measurement (the closed loop's command
+a step late, most of them), moves the estimator itself: no state need be kept for it
+(:meth:`Rewinding._superpose_head`).
 
 """
 
@@ -91,6 +93,10 @@ class Rewinding:
     def _rewind(self, pos, entry):
         est = self._est
         entries = self._entries
+        if pos == len(entries) - 1 and entry[_KIND] == _COMMAND and self.superpose and \
+                est._superposable and entries[pos][_KIND] == _MEASUREMENT:
+            self._superpose_head(entry)         # the closed loop's command, a step late
+            return
         shallow = len(entries) - pos <= DENSE_DEPTH
         if shallow:                                   # the closed loop's lag
             self._dense = DENSE_FOR
@@ -185,6 +191,34 @@ class Rewinding:
         self.rewinds += 1
         self.superposed += 1
         return True
+
+    def _superpose_head(self, entry):
+        """
+        Insert a command just before the newest entry, a measurement: shift the estimator.
+
+        The closed loop's command a step late (most of them in P2): the state after the
+        measurement is the estimator's own, and the input held at the command's stamp is
+        the estimator's input (the measurement did not change it). So nothing saved is
+        needed, and no dense checkpoints are turned on for it: the estimator is moved as
+        :meth:`_superpose` moves a saved state, and the measurement's checkpoint, if it
+        has one, saved again. Raises, changing nothing, for a bad input.
+        """
+        est = self._est
+        entries = self._entries
+        last = entries[-1]
+        u_new = est.check_input(entry[_VALUE])
+        # the live parts, not copies: shifted_states makes new arrays of those it moves
+        (state, x, residual, S), = shifted_states(
+            est, entry[_T], u_new, u_new - est._u,
+            [(last[_T], last[_ROWS], est._state_values(est))])
+        est._restore_shifted(state)
+        if last[_STATE] is not None:
+            last[_STATE] = est.save_state()
+        last[_X], last[_RESIDUAL], last[_S] = x, residual, S
+        self.revised = [(last[_TAG], x, residual, S)]
+        entries.insert(len(entries) - 1, entry)   # no state: a rewind applies it again
+        self.rewinds += 1
+        self.superposed += 1
 
     def _rewind_one(self, entry, state):
         """
