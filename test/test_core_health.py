@@ -1,6 +1,7 @@
 # The health checks and the safe-command policy, against scipy and by hand.
 """Divergence envelope, load meter, pole margins, own-parameter ranges, safe command."""
 
+import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -73,29 +74,72 @@ def test_envelope_inside_is_strict_where_check_lets_a_shrinking_excursion_pass()
     assert not env.inside([float('nan'), 0.0])
 
 
+def _meter():
+    """Return a load meter on a CPU clock the test advances, and that clock's list."""
+    cpu = [0.0]
+    return LoadMeter(window=0.5, cpu_clock=lambda: cpu[0]), cpu
+
+
 def test_load_meter_busy_and_missed():
-    meter = LoadMeter(window=0.5)
+    meter, cpu = _meter()
     # 100 Hz with 1 ms of work each: idle, not overloaded, 100 answers/s
     t = 0.0
     closed = False
     for _ in range(60):
+        cpu[0] += 0.001
         closed = meter.took(t, t + 0.001) or closed
         t += 0.01
     assert closed and not meter.overloaded and meter.rate == pytest.approx(100, rel=0.05)
-    # back to back (a queue that only grows): busy, overloaded, its rate reported
-    meter = LoadMeter(window=0.5)
+    assert meter.busy == pytest.approx(0.1, rel=0.05)
+    # back to back (a queue that only grows): the thread never waits, busy, overloaded,
+    # its rate reported
+    meter, cpu = _meter()
     t = 0.0
     for _ in range(600):
+        cpu[0] += 0.002 + 1e-5                  # the callback and the executor's overhead
         meter.took(t, t + 0.002)
         t += 0.002 + 1e-5
     assert meter.overloaded and meter.busy > 0.99 and meter.rate == pytest.approx(500, rel=0.05)
     # idle but messages missed (stamp gaps): overloaded too
-    meter = LoadMeter(window=0.5)
+    meter, cpu = _meter()
     for k in range(60):
+        cpu[0] += 0.001
         meter.took(k * 0.01, k * 0.01 + 0.001, missed=1)
     assert meter.overloaded and meter.missed_rate > 50
     meter.idle(100.0)
     assert not meter.overloaded
+
+
+def test_load_meter_keeps_up_at_1khz_with_short_pauses():
+    """
+    1 kHz, 0.3 ms of CPU per message (P2's observer): 30 % busy, not overloaded.
+
+    The pauses between messages (0.7 ms) are shorter than the executor's overhead per
+    message at lower rates: the meter judged by them read this node 95 % busy (ERROR).
+    """
+    meter, cpu = _meter()
+    t = 0.0
+    verdicts = 0
+    for _ in range(2000):
+        cpu[0] += 0.0003
+        verdicts += meter.took(t, t + 0.0001)
+        t += 0.001
+    assert verdicts >= 3 and not meter.overloaded
+    assert meter.busy == pytest.approx(0.3, rel=0.05)
+
+
+def test_load_meter_reads_the_cpu_time_of_the_calling_thread():
+    """The default clock: a thread that spins the whole window is busy, one that sleeps not."""
+    meter = LoadMeter(window=0.05)
+    start = time.monotonic()
+    while not meter.took(start, time.monotonic()):
+        pass                                    # a callback that never returns to wait
+    assert meter.busy > 0.5
+    meter = LoadMeter(window=0.05)
+    start = time.monotonic()
+    meter.took(start, start)
+    time.sleep(0.06)
+    assert meter.took(start, time.monotonic()) and meter.busy < 0.5
 
 
 def test_pole_margin_on_the_plant_time_scale():
