@@ -286,11 +286,12 @@ def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=Non
         rclpy.try_shutdown()
     figures = []
     period_us = 1e6 / rate
+    rate_name = f'{rate / 1000:g}kHz' if rate >= 1000 else f'{rate:g}Hz'   # 1kHz, 2kHz
     for layout in layouts:
         res = results[layout]
         figures.append(ratio_line(
-            'P2', f'on_time_fraction_at_1kHz[{layout}]', [r['on_time'] for r in res], '>=',
-            0.999, unit='', smoke=smoke,
+            'P2', f'on_time_fraction_at_{rate_name}[{layout}]',
+            [r['on_time'] for r in res], '>=', 0.999, unit='', smoke=smoke,
             note=f'{sum(r["late_commands"] for r in res)} late of '
                  f'{sum(r["checked"] for r in res)} steps; achieved step rate median '
                  f'{summary([r["rate_achieved_hz"] for r in res])["median"]:.0f} Hz'))

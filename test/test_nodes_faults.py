@@ -6,13 +6,14 @@ import time
 from diagnostic_msgs.msg import DiagnosticStatus
 import numpy as np
 from observer_ros.nodes.common import joint_state, SENSOR_QOS
+from observer_ros.nodes.observer_node import silence_watch_period
 from observer_ros.timeutil import sec_to_stamp_parts, stamp_to_sec
 import pytest
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 # Listener: still importable from here, where test files found it before ros_helpers had it
 from ros_helpers import (compensator_under_test, CONFIG, Listener,  # noqa: F401
-                         observer_under_test, Proc, REALTIME, WAIT)
+                         NODE_PARAMS, observer_under_test, Proc, REALTIME, WAIT)
 from sensor_msgs.msg import Imu
 import yaml
 
@@ -254,6 +255,37 @@ def test_silent_sensor_means_predict_only(observer_setup):
     assert all(np.all(np.isfinite(m.position)) for m in later())
     status = listener.latest_status('observer')
     assert status.level == DiagnosticStatus.WARN and 'predicting only' in status.message
+
+
+def test_silence_is_watched_slowly_and_predicted_at_the_rate(tmp_path):
+    """
+    ``observer.rate_hz`` 200: once the sensor is silent, predictions 5 ms apart; twice.
+
+    While the sensors speak their silence is watched every 50 ms (a tenth of the 0.5 s
+    timeout), not at the prediction rate: the timer must switch both ways.
+    """
+    params = NODE_PARAMS + ('observer.rate_hz:=200.0',)
+    with observer_under_test(tmp_path, params=params) as run:
+        pub, listener, probe = run.pubs['imu/data'], run.listener, run.probe
+        for _ in range(2):
+            t = time.time()
+            pub.publish(_imu(t, 0.01))
+            listener.estimate_at(t)
+
+            def predictions():
+                return sorted(s for s in (stamp_to_sec(m.header.stamp)
+                                          for m in listener.estimates) if s > t + 0.4)
+            probe.spin_until(lambda: len(predictions()) >= 40, WAIT, '40 predictions')
+            stamps = predictions()[:40]
+            assert np.median(np.diff(stamps)) < 0.010, np.diff(stamps)
+            # the first within the timeout and the watch's period (room for a loaded host)
+            assert stamps[0] - t < 0.5 + 0.05 + 0.4, stamps[0] - t
+
+
+def test_silence_watch_period():
+    assert silence_watch_period(1000.0, [0.5]) == pytest.approx(0.05)
+    assert silence_watch_period(1000.0, [0.5, 0.02]) == pytest.approx(0.002)
+    assert silence_watch_period(10.0, [0.5]) == pytest.approx(0.1)     # not faster than it
 
 
 def test_observer_follows_remaps_and_overrides(tmp_path):

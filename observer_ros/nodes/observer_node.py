@@ -43,7 +43,7 @@ from ..core.estimators import History, make_estimator
 from ..core.innovation import InnovationMonitor, transient_time
 from ..sensors import extract_measurement
 
-__all__ = ['ObserverNode', 'covariance_names', 'main']
+__all__ = ['ObserverNode', 'covariance_names', 'main', 'silence_watch_period']
 
 
 class ObserverNode(ObserverHealth, VehicleNode):
@@ -97,9 +97,14 @@ class ObserverNode(ObserverHealth, VehicleNode):
             self._lockstep_timer = self.wall_timer(0.1, self._on_lockstep_watchdog)
         else:
             # free running: when every sensor is silent past its timeout, publish the
-            # prediction at observer.rate_hz (default: the simulator's rate)
+            # prediction at observer.rate_hz (default: the simulator's rate); while they
+            # speak the silence is watched at a slower period (_on_predict switches)
             rate = v.observer.rate_hz or v.simulator.rate_hz
-            self._predict_timer = self.wall_timer(1.0 / rate, self._on_predict)
+            self._predict_ns = round(1e9 / rate)
+            self._watch_ns = round(1e9 * silence_watch_period(
+                rate, [s.timeout for s in v.sensors]))
+            self._predicting = False
+            self._predict_timer = self.wall_timer(self._watch_ns * 1e-9, self._on_predict)
             if v.observer.publish_rate_hz:
                 self._publish_timer = self.wall_timer(1.0 / v.observer.publish_rate_hz,
                                                       self._on_publish_rate)
@@ -413,10 +418,15 @@ class ObserverNode(ObserverHealth, VehicleNode):
     def _on_predict(self):
         """Predict only while all sensors are silent; the estimate keeps coming."""
         now_wall = self.wall_now()
-        if any(now_wall - self._last_seen.get(s.name, -np.inf) <= s.timeout
-               for s in self.vehicle.sensors):
-            return
-        self._publish_prediction('predictions')
+        speaking = any(now_wall - self._last_seen.get(s.name, -np.inf) <= s.timeout
+                       for s in self.vehicle.sensors)
+        if speaking == self._predicting:       # the sensors fell silent, or spoke again
+            # predictions at the rate, or back to watching (from the timer's next call)
+            self._predicting = not speaking
+            self._predict_timer.timer_period_ns = \
+                self._watch_ns if speaking else self._predict_ns
+        if not speaking:
+            self._publish_prediction('predictions')
 
     def _on_publish_rate(self):
         """Publish the estimate predicted to now (``observer.publish_rate_hz``)."""
@@ -475,6 +485,26 @@ class ObserverNode(ObserverHealth, VehicleNode):
                 'nis_bounds': f'{h.nis_low:.4g}..{h.nis_high:.4g}',
                 'whiteness_p': f'{h.whiteness_p:.3g}'}))
         return out
+
+
+def silence_watch_period(rate_hz, timeouts):
+    """
+    Return the period (s) at which a free-running observer watches its sensors' silence.
+
+    A tenth of the shortest sensor timeout, never faster than the prediction rate: the
+    first prediction comes at most that much after the timeout. (Watched at the
+    prediction rate, 1 kHz in P2, the timer's calls alone were 15 % of the observer's CPU
+    while every measurement was answered; benchmarks/README.md, session 9.)
+
+    Parameters
+    ----------
+    rate_hz : float
+        ``observer.rate_hz`` (or the simulator's rate): predictions per second once silent.
+    timeouts : sequence of float
+        Each sensor's ``timeout`` (s).
+
+    """
+    return max(1.0 / rate_hz, min(timeouts) / 10.0)
 
 
 class _CountedPublisher:
