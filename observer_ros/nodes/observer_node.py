@@ -418,8 +418,10 @@ class ObserverNode(ObserverHealth, VehicleNode):
     def _on_predict(self):
         """Predict only while all sensors are silent; the estimate keeps coming."""
         now_wall = self.wall_now()
-        speaking = any(now_wall - self._last_seen.get(s.name, -np.inf) <= s.timeout
-                       for s in self.vehicle.sensors)
+        # no estimate yet (before the first measurement, after a reset): nothing to predict
+        speaking = self.history.t is None or any(
+            now_wall - self._last_seen.get(s.name, -np.inf) <= s.timeout
+            for s in self.vehicle.sensors)
         if speaking == self._predicting:       # the sensors fell silent, or spoke again
             # predictions at the rate, or back to watching (from the timer's next call)
             self._predicting = not speaking
