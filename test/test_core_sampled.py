@@ -8,6 +8,7 @@ sensors at different rates the product of the per-step error maps must be stable
 
 """
 
+import re
 import warnings
 
 import late_sensors
@@ -63,7 +64,10 @@ def test_a_sampled_gain_that_fails_verification_refuses_the_vehicle():
     msg = str(err.value)
     assert '\n' not in msg
     assert msg.startswith("observer.poles at the sampled step h = 0.01 s with outputs ['y']")
-    assert 'lands at 1.08776 (unstable' in msg and 'Kalman' in msg
+    # where the pole lands depends on the BLAS's rounding in this ill-conditioned
+    # placement (1.08776 on one host, 1.05416 on another): outside the unit circle on both
+    landed = re.search(r'lands at ([0-9.]+) \(unstable', msg)
+    assert landed and float(landed.group(1)) > 1.0 and 'Kalman' in msg, msg
 
 
 def test_a_refused_step_gain_is_never_used_at_run_time():

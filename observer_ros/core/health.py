@@ -166,7 +166,9 @@ class LoadMeter:
     executor's own work between them (taking, deserialising and dispatching each message:
     most of a small rclpy node's time), but not the time it waits for input. A node whose
     queue only grows is busy all the time. Over a window, a busy fraction at or above
-    ``busy_limit``, or any missed message, is overload.
+    ``busy_limit``, or any missed message, is overload. (A thread starved of CPU by other
+    processes reads less busy than it is; its sensor queue, bounded, then drops messages,
+    and the gaps in their stamps say so.)
 
     (The pauses between messages are no measure of it: at 1 kHz a node that answers each
     message in 0.3 ms waits 0.7 ms for the next, less than the executor's overhead per
