@@ -134,12 +134,12 @@ def test_load_meter_reads_the_cpu_time_of_the_calling_thread():
     start = time.monotonic()
     while not meter.took(start, time.monotonic()):
         pass                                    # a callback that never returns to wait
-    assert meter.busy > 0.5
+    assert meter.busy > 0.3                     # ~1.0, less if other processes share the core
     meter = LoadMeter(window=0.05)
     start = time.monotonic()
     meter.took(start, start)
     time.sleep(0.06)
-    assert meter.took(start, time.monotonic()) and meter.busy < 0.5
+    assert meter.took(start, time.monotonic()) and meter.busy < 0.1
 
 
 def test_pole_margin_on_the_plant_time_scale():

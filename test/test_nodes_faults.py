@@ -277,7 +277,8 @@ def test_silence_is_watched_slowly_and_predicted_at_the_rate(tmp_path):
                                           for m in listener.estimates) if s > t + 0.4)
             probe.spin_until(lambda: len(predictions()) >= 40, WAIT, '40 predictions')
             stamps = predictions()[:40]
-            assert np.median(np.diff(stamps)) < 0.010, np.diff(stamps)
+            # 5 ms apart (a loaded host skips some periods); watched, they would be 50 ms
+            assert np.median(np.diff(stamps)) < 0.025, np.diff(stamps)
             # the first within the timeout and the watch's period (room for a loaded host)
             assert stamps[0] - t < 0.5 + 0.05 + 0.4, stamps[0] - t
 
