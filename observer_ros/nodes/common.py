@@ -468,8 +468,7 @@ def run_nodes(node_factories, args=None, names=None):
                     return True
             return False
         spin_until(executor, stop=stop if ending else None)
-        code = next((node.exit_code for node in nodes
-                     if getattr(node, 'exit_code', None) is not None), 0)
+        code = next((node.exit_code for node in ending if node.exit_code is not None), 0)
     except (KeyboardInterrupt, Exception) as err:   # noqa: BLE001 - reported by exit_status
         failed = len(nodes) if len(nodes) < len(node_factories) else None
         code = exit_status(err, names[failed] if names and failed is not None else

@@ -240,9 +240,7 @@ class History(Rewinding):
                 checkpoints = self._checkpoints
                 if state is not None:
                     checkpoints.append(entry)
-                if (checkpoints and checkpoints[0][_T] < t - self._length) or \
-                        len(entries) > self._max:
-                    self._drop_old()
+                self._drop_if_due(t)
                 self._residual, self._S, self._x_at = residual, S, x
                 return x
         entry = self._insert(_MEASUREMENT, est._as_time(t), y, rows, tag)
@@ -288,10 +286,7 @@ class History(Rewinding):
             entry = _entry(t, _COMMAND, u, (), tag)
             self._apply(entry)                  # a bad input raises, changing nothing
             entries.append(entry)
-            checkpoints = self._checkpoints
-            if (checkpoints and checkpoints[0][_T] < t - self._length) or \
-                    len(entries) > self._max:
-                self._drop_old()
+            self._drop_if_due(t)
             return False
         if head is not None and (t > head or (pending and pending[0][_T] <= t)):
             # ahead of the estimate (or after commands held at its stamp): held
@@ -417,6 +412,13 @@ class History(Rewinding):
             self._entries.append(e)
             n += 1
         del pending[:n]
+
+    def _drop_if_due(self, t):
+        """After an entry at t appended in order: drop the old ones if the window or count asks."""
+        checkpoints = self._checkpoints
+        if (checkpoints and checkpoints[0][_T] < t - self._length) or \
+                len(self._entries) > self._max:
+            self._drop_old()
 
     def _drop_old(self):
         """
