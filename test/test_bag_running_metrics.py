@@ -35,8 +35,8 @@ def whole_series_metrics(t, error, epoch, tolerance, steady_fraction=STEADY_FRAC
             bad = np.flatnonzero(outside[:, i])
             if not bad.size:
                 continue
-            if bad[-1] == sel.size - 1:
-                settle[i] = math.inf
+            if bad[-1] == sel.size - 1 or tau[bad[-1] + 1] > (1.0 - steady_fraction) * tau[-1]:
+                settle[i] = math.inf        # outside at the end, or in the steady state
             else:
                 settle[i] = max(settle[i], tau[bad[-1] + 1])
     ss = error[steady]

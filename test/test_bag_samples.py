@@ -94,6 +94,21 @@ def test_sample_bag_is_a_jazzy_bag(sample):
     assert counts['/control/u'] >= steps and counts['/control/reference'] == 1
     assert sum(counts.values()) == meta['message_count']
     assert rec.namespace == '' and rec.truth is not None
+    # every chunk carries its CRC32 (a flipped byte is refused, not evaluated silently)
+    from binascii import crc32
+    from rosbags.rosbag2.storage_mcap import McapReader
+    from observer_ros.bag.integrity import chunk_crcs
+    storage = McapReader(bag / f'{name}.mcap')
+    storage.open()
+    try:
+        crcs = chunk_crcs(storage)
+        for chunk, crc in zip(storage.chunks, crcs):
+            storage.bio.seek(chunk.chunk_start_offset + 9 + 40 + len(chunk.compression))
+            assert chunk.compression == '' and crc == crc32(
+                storage.bio.read(chunk.compressed_size)) != 0
+    finally:
+        storage.close()
+    assert len(crcs) >= 5
 
 
 def test_sample_design_replay_reproduces_the_live_estimate(sample):
@@ -160,8 +175,16 @@ def test_sample_slow_poles_settle_later(sample, scored):
         assert 0.0 < settle['design'] < 0.5 < 1.0 < settle['slow'] < np.inf, settle
         return
     settle = {k: v.summary['settling_time'] for k, v in scored.variants.items()}
-    assert np.isfinite(settle['design'])
-    assert settle['slow'] > settle['design'], settle
+    if name == 'submarine_reduced':
+        # the measured states are taken from y: their error is the AHRS noise, which
+        # leaves the 2 % band in the steady state, so they never settle (not the run's
+        # length, 30 s, which a last excursion one sample before the end gave)
+        design = scored.variants['design']
+        assert design.states['q']['settling_time'] == np.inf == settle['design']
+        assert design.states['q']['ss_std'] > scored.tolerance['q']
+    else:
+        assert np.isfinite(settle['design'])
+        assert settle['slow'] > settle['design'], settle
     for state in _estimated_states(vehicle):
         assert (scored.variants['slow'].states[state]['settling_time']
                 > scored.variants['design'].states[state]['settling_time']), state

@@ -89,10 +89,18 @@ def _metric(row):
     return max(values) if values else math.nan
 
 
+def _settling(row):
+    """Return a row's settling time as text: ``never`` where the error never settles."""
+    value = row['summary'].get('settling_time')
+    if value is None and _value(row['summary'].get('error_rms')) > 0.0:
+        return 'never'              # scored against the truth, settling inf (JSON None)
+    return _fmt(value)
+
+
 def format_batch(rows, summary):
     """Return the merged table and the summary as text."""
     body = [[r['bag'], r['variant'], r['observer_type'] or '-', r['estimates'],
-             _fmt(r['summary'].get('error_rms')), _fmt(r['summary'].get('settling_time')),
+             _fmt(r['summary'].get('error_rms')), _settling(r),
              ' '.join(f'{k}={_fmt(v)}' for k, v in _residual_rms(r).items()) or '-',
              r['error'] or ''] for r in rows]
     lines = [text_table(['bag', 'variant', 'observer', 'estimates', 'error_rms',

@@ -11,8 +11,9 @@ live estimate recorded on ``state/estimate`` is scored as the variant ``live``.
 Against ``state/true`` (matched by stamp, interpolated where the stamps differ) each
 variant gets, per state: RMSE, maximum absolute error, settling time (the time after
 which the error stays within a tolerance: 2 % of the state's range in the true
-trajectory unless ``--tolerance``) and the steady-state error spread and mean (over the
-last 20 % of the run: the noise the observer lets through). Always, per output: the
+trajectory unless ``--tolerance``; ``never`` when it still leaves the band in the steady
+state) and the steady-state error spread and mean (over the last 20 % of the run: the
+noise the observer lets through). Always, per output: the
 residual RMS and its whiteness (normalised autocorrelation at lags 1..k, the Ljung-Box
 statistic and its p-value, the fraction of lags outside +-1.96/sqrt(N)).
 

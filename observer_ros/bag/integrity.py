@@ -22,7 +22,8 @@ import struct
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.rosbag2.storage_mcap import McapWriter
 
-__all__ = ['CrcWriter', 'CrcMcapWriter', 'chunk_crcs', 'checksum_note', 'CRC_OFFSET']
+__all__ = ['CrcWriter', 'CrcMcapWriter', 'chunk_crcs', 'fill_chunk_crcs', 'checksum_note',
+           'CRC_OFFSET']
 
 # A Chunk record: opcode (1), length (8), message_start_time (8), message_end_time (8),
 # uncompressed_size (8), uncompressed_crc (4), compression, records.
@@ -78,6 +79,37 @@ def chunk_crcs(storage):
             raise ValueError(f'truncated chunk header at offset {chunk.chunk_start_offset}')
         out.append(struct.unpack('<I', raw)[0])
     return out
+
+
+def fill_chunk_crcs(path):
+    """
+    Write the CRC32 of every chunk of an MCAP file whose CRC field is 0, in place.
+
+    The CRC is that of the chunk's uncompressed records, as :class:`CrcMcapWriter`
+    writes it; nothing else in the file changes (the 4 bytes of each chunk's field).
+    A chunk that already has a CRC keeps it. Returns the number of chunks filled.
+
+    """
+    from rosbags.rosbag2.storage_mcap import decompress, McapReader
+    reader = McapReader(Path(path))
+    reader.open()
+    try:
+        todo = []
+        bio = reader.bio
+        for chunk, crc in zip(reader.chunks, chunk_crcs(reader)):
+            if crc:
+                continue
+            bio.seek(chunk.chunk_start_offset + 9 + 40 + len(chunk.compression))
+            data = decompress(bio.read(chunk.compressed_size), chunk.compression,
+                              chunk.uncompressed_size, 0)
+            todo.append((chunk.chunk_start_offset + CRC_OFFSET, crc32(data)))
+    finally:
+        reader.close()
+    with open(path, 'r+b') as f:
+        for at, crc in todo:
+            f.seek(at)
+            f.write(struct.pack('<I', crc))
+    return len(todo)
 
 
 def checksum_note(path, storage, crcs):

@@ -8,8 +8,10 @@ selected, the steady state selected), so a long bag can be scored block by block
 
 - rmse and max |error|: running sums of squares and maxima;
 - settling time: per epoch and state, the time (from the epoch's first matched sample)
-  of the sample after the last one outside the band, carried across blocks (inf when an
-  epoch's last sample is outside);
+  of the sample after the last one outside the band, carried across blocks; inf (printed
+  ``never``) when that sample falls in the steady state (the last ``steady_fraction`` of
+  the epoch: the error leaves the band there, it has not settled) or the epoch's last
+  sample is outside;
 - steady state: the last ``steady_fraction`` of each epoch by time, known before the
   blocks from each epoch's first and last matched time (:func:`epoch_spans`, one pass
   over the times only); its mean and population std merged block by block (Chan, Golub
@@ -126,7 +128,12 @@ class StateAccumulator:
                     for _ in range(self.n)]
         settle = np.zeros(self.n)
         for e, after in self.after_bad.items():
-            settle = np.maximum(settle, np.where(self.pending[e], math.inf, after))
+            # settled: inside the band from then on, through the steady state (the last
+            # steady_fraction of the epoch); later than that, or outside at the end, is
+            # never (an error that leaves the band in the steady state has not settled)
+            first, last = self.spans[e]
+            late = after > (1.0 - self.fraction) * (last - first)
+            settle = np.maximum(settle, np.where(self.pending[e] | late, math.inf, after))
         out = []
         for i in range(self.n):
             k = self.ss_count
