@@ -19,9 +19,9 @@ were published, unless told otherwise.
 from pathlib import Path
 
 import numpy as np
-from observer_ros.core.compensator import design_vehicle
 from observer_ros.core.estimators import make_estimator, process_noise_covariance
 from observer_ros.core.model import zoh_matrices
+from observer_ros.core.vehicle_design import design_vehicle
 from observer_ros.sensors import extract_measurement, fill_measurement
 from observer_ros.timeutil import ns_to_sec, sec_to_stamp_parts
 from rosbags.rosbag2 import StoragePlugin, Writer

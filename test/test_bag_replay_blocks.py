@@ -21,9 +21,9 @@ from observer_ros.bag.bulk_runs import _find_runs, _has_late
 from observer_ros.bag.reader import read_recording
 from observer_ros.bag.replay import epochs_of, innovation_health, replay
 from observer_ros.bag.replay_events import _epoch_cuts, _Events
-from observer_ros.core.compensator import design_vehicle
 from observer_ros.core.estimators import make_estimator
 from observer_ros.core.innovation import sequence_health, transient_time
+from observer_ros.core.vehicle_design import design_vehicle
 from observer_ros.vehicle import load_vehicle
 import pytest
 from test_bag_late import _bag as late_bag

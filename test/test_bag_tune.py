@@ -60,7 +60,7 @@ def simulate_noisy(v, q, seed, steps=STEPS, t0=1.0, x0=None, noise_scale=1.0):
 
     """
     from bag_synth import blank
-    from observer_ros.core.compensator import design_vehicle
+    from observer_ros.core.vehicle_design import design_vehicle
     from observer_ros.sensors import fill_measurement
     plant, dt = v.plant, v.sample_time
     Ad, Bd = zoh_matrices(plant.A, plant.B, dt)

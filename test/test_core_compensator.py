@@ -1,4 +1,4 @@
-"""Tests of observer_ros.core.compensator: closed loop, D(s), warnings, vehicle design."""
+"""Tests of core.closed_loop, core.vehicle_design and core.vehicle_report: loop, D(s), design."""
 
 import json
 import warnings
@@ -6,11 +6,10 @@ import warnings
 import control
 import numpy as np
 from numpy.testing import assert_allclose
-from observer_ros.core.compensator import (
+from observer_ros.core.closed_loop import (
     closed_loop_matrices, closed_loop_matrix, compensator_matrices, compensator_poles,
-    compensator_ss, compensator_tf, design_vehicle, design_warnings, error_dynamics_matrix,
-    format_report, observer_noise_gain, reduced_closed_loop_matrices,
-    reduced_closed_loop_matrix, separation_check, spectrum_match, to_json_dict, tracking_ok,
+    compensator_ss, compensator_tf, error_dynamics_matrix, reduced_closed_loop_matrices,
+    reduced_closed_loop_matrix, separation_check, spectrum_match, tracking_ok,
     tracking_residual)
 from observer_ros.core.design import controller_gain, observer_gain, reduced_order_observer
 from observer_ros.core.errors import (DesignError, DimensionError, NotDetectableError,
@@ -18,6 +17,8 @@ from observer_ros.core.errors import (DesignError, DimensionError, NotDetectable
 from observer_ros.core.model import Plant, zoh_matrices
 from observer_ros.core.spec import (ControllerSpec, ObserverSpec, SensorSpec, SimulatorSpec,
                                     Vehicle)
+from observer_ros.core.vehicle_design import design_vehicle, design_warnings, observer_noise_gain
+from observer_ros.core.vehicle_report import format_report, to_json_dict
 import pytest
 import scipy.linalg
 import scipy.optimize

@@ -6,10 +6,11 @@ from pathlib import Path
 import control
 import numpy as np
 from numpy.testing import assert_allclose
-from observer_ros.core.compensator import design_vehicle, format_report
 from observer_ros.core.delay_compensation import DelayCompensation, loop_delay_margin
 from observer_ros.core.estimators import History, make_estimator
 from observer_ros.core.model import zoh_matrices
+from observer_ros.core.vehicle_design import design_vehicle
+from observer_ros.core.vehicle_report import format_report
 from observer_ros.nodes.compensator import control_law
 from observer_ros.vehicle import load_vehicle
 import pytest

@@ -14,7 +14,6 @@ import warnings
 import late_sensors
 import numpy as np
 from numpy.testing import assert_allclose
-from observer_ros.core.compensator import design_vehicle, to_json_dict
 from observer_ros.core.design import observer_gain
 from observer_ros.core.errors import DesignVerificationError
 from observer_ros.core.estimators import FullOrderEstimator, make_estimator, placement
@@ -22,6 +21,8 @@ from observer_ros.core.estimators.sampled import check_sampled_observer, sensor_
 from observer_ros.core.model import Plant
 from observer_ros.core.spec import (ControllerSpec, ObserverSpec, SensorSpec, SimulatorSpec,
                                     Vehicle)
+from observer_ros.core.vehicle_design import design_vehicle
+from observer_ros.core.vehicle_report import to_json_dict
 from observer_ros.core.verify import verify_placement
 from observer_ros.vehicle import load_vehicle
 import pytest

@@ -13,13 +13,13 @@ import numpy as np
 from numpy.testing import assert_allclose
 from observer_ros.core.analysis import (numerical_rank, observability_report,
                                         observable_decomposition, obsv)
-from observer_ros.core.compensator import (closed_loop_matrix, compensator_matrices,
-                                           design_warnings, error_dynamics_matrix,
-                                           reduced_closed_loop_matrix, separation_check,
-                                           tracking_residual)
+from observer_ros.core.closed_loop import (closed_loop_matrix, compensator_matrices,
+                                           error_dynamics_matrix, reduced_closed_loop_matrix,
+                                           separation_check, tracking_residual)
 from observer_ros.core.design import (controller_gain, kalman_gain, observer_gain,
                                       reduced_order_observer)
 from observer_ros.core.errors import NotDetectableError
+from observer_ros.core.vehicle_design import design_warnings
 import pytest
 import scipy.linalg
 

@@ -9,13 +9,14 @@ from hypothesis import given, HealthCheck, settings, strategies as st
 import numpy as np
 from numpy.testing import assert_allclose
 from observer_ros.core.analysis import observability_report
-from observer_ros.core.compensator import design_vehicle, to_json_dict
 from observer_ros.core.design import kalman_gain, kalman_update_gain
 from observer_ros.core.errors import (DesignVerificationError, DimensionError, ObserverError,
                                       VehicleFileError)
 from observer_ros.core.model import Plant
 from observer_ros.core.spec import (ControllerSpec, ObserverSpec, SensorSpec, SimulatorSpec,
                                     Vehicle)
+from observer_ros.core.vehicle_design import design_vehicle
+from observer_ros.core.vehicle_report import to_json_dict
 from observer_ros.core.verify import eigenvalue_bounds, stability_status, unstable_eigenvalues
 from observer_ros.tools import design_report
 from observer_ros.vehicle import load_vehicle, parameters_to_yaml, vehicle_to_parameters

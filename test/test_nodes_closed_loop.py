@@ -5,8 +5,8 @@ import concurrent.futures
 
 import numpy as np
 from observer_ros.bag.vectors import read_vector_topic
-from observer_ros.core.compensator import design_vehicle
 from observer_ros.core.estimators import make_estimator
+from observer_ros.core.vehicle_design import design_vehicle
 from observer_ros.nodes.recorder import recorded_topics
 from observer_ros.tools.run_closed_loop import run_closed_loop
 from observer_ros.vehicle import load_vehicle

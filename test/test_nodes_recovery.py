@@ -6,9 +6,9 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import numpy as np
-from observer_ros.core.compensator import design_vehicle
 from observer_ros.core.delay_compensation import DelayCompensation
 from observer_ros.core.model import zoh_matrices
+from observer_ros.core.vehicle_design import design_vehicle
 from observer_ros.nodes.common import joint_state, SENSOR_QOS, STATE_QOS
 from observer_ros.timeutil import stamp_to_sec
 from observer_ros.vehicle import load_vehicle

@@ -5,7 +5,7 @@ import signal
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import numpy as np
-from observer_ros.core.compensator import design_vehicle
+from observer_ros.core.vehicle_design import design_vehicle
 from observer_ros.nodes.common import STATE_QOS
 from observer_ros.timeutil import stamp_to_ns
 from observer_ros.vehicle import load_vehicle

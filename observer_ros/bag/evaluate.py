@@ -46,8 +46,8 @@ from .reader import read_recording
 from .replay import CLOCK_JUMP_TOLERANCE, epochs_of, live_replay, replay
 from .report import BAG_MAX_MESSAGES, format_table, write_results
 from .results import EvalResult, jsonable, ScoredReplay, VariantResult
-from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
+from ..core.vehicle_design import design_vehicle
 
 __all__ = ['DEFAULT_TOLERANCE', 'STEADY_FRACTION', 'WHITENESS_LAGS', 'VariantResult',
            'EvalResult', 'JobResult', 'parse_variant', 'parse_compare', 'parse_tolerance',

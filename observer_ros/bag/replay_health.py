@@ -10,8 +10,8 @@ over each sensor's whitened residuals, the initial transient of each epoch left 
 
 import numpy as np
 
-from ..core.compensator import design_vehicle
 from ..core.innovation import sequence_health_blocks, transient_time
+from ..core.vehicle_design import design_vehicle
 
 __all__ = ['innovation_health']
 

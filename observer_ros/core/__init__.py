@@ -8,8 +8,8 @@ Nothing here imports rclpy or any ROS package (a test checks it).
 
 from .analysis import *     # noqa: F401,F403
 from .analysis import __all__ as _analysis_all
-from .compensator import *  # noqa: F401,F403
-from .compensator import __all__ as _compensator_all
+from .closed_loop import *  # noqa: F401,F403
+from .closed_loop import __all__ as _closed_loop_all
 from .design import *       # noqa: F401,F403
 from .design import __all__ as _design_all
 from .errors import *       # noqa: F401,F403
@@ -24,7 +24,12 @@ from .simulate import *     # noqa: F401,F403
 from .simulate import __all__ as _simulate_all
 from .spec import *         # noqa: F401,F403
 from .spec import __all__ as _spec_all
+from .vehicle_design import *  # noqa: F401,F403
+from .vehicle_design import __all__ as _vehicle_design_all
+from .vehicle_report import *  # noqa: F401,F403
+from .vehicle_report import __all__ as _vehicle_report_all
 
 __all__ = (list(_errors_all) + list(_model_all) + list(_spec_all) + list(_analysis_all)
-           + list(_design_all) + list(_compensator_all) + list(_estimators_all)
+           + list(_design_all) + list(_closed_loop_all) + list(_vehicle_design_all)
+           + list(_vehicle_report_all) + list(_estimators_all)
            + list(_simulate_all) + list(_innovation_all))

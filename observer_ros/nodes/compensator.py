@@ -34,12 +34,12 @@ from .checks import changed_pole_problem, divergence_envelopes, own_parameter_pr
 from .common import (checked_stamp, joint_state, LATCHED_QOS, MESSAGE_CLASSES, run_node,
                      SAFE_COMMAND_FRAME, SENSOR_QOS, stamp_to_sec, STATE_PUB_QOS, STATE_QOS,
                      TOPICS, vector_from_joint_state, VehicleNode)
-from ..core.compensator import design_vehicle
 from ..core.control_law import command_problem, control_law, ControlLaw
 from ..core.delay_compensation import DelayCompensation
 from ..core.errors import ObserverError
 from ..core.health import SettleCheck, settling_time
 from ..core.safe_command import SafeCommand
+from ..core.vehicle_design import design_vehicle
 
 __all__ = ['CompensatorNode', 'command_problem', 'control_law', 'main']
 

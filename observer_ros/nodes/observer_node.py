@@ -37,10 +37,10 @@ from .checks import changed_pole_problem, own_parameter_problem
 from .common import (checked_stamp, joint_state, MESSAGE_CLASSES, run_node, SENSOR_SUB_QOS,
                      STATE_PUB_QOS, STATE_QOS, TOPICS, vector_from_joint_state, VehicleNode)
 from .observer_health import ObserverHealth
-from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
 from ..core.estimators import History, make_estimator
 from ..core.innovation import InnovationMonitor, transient_time
+from ..core.vehicle_design import design_vehicle
 from ..sensors import extract_measurement
 
 __all__ = ['ObserverNode', 'covariance_names', 'main', 'silence_watch_period']

@@ -15,9 +15,10 @@ import json
 import sys
 import warnings
 
-from ..core.compensator import design_vehicle, format_report, to_json_dict
 from ..core.errors import ObserverError
 from ..core.sensor_subsets import format_sensor_subsets, sensor_subsets
+from ..core.vehicle_design import design_vehicle
+from ..core.vehicle_report import format_report, to_json_dict
 from ..vehicle import apply_overrides, load_vehicle, vehicle_from_parameters, \
     vehicle_to_parameters
 

@@ -23,8 +23,8 @@ import warnings
 
 import numpy as np
 
-from ..core.compensator import design_vehicle
 from ..core.errors import ObserverError
+from ..core.vehicle_design import design_vehicle
 from ..vehicle import (apply_overrides, load_parameters, load_vehicle, parameters_to_yaml,
                        vehicle_from_parameters)
 
