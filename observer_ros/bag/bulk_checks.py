@@ -120,12 +120,13 @@ def _windows(run, K):
     return merged
 
 
-def _check_windows(est, run, streams, cmd, rows, X, U, scale):
+def _check_windows(est, run, streams, cmd, rows, X, U, scale, setup=None):
     """
     Compare the bulk estimates X with the estimator's calls over the checked windows.
 
     Each window starts from the bulk estimate before it (the estimator itself for
-    the first one) and handles the recorded events as the main loop does, commands
+    the first one; ``setup(check, s0)`` puts in what else the estimator carries, a
+    Kalman filter's covariance) and handles the recorded events as the main loop does, commands
     included, so it checks which input each step holds as well as the arithmetic.
     Returns None, or a message naming the first difference beyond round-off.
 
@@ -138,6 +139,8 @@ def _check_windows(est, run, streams, cmd, rows, X, U, scale):
             t0 = float(tm[a + s0])
             check.reset(X[s0 - 1], t0)
             check.set_input(t0, U[s0 - 1])
+            if setup is not None:               # what else the estimator carries (P)
+                setup(check, s0)
         xs = _call_events(check, run, streams, cmd, rows, int(mev[a + s0]) + 1,
                           int(mev[a + s1]) + 1)
         err = np.max(np.abs(xs - X[s0:s1]), axis=1)

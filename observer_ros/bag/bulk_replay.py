@@ -30,6 +30,7 @@ import numpy as np
 
 from .bulk_checks import (_check_steps, _check_windows, _class_matvec, _spread, _term_scale,
                           _twin, CHECK_RTOL)
+from .bulk_kalman import kalman_maps
 from .step_maps import bulk_maps
 
 __all__ = ['affine_scan']
@@ -241,9 +242,17 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
     cls = cls.reshape(-1)
     W = np.zeros((K, n))
     Y = [None] * len(streams)
-    maps = _step_maps(est, run, first, sens, rows, warnings)
-    if maps is None:
-        return None
+    cov = setup = None
+    if getattr(est, 'kind', '') == 'kalman':     # maps from its covariance recursion
+        built = kalman_maps(est, run, first, cls, sens, rows)
+        if built is None:
+            return None
+        maps, cls, first, cov = built
+        setup = cov.set_on                       # a check starts from the step's P
+    else:
+        maps = _step_maps(est, run, first, sens, rows, warnings)
+        if maps is None:
+            return None
     Fs = maps[0]
     # an unstable estimator (the open loop of an unstable plant) amplifies every
     # difference in round-off until the end of the bag: call by call, as the node
@@ -264,6 +273,7 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
         return None
     Xprev = np.vstack([x0[None, :], X[:-1]])
     R = np.full((K, p), np.nan)
+    E = None if cov is None else np.full((K, p), np.nan)
     for k in range(len(streams)):
         sel = np.flatnonzero(sens == k)
         if not sel.size:
@@ -273,6 +283,8 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
         r = (_class_matvec(Rx, ck, Xprev[sel]) + _class_matvec(Ry, ck, Y[k])
              + _class_matvec(Ru, ck, U[sel]))
         R[np.ix_(sel, rows_idx[k])] = r
+        if E is not None:                        # whitened by the step's S
+            E[np.ix_(sel, rows_idx[k])] = _class_matvec(cov.whiten, ck, r)
     # round-off is relative to the size of the terms of a step, |F| |x| + |G| |y| +
     # |H| |u| (the map of a reduced-order observer in x coordinates has large entries
     # that cancel), and to the largest of them so far: the estimate may shrink to zero
@@ -282,12 +294,14 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
     # events, and one step of each class from its bulk prior
     problem = _check_steps(run, cmd, maps, cls, sens, Y, X, x0, est.u, scale)
     if problem is None:
-        problem = _check_windows(est, run, streams, cmd, rows, X, U, scale)
+        problem = _check_windows(est, run, streams, cmd, rows, X, U, scale, setup)
     check = _twin(est)
     for f in _spread(first, CHECK_CLASSES) if problem is None else ():
         k = int(sens[f])
         check.reset(Xprev[f], float(tm[a + f]))
         check.set_input(float(tm[a + f]), U[f])
+        if setup is not None:
+            setup(check, f)
         x = check.correct(float(tm[a + f + 1]), streams[k].values[idx[f]], rows[k])
         err = float(np.max(np.abs(x - X[f])))
         if err > CHECK_RTOL * scale[f]:
@@ -297,18 +311,24 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
         warnings.append("bulk replay disabled: it differs from the estimator's calls by "
                         f'{problem}; replaying call by call')
         return None
-    out_ns, out_x, out_r, out_seq, out_sensor = out
+    out_ns, out_x, out_r, out_seq, out_sensor, out_e = out
     for k in range(len(streams)):
         sel = sens == k
         out_ns[m:m + K][sel] = streams[k].stamp_ns[idx[sel]]
     out_x[m:m + K] = X
     out_r[m:m + K] = R
+    if E is not None:
+        out_e[m:m + K] = E
     out_seq[m:m + K] = run['seq'][ev]
     out_sensor[m:m + K] = sens
     t_b = float(tm[b])
     # hand over: the estimator is at x_b, t_b, holding the input it held at b
     est.reset(X[-1], t_b)
     est.set_input(t_b, U[-1])
+    if cov is not None:                          # and the covariance of its last step
+        c = cls[-1]
+        est._P, est._S, est._gain_used = cov.post[c].copy(), cov.S[c].copy(), \
+            cov.gain[c].copy()
     last = {int(k): float(tm[a + 1 + int(np.flatnonzero(sens == k)[-1])])
             for k in np.unique(sens)}
     return K, run['last_event'], last

@@ -130,7 +130,7 @@ def _variant_sensors(vehicle, recording):
 
 def _bulk_capable(est):
     kind = getattr(est, 'kind', '')
-    if kind == 'open_loop':
+    if kind in ('open_loop', 'kalman'):
         return True
     return kind in ('full', 'reduced') and getattr(est, 'gain', None) is None
 
@@ -297,7 +297,8 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
         while run is not None:
             b = out.local(m)
             done = _bulk_run(est, run, streams, cmd, rows, rows_idx,
-                             (out.ns, out.x, out.r, out.seq, out.sensor), b, warnings)
+                             (out.ns, out.x, out.r, out.seq, out.sensor, out.e), b,
+                             warnings)
             if done is None:             # check failed: replay everything call by call
                 runs = {}
                 break

@@ -15,7 +15,7 @@ from .steps import _discrete_noise, CACHE_SIZE, DT_DIGITS, GAIN_DIGITS, \
 from ..errors import DesignError
 from ..model import as_matrix
 
-__all__ = ['KalmanEstimator']
+__all__ = ['KalmanEstimator', 'kalman_correction']
 
 
 class KalmanEstimator(Estimator):
@@ -118,10 +118,30 @@ class KalmanEstimator(Estimator):
     def _propagate(self, step):
         self._propagate_model(step)
         if self._P is not None:
-            Ad = step.Ad
-            P = Ad @ self._P @ Ad.T
-            P += self._noise(step)
-            self._P = P
+            self._P = self.prior_covariance(step, self._P)
+
+    def prior_covariance(self, step, P):
+        """Return ``Ad P Ad^T + Qk`` of a step entry (``cache.step(dt)``): the prior of P."""
+        Ad = step.Ad
+        P = Ad @ P @ Ad.T
+        P += self._noise(step)
+        return P
+
+    def first_prior(self, step, rows):
+        """
+        Return the prior P of a first correction after a step entry, P not known yet.
+
+        The steady-state covariance of that step for those rows (see P0), as the
+        filter's first correction after its initial estimate takes it.
+
+        """
+        info = self._rows_info(rows, 'rows')
+        return self._steady_prior(step, info, self._R_rows(info))
+
+    def rows_model(self, rows):
+        """Return the output rows' ``(C_r, D_r, R_rr)`` (rows: a tuple of measured rows)."""
+        info = self._rows_info(rows, 'rows')
+        return info.C, info.D, self._R_rows(info)
 
     def _R_rows(self, info):
         R = self._rows_R.get(info.rows)
@@ -152,17 +172,9 @@ class KalmanEstimator(Estimator):
             if h <= 0.0:
                 return
             self._P = self._steady_prior(self._cache.step(h), info, R)
-        P = self._P
-        C = info.C
-        PCt = P @ C.T
-        S = C @ PCt + R
-        self._S = S
-        K = np.linalg.solve(S, PCt.T).T
+        self._S, K, self._P = kalman_correction(self._P, info.C, R, self._I)
         self._gain_used = K
         self._x = self._x + K @ innov
-        IKC = self._I - K @ C
-        P = IKC @ P @ IKC.T + K @ R @ K.T
-        self._P = 0.5 * (P + P.T)
         self._t_anchor = self._t
 
     def _shift_correction(self, state, new, dx, dyb, info, t, carry):
@@ -173,6 +185,23 @@ class KalmanEstimator(Estimator):
         if K is not None:
             dx = dx + K @ dres
         return (dx,) + self._shifted(state, new, dx, dres) + (state[slots['_S']],)
+
+
+def kalman_correction(P, C, R, eye):
+    """
+    Return ``(S, K, P+)`` of a correction of the prior covariance P by rows (C, R).
+
+    ``S = C P C^T + R``, ``K = P C^T S^-1`` and the Joseph form
+    ``P+ = (I - K C) P (I - K C)^T + K R K^T``, symmetrised (``eye``: the identity of
+    P's size). The filter's own arithmetic, shared by the bulk replay.
+
+    """
+    PCt = P @ C.T
+    S = C @ PCt + R
+    K = np.linalg.solve(S, PCt.T).T
+    IKC = eye - K @ C
+    P = IKC @ P @ IKC.T + K @ R @ K.T
+    return S, K, 0.5 * (P + P.T)
 
 
 def _as_covariance(X, name, size):
