@@ -6,6 +6,8 @@
 PY := .venv/bin/python
 STAMP := .venv/.observer_ros-installed
 VEHICLE ?= config/submarine.yaml
+# more options for observer-run, e.g. ARGS='-p simulator.duration:=10.0'
+ARGS ?=
 TOOLS := observer_design observer_eval observer_eval_batch observer_tune observer_play observer_run \
 	observer_bag_recover
 ROS2CLI := ../shared/ros2cli
@@ -26,7 +28,7 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	.venv/bin/observer-run $(VEHICLE) --evaluate
+	.venv/bin/observer-run $(VEHICLE) --evaluate $(ARGS)
 
 test: $(STAMP)
 	$(PY) -W ignore::DeprecationWarning -m pytest -q -p no:cacheprovider test

@@ -4,7 +4,8 @@ from bag_synth import CONFIG, simulate, write_bag
 import numpy as np
 from observer_ros.bag.evaluate import evaluate_bag
 from observer_ros.core.errors import DesignVerificationError
-from observer_ros.tools.run_closed_loop import _print_summary, diverging, summarize_bag
+from observer_ros.tools.run_closed_loop import (_print_summary, diverging, run_scale,
+                                                summarize_bag)
 from observer_ros.vehicle import load_vehicle
 import pytest
 
@@ -45,9 +46,29 @@ def test_diverging_trajectory_is_never_settled():
     assert diverging(np.array([[1.0], [np.inf]]))
     decay = np.exp(-0.8 * t)[:, None] * np.array([[1.0, -0.5]])
     assert not diverging(decay)
-    # the n = 20 run of issue #11: 1e57 within the first steps, then "decaying"
+    # 1e57 within the first steps, then "decaying"
     blew = np.concatenate([[[0.45]], [[3e7]], [[1e57]], 1e57 * decay[:, :1]])
     assert diverging(blew)
+
+
+def test_a_move_from_rest_to_the_reference_converges():
+    """The cart from x(0) = 0 to x_d = 1 m: judged by its error from x_d, not by |x(0)|."""
+    vehicle = load_vehicle(str(CONFIG / 'cart_pendulum.yaml'))
+    scale = run_scale(vehicle)
+    assert scale.tolist() == [1.0, 1.0, 1.0, 1.0]      # x_d moves x by 1; the rest take it
+    x_d = np.array(vehicle.controller.reference)
+    t = np.arange(1001) * 0.01
+    move = np.outer(1.0 - np.exp(-t), x_d)
+    move[:, 0] = 0.1 * np.exp(-t) * np.sin(3.0 * t)    # the pendulum swings and settles
+    assert not diverging(move, x_d, scale)
+    # the cart runs away from the reference, 14 m by the end: diverging
+    away = np.zeros_like(move)
+    away[:, 1] = 1.0 - 1.5 * (1.0 - np.exp(-0.3 * t)) * t
+    assert diverging(away, x_d, scale)
+    # 100 x the scale anywhere: blown up, even if it comes back
+    spike = move.copy()
+    spike[10, 0] = 150.0
+    assert diverging(spike, x_d, scale)
 
 
 def test_eval_variant_gains_are_verified_before_replay(tmp_path):

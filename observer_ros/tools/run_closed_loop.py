@@ -24,7 +24,9 @@ import warnings
 import numpy as np
 
 from ..core.errors import ObserverError
+from ..core.health import Envelope, ENVELOPE_FACTOR
 from ..core.vehicle_design import design_vehicle
+from ..nodes.checks import state_scale
 from ..vehicle import (apply_overrides, load_parameters, load_vehicle, parameters_to_yaml,
                        vehicle_from_parameters)
 
@@ -221,8 +223,12 @@ def summarize_bag(bag_path, vehicle, namespace=None):
     -------
     dict
         ``final_time``, ``final_state``, ``final_estimate``, ``final_error_norm``,
-        ``samples`` per topic, per state ``settling_time`` (2% band around its final
-        value, measured from the start of the run; None when the run diverges),
+        ``samples`` per topic, per state ``settling_time`` (from the start of the run
+        until ``|x - x_d|`` stays within 2 % of the larger of its largest value in the
+        run and the state's :func:`run_scale`; None when
+        the run diverges or ends outside that band), ``settled`` (that time is within the
+        first 90 % of the run), ``final_reference_error`` (the largest ``|x - x_d|`` of the
+        run's last tenth and the mean of ``x - x_d`` over it),
         ``lost_steps`` (steps of the vehicle's run, at which a sensor was due, that have
         no estimate or no command in the bag: lost, or timed out and held),
         ``expected_steps`` and ``diverging`` (see :func:`diverging`).
@@ -240,23 +246,41 @@ def summarize_bag(bag_path, vehicle, namespace=None):
     i = min(i, len(t_true) - 1)
     err = x_true[i] - x_est[-1]
     lost, expected = _lost_steps(bag_path, vehicle, prefix, t_true, t_est)
-    growing = diverging(x_true)
-    settle = {}
+    x_d = np.zeros(len(names)) if vehicle.controller.reference is None else \
+        np.asarray(vehicle.controller.reference, dtype=float)
+    scale = run_scale(vehicle)
+    growing = diverging(x_true, x_d, scale)
+    settle, settled, off = {}, {}, {}
+    span = float(t_true[-1] - t_true[0])
+    tenth = max(1, len(t_true) // 10)
     for j, name in enumerate(names):
+        signed = x_true[:, j] - x_d[j]
+        e = np.abs(signed)
+        off[name] = (float(np.max(e[-tenth:])), float(np.mean(signed[-tenth:])))
         if growing:
-            settle[name] = None   # a diverging state is not settling, whatever its band
+            # a diverging state is not settling, whatever its band
+            settle[name], settled[name] = None, False
             continue
-        x = x_true[:, j]
-        band = 0.02 * max(np.max(np.abs(x)), 1e-12)
-        outside = np.nonzero(np.abs(x - x[-1]) > band)[0]
-        settle[name] = float(t_true[outside[-1] + 1] - t_true[0]) if outside.size and \
-            outside[-1] + 1 < len(t_true) else 0.0
+        # the 2 % band around the reference, of the motion the file asks for or the
+        # state's own, whichever is larger
+        band = 0.02 * max(float(np.max(e)), scale[j])
+        outside = np.nonzero(e > band)[0]
+        if not outside.size:
+            settle[name] = 0.0
+        elif outside[-1] + 1 < len(t_true):
+            settle[name] = float(t_true[outside[-1] + 1] - t_true[0])
+        else:
+            settle[name] = None     # outside at the end of the run
+        # inside for the run's last tenth at least: one sample inside is no verdict
+        settled[name] = settle[name] is not None and settle[name] <= 0.9 * span
     return {
         'final_time': float(t_true[-1] - t_true[0]),
         'final_state': x_true[-1].tolist(),
         'final_estimate': x_est[-1].tolist(),
         'final_error_norm': float(np.linalg.norm(err)),
         'settling_time': settle,
+        'settled': settled,
+        'final_reference_error': off,
         'samples': {'state/true': int(len(t_true)), 'state/estimate': int(len(t_est))},
         'lost_steps': lost,
         'expected_steps': expected,
@@ -264,20 +288,45 @@ def summarize_bag(bag_path, vehicle, namespace=None):
     }
 
 
-def diverging(x, growth=10.0, blow_up=1e6):
+def run_scale(vehicle):
     """
-    Return True when a trajectory grows or blows up instead of settling.
+    Return the scale of a run's motion, per state: what its errors are judged against.
+
+    The largest magnitude the file gives each state (``simulator.initial_state``,
+    ``observer.initial_estimate``, ``controller.reference``); a state none of them moves
+    (a velocity, the cart's pendulum angle) takes the largest of the others, and a run with
+    none (a regulator started at rest) takes 1: the divergence envelope's file scale
+    (``nodes/checks.py``).
+    """
+    return Envelope(vehicle.plant.state_names, state_scale(vehicle), 'x').file_scale
+
+
+def diverging(x, x_d=None, scale=None, growth=10.0, factor=ENVELOPE_FACTOR, floor=0.01):
+    """
+    Return True when a trajectory grows or blows up instead of converging to the reference.
+
+    The error is ``x - x_d``, each state's in units of its ``scale`` (:func:`run_scale`:
+    the motion the file asks for), so a cart moved by 1 m from rest is judged by how far it
+    is from its 1 m, not by how far it went from x(0) = 0.
 
     Parameters
     ----------
     x : (N, n) array_like
         The true state, one row per step.
+    x_d : (n,) array_like, optional
+        The reference (default 0: a regulator).
+    scale : (n,) array_like, optional
+        The scale of each state's motion (default: the largest ``|x(0)|``, or 1).
     growth : float
-        Diverging when the largest ``|x|`` of the last tenth of the run exceeds the
-        largest of the first tenth by this factor,
-    blow_up : float
-        or when ``|x|`` anywhere exceeds ``|x(0)|`` by this factor (a loop that reached
-        1e57 in its first steps and "decays" from there), or is not finite.
+        Diverging when the largest scaled error of the last tenth of the run exceeds
+        ``growth`` times that of the first tenth (and ``growth * floor``),
+    factor : float
+        or when a scaled error anywhere exceeds ``factor`` (100: the nodes' divergence
+        envelope; a loop that reached 1e57 in its first steps and "decays" from there),
+        or a state is not finite.
+    floor : float
+        The smallest first-tenth error the growth is measured from (a regulator started at
+        its reference is not diverging when noise moves it by a few thousandths of its scale).
 
     Returns
     -------
@@ -289,12 +338,15 @@ def diverging(x, growth=10.0, blow_up=1e6):
         return True
     if not x.size:
         return False
+    n = x.shape[1]
+    x_d = np.zeros(n) if x_d is None else np.asarray(x_d, dtype=float)
+    if scale is None:
+        scale = np.full(n, max(float(np.max(np.abs(x[0]))), 1.0))
+    err = np.abs(x - x_d) / np.asarray(scale, dtype=float)
     k = max(1, len(x) // 10)
-    first = float(np.max(np.abs(x[:k])))
-    last = float(np.max(np.abs(x[-k:])))
-    start = float(np.max(np.abs(x[0])))
-    return last > growth * max(first, 1e-300) or \
-        float(np.max(np.abs(x))) > blow_up * max(start, 1e-300)
+    first = float(np.max(err[:k]))
+    last = float(np.max(err[-k:]))
+    return last > growth * max(first, floor) or float(np.max(err)) > factor
 
 
 def _lost_steps(bag_path, vehicle, prefix, t_true, t_est):
@@ -324,18 +376,28 @@ def _print_summary(vehicle, summary):
     print(f'  final |x - x_hat| = {summary["final_error_norm"]:.3e}')
     for j, name in enumerate(names):
         settle = summary['settling_time'][name]
-        verdict = 'DIVERGING, not settled' if settle is None else \
-            f'settled (2%) after {settle:.2f} s'
+        if summary['diverging']:
+            verdict = 'DIVERGING, not settled'
+        elif summary['settled'][name]:
+            verdict = f'settled (2%) after {settle:.2f} s'
+        else:
+            peak, mean = summary['final_reference_error'][name]
+            verdict = (f'not settled: x - x_d in the last tenth of the run up to {peak:.3g} '
+                       f'(mean {mean:.3g})')
         print(f'  {name:>10}: final {summary["final_state"][j]: .6f}  '
               f'estimate {summary["final_estimate"][j]: .6f}  {verdict}')
     problems = []
-    if summary['lost_steps']:
+    if summary['lost_steps'] and vehicle.simulator.mode == 'lockstep':
         problems.append(f'{summary["lost_steps"]} of {summary["expected_steps"]} steps have no '
                         'estimate or no command in the bag (lost, or timed out and held): the '
                         'run is not the lock-step closed loop of the design')
+    elif summary['lost_steps']:
+        print(f'  {summary["lost_steps"]} of {summary["expected_steps"]} steps have no estimate '
+              'or no command stamped at them (realtime: the simulator does not wait for them)')
     if summary['diverging']:
-        problems.append('the closed loop diverges: the true state grows more than 10x over '
-                        'the run, or to more than 1e6 times its initial size')
+        problems.append('the closed loop diverges: the error from the reference grows more than '
+                        '10x over the run, or beyond 100 times the scale of the motion (the '
+                        'initial state and x_d)')
     for text in problems:
         print(f'  FAILED: {text}')
     return problems
@@ -488,7 +550,7 @@ def lessons(vehicle, design, result, summary, slow_summary):
 
 
 def _secs(t):
-    return 'never (diverging)' if t is None else f'{t:.2f} s'
+    return 'not within the run' if t is None else f'{t:.2f} s'
 
 
 def _fmt(values):
