@@ -191,6 +191,26 @@ def test_history_is_bounded_by_the_number_of_messages():
     assert not history.accepts(1.0 + 0.001 * (oldest - 1))
 
 
+@pytest.mark.parametrize('kind', KINDS)
+def test_a_stream_arriving_twice_drops_its_old_entries_without_comparing_arrays(kind):
+    """
+    Every message twice, equal stamps and values (two publishers answering one stream).
+
+    The entries of one stamp are then equal up to their saved states (arrays): the old
+    entries are dropped by finding a checkpoint by identity, never by equality, which
+    raised "The truth value of an array with more than one element is ambiguous".
+    """
+    history = History(make(kind), length=0.05)
+    msgs = stamp_order(messages(duration=1.0))
+    stamps = sorted({m[0] for m in msgs})
+    for t in stamps:        # each stamp's measurements and command, then the same again
+        group = [m for m in msgs if m[0] == t]
+        feed(history, group + group)
+    assert history.t == msgs[-1][0]
+    assert len(history) <= 2 * 3 * (0.05 / 0.01 + 1 + CHECKPOINT_EVERY)   # bounded
+    assert np.all(np.isfinite(history.x_hat))
+
+
 def test_a_bad_late_message_leaves_the_history_as_it_was():
     history = History(make('kalman'), length=0.5)
     msgs = stamp_order(messages(duration=0.3))

@@ -40,8 +40,10 @@ the other estimates live.
 
 """
 
+from bisect import bisect_left
 from collections import deque
 import math
+from operator import itemgetter
 
 from .base import TimeOrderError
 from .rewind import _COMMAND, _entry, _KIND, _MEASUREMENT, _RESIDUAL, _ROWS, _S, _STATE, _T, \
@@ -55,6 +57,8 @@ __all__ = ['History', 'HISTORY_LENGTH', 'HISTORY_MAX_MESSAGES', 'CHECKPOINT_EVER
 #: on the cost of a rewind when stamps crowd: 2.5e4 is 0.25 s at 100 kHz). When it is
 #: reached, the oldest are dropped and the window is shorter.
 HISTORY_MAX_MESSAGES = 25000
+
+_stamp = itemgetter(_T)
 
 
 class History(Rewinding):
@@ -437,7 +441,7 @@ class History(Rewinding):
         upto = None
         while checkpoints and checkpoints[0][_T] < horizon and checkpoints[0] is not newest:
             upto = checkpoints.popleft()
-        drop = 0 if upto is None else entries.index(upto) + 1    # identity first: C speed
+        drop = 0 if upto is None else _position(entries, upto) + 1
         if len(entries) - drop > self._max:         # rare: stamps crowd
             last = len(entries) - 1
             drop = len(entries) - self._max
@@ -452,3 +456,18 @@ class History(Rewinding):
             del entries[:drop]
             if upto is True:
                 self._find_checkpoints()
+
+
+def _position(entries, entry):
+    """
+    Return the index of ``entry`` itself (by identity) in the stamp-ordered ``entries``.
+
+    Never by equality: two messages with one stamp and equal values (a stream arriving
+    twice) are equal lists up to their saved states, numpy arrays, which cannot be
+    compared as one truth value. A bisection on the stamps, then identity among the
+    entries of that stamp.
+    """
+    i = bisect_left(entries, entry[_T], key=_stamp)
+    while entries[i] is not entry:
+        i += 1
+    return i
