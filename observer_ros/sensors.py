@@ -28,7 +28,8 @@ import numpy as np
 
 from .core.errors import ObserverError, VehicleFileError
 
-__all__ = ['IMU', 'JOINT_STATE', 'FLOAT64', 'MESSAGE_FIELDS', 'MeasurementError',
+__all__ = ['IMU', 'JOINT_STATE', 'FLOAT64', 'MESSAGE_FIELDS', 'FIELD_UNITS', 'field_units',
+           'MeasurementError',
            'FieldAccessor', 'parse_field', 'field_help', 'extract_measurement',
            'fill_measurement', 'quaternion_to_euler', 'euler_to_quaternion']
 
@@ -48,6 +49,23 @@ MESSAGE_FIELDS = {
     JOINT_STATE: tuple(f'{array}.<joint>' for array in _JOINT_ARRAYS),
     FLOAT64: ('data',),
 }
+
+
+# The units ROS gives each field (REP 103: SI; sensor_msgs' own comments), by its first
+# part: a JointState joint is revolute (rad) or prismatic (m); Float64 has no convention.
+FIELD_UNITS = {
+    (IMU, 'angular_velocity'): ('rad/s',),
+    (IMU, 'linear_acceleration'): ('m/s^2',),
+    (IMU, 'orientation'): ('rad',),
+    (JOINT_STATE, 'position'): ('rad', 'm'),
+    (JOINT_STATE, 'velocity'): ('rad/s', 'm/s'),
+    (JOINT_STATE, 'effort'): ('N*m', 'N'),
+}
+
+
+def field_units(msg_type, field):
+    """Return the units ROS allows for a sensor field (empty: no convention)."""
+    return FIELD_UNITS.get((msg_type, field.split('.', 1)[0]), ())
 
 
 class MeasurementError(ObserverError, ValueError):

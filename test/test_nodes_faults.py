@@ -259,12 +259,12 @@ def test_silent_sensor_means_predict_only(observer_setup):
 
 def test_silence_is_watched_slowly_and_predicted_at_the_rate(tmp_path):
     """
-    ``observer.rate_hz`` 200: once the sensor is silent, predictions 5 ms apart; twice.
+    ``observer.rate_hz`` 200 (a 200 Hz gyro): once it is silent, predictions 5 ms apart; twice.
 
     While the sensors speak their silence is watched every 50 ms (a tenth of the 0.5 s
     timeout), not at the prediction rate: the timer must switch both ways.
     """
-    params = NODE_PARAMS + ('observer.rate_hz:=200.0',)
+    params = NODE_PARAMS + ('simulator.rate_hz:=200.0', 'observer.rate_hz:=200.0')
     with observer_under_test(tmp_path, params=params) as run:
         pub, listener, probe = run.pubs['imu/data'], run.listener, run.probe
         for _ in range(2):

@@ -55,6 +55,11 @@ def text_table(header, rows):
                      [line(r) for r in rows])
 
 
+def _unit(result, kind, name):
+    """Return the unit of a state or output as the vehicle file states it ('-' if not)."""
+    return result.vehicle.unit(kind, name) or '-'
+
+
 def _numeric(text):
     return bool(re.match(r'^[-+0-9.e]+$|^-$|^never$', str(text)))
 
@@ -83,10 +88,10 @@ def format_table(result):
         rows = []
         for name, vr in result.variants.items():
             for state, m in vr.states.items():
-                rows.append([name, state, fmt(m['rmse']), fmt(m['max_abs_error']),
-                             fmt(m['settling_time']), fmt(m['ss_std']),
-                             fmt(m['ss_mean'])])
-        lines += ['', text_table(['variant', 'state', 'rmse', 'max|err|', 'settle[s]',
+                rows.append([name, state, _unit(result, 'state', state), fmt(m['rmse']),
+                             fmt(m['max_abs_error']), fmt(m['settling_time']),
+                             fmt(m['ss_std']), fmt(m['ss_mean'])])
+        lines += ['', text_table(['variant', 'state', 'unit', 'rmse', 'max|err|', 'settle[s]',
                                   'ss_std', 'ss_mean'], rows)]
     else:
         lines += ['', 'no state/true in the bag: residuals only']
@@ -95,13 +100,13 @@ def format_table(result):
         for output, m in vr.outputs.items():
             if not m['samples']:
                 continue
-            rows.append([name, output, m['samples'], fmt(m['residual_rms']),
-                         fmt(m['ljung_box_q']), fmt(m['ljung_box_p'], 3),
-                         fmt(m['acf_outside'], 3)])
+            rows.append([name, output, _unit(result, 'output', output), m['samples'],
+                         fmt(m['residual_rms']), fmt(m['ljung_box_q']),
+                         fmt(m['ljung_box_p'], 3), fmt(m['acf_outside'], 3)])
     if rows:
         lines += ['', 'residual whiteness (Ljung-Box over lags 1..'
                       f'{WHITENESS_LAGS}; p small = not white; acf_out ~0.05 if white)',
-                  '', text_table(['variant', 'output', 'N', 'rms', 'LB_Q', 'LB_p',
+                  '', text_table(['variant', 'output', 'unit', 'N', 'rms', 'LB_Q', 'LB_p',
                                   'acf_out'], rows)]
     rows = [[name, sensor, h['samples'], h.get('transient', 0), fmt(h['nis_mean']),
              f"{h['windows_inconsistent']}/{h['windows']}", fmt(h['whiteness_p'], 3),
@@ -120,7 +125,7 @@ def format_table(result):
 
 _CSV_COLUMNS = ['variant', 'observer', 'kind', 'name', 'samples', 'rmse', 'max_abs_error',
                 'settling_time', 'ss_std', 'ss_mean', 'tolerance', 'residual_rms',
-                'ljung_box_q', 'ljung_box_p', 'acf_outside']
+                'ljung_box_q', 'ljung_box_p', 'acf_outside', 'unit']
 
 
 def _csv_rows(result):
@@ -128,12 +133,14 @@ def _csv_rows(result):
     for name, vr in result.variants.items():
         for state, m in vr.states.items():
             rows.append(dict(variant=name, observer=vr.kind, kind='state', name=state,
-                             tolerance=result.tolerance.get(state), **m))
+                             tolerance=result.tolerance.get(state),
+                             unit=result.vehicle.unit('state', state), **m))
         for output, m in vr.outputs.items():
             rows.append({'variant': name, 'observer': vr.kind, 'kind': 'output', 'name': output,
                          'samples': m['samples'], 'residual_rms': m['residual_rms'],
                          'ljung_box_q': m['ljung_box_q'], 'ljung_box_p': m['ljung_box_p'],
-                         'acf_outside': m['acf_outside']})
+                         'acf_outside': m['acf_outside'],
+                         'unit': result.vehicle.unit('output', output)})
     return rows
 
 

@@ -138,6 +138,10 @@ class EvalResult:
             'ground_truth': self.truth is not None,
             'tolerance': dict(self.tolerance),
             'tolerance_rule': self.tolerance_rule,
+            'units': {kind: {name: self.vehicle.unit(kind, name) for name in names}
+                      for kind, names in (('state', self.vehicle.plant.state_names),
+                                          ('input', self.vehicle.plant.input_names),
+                                          ('output', self.vehicle.plant.output_names))},
             'variants': {},
             'warnings': list(self.warnings),
         }

@@ -107,6 +107,18 @@ class Vehicle:
     source: str = ''
     warnings: Tuple[str, ...] = field(default=())   # loader warnings (unknown keys, ...)
     origin: str = ''                                # the file or node it was read from
+    # the unit of each state, input and output ('' where unstated): model.*_units
+    state_units: Tuple[str, ...] = field(default=())
+    input_units: Tuple[str, ...] = field(default=())
+    output_units: Tuple[str, ...] = field(default=())
+
+    def unit(self, kind, name):
+        """Return the unit of a state, input or output by name ('' when unstated)."""
+        names, units = {'state': (self.plant.state_names, self.state_units),
+                        'input': (self.plant.input_names, self.input_units),
+                        'output': (self.plant.output_names, self.output_units)}[kind]
+        i = list(names).index(name)
+        return units[i] if i < len(units) else ''
 
     @property
     def sample_time(self):

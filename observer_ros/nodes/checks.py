@@ -15,25 +15,17 @@ import math
 import numpy as np
 
 from ..core.health import Envelope
+from ..vehicle.schema import bound_problem, NODE_KEYS
 
-__all__ = ['OWN_PARAMETER_RANGES', 'own_parameter_problem', 'changed_pole_problem',
-           'divergence_envelopes']
-
-# A node's own numeric parameters: (lowest, highest, lowest excluded), in their units.
-OWN_PARAMETER_RANGES = {
-    'clock_jump_tolerance': (0.0, 3600.0, True),     # s
-    'future_tolerance': (0.0, 1e9, True),            # s
-    'diagnostics_period': (0.01, 3600.0, False),     # s
-    'start_time': (0.0, 1e9, True),                  # s
-    'wait_for_subscribers': (0, 1000, False),
-    'command_lead_steps': (0, 100, False),
-}
-BOOL_PARAMETERS = ('publish_array', 'publish_clock', 'wait_for_recorder', 'exit_when_done')
+__all__ = ['own_parameter_problem', 'changed_pole_problem', 'divergence_envelopes']
 
 
 def own_parameter_problem(params):
     """
     Return why one of these parameter changes is refused, or None.
+
+    The bounds are the schema's (``observer_ros.vehicle.schema.NODE_KEYS``), the ones the
+    nodes' descriptors give ROS.
 
     Parameters
     ----------
@@ -47,19 +39,21 @@ def own_parameter_problem(params):
 
     """
     for p in params:
-        if p.name in BOOL_PARAMETERS and not isinstance(p.value, bool):
-            return f'{p.name}: expected true or false; got {p.value!r}'
-        if p.name not in OWN_PARAMETER_RANGES:
+        spec = NODE_KEYS.get(p.name)
+        if spec is None:
             continue
-        low, high, strict = OWN_PARAMETER_RANGES[p.name]
         value = p.value
+        if spec.param_type == 'BOOL':
+            if not isinstance(value, bool):
+                return f'{p.name}: expected true or false; got {value!r}'
+            continue
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             return f'{p.name}: expected a number; got {value!r}'
         if not math.isfinite(value):
             return f'{p.name}: {value} is not finite'
-        if value < low or (strict and value == low) or value > high:
-            bracket = '(' if strict else '['
-            return f'{p.name}: {value} is outside {bracket}{low:g}, {high:g}]'
+        problem = bound_problem(spec, value)
+        if problem is not None:
+            return f'{p.name}: {problem}'
     return None
 
 

@@ -26,7 +26,7 @@ from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64
 
 from .command_line import check_command_line, program_name
-from .parameters import declare_parameters
+from .parameters import declare_parameters, set_undeclared
 from ..core.errors import ObserverError
 from ..timeutil import ns_to_sec, sec_to_stamp_parts, stamp_to_sec
 from ..vehicle import vehicle_from_parameters
@@ -203,7 +203,7 @@ class VehicleNode(Node):
                 f'parameters: {err} (an empty list [] has no type in ROS 2: remove the key '
                 'or give it values; double arrays need floats, 1.0 not 1)') from None
         # each with a ParameterDescriptor: description, read_only, range (nodes/parameters.py)
-        declare_parameters(self, [(entry + ('',))[:3] for entry in own_parameters])
+        declare_parameters(self, own_parameters)
         if not any(name.split('.', 1)[0] in VEHICLE_SECTIONS for name in self._parameters):
             raise ObserverError('no vehicle parameters: start the node with --ros-args '
                                 '--params-file config/<vehicle>.yaml (see --help)')
@@ -227,6 +227,23 @@ class VehicleNode(Node):
     def wall_now():
         """Return steady-clock seconds (for ages and timeouts; cheap on the hot path)."""
         return time.monotonic()
+
+    def set_parameters_atomically(self, parameter_list):
+        """
+        Set parameters as rclpy does; declare first a writable vehicle key not yet declared.
+
+        ``ros2 param set /observer observer.rate_hz 50.0`` on a node whose file has no
+        ``observer.rate_hz`` declares it (checked as any change); an unknown or read-only
+        name is refused with a reason naming it (nodes/parameters.py, ``set_undeclared``).
+        """
+        fresh = [p for p in parameter_list if not self.has_parameter(p.name)]
+        if fresh:
+            result = set_undeclared(self, fresh)
+            names = {p.name for p in fresh}
+            parameter_list = [p for p in parameter_list if p.name not in names]
+            if not result.successful or not parameter_list:
+                return result
+        return super().set_parameters_atomically(parameter_list)
 
     def vehicle_parameters(self):
         """Return the vehicle-file parameters of this node as a flat dict."""

@@ -52,14 +52,8 @@ class CompensatorNode(VehicleNode):
 
     def __init__(self):
         super().__init__('compensator', own_parameters=(
-            ('publish_array', False, 'also publish control/u_array, a Float64MultiArray '
-             '(ros2_control)'),
-            ('diagnostics_period', 1.0, 's (wall) between /diagnostics reports'),
-            ('clock_jump_tolerance', 0.5, 's: an estimate this far back means the clock '
-             'restarted'),
-            ('command_lead_steps', 3, 'controller.delay_compensation: steps a command is '
-             "stamped ahead of the plant's time (its way to the plant)"),
-        ))
+            'publish_array', 'diagnostics_period', 'clock_jump_tolerance',
+            'command_lead_steps'))
         self._apply(self.vehicle, design_vehicle(self.vehicle))
         self._last_estimate_time = None      # node clock when the last good x_hat came
         self._last_stamp = None              # its stamp (s): the estimates' time base

@@ -51,10 +51,7 @@ class ObserverNode(ObserverHealth, VehicleNode):
 
     def __init__(self):
         super().__init__('observer', own_parameters=(
-            ('clock_jump_tolerance', 0.5, 's: a stamp this far back is a clock jump'),
-            ('future_tolerance', 10.0, 's: a stamp this far ahead of the clock is refused'),
-            ('diagnostics_period', 1.0, 's (wall) between /diagnostics reports'),
-        ))
+            'clock_jump_tolerance', 'future_tolerance', 'diagnostics_period'))
         self._design_and_build(self.vehicle)
         v = self.vehicle
         if v.observer.history_length > self.param('clock_jump_tolerance'):

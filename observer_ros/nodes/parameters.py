@@ -1,31 +1,42 @@
 # observer_ros.nodes.parameters: how the nodes declare their parameters (descriptors).
 """
-Declare a node's parameters with ROS ParameterDescriptors built from the vehicle schema.
+Declare a node's parameters with ROS ParameterDescriptors made from the vehicle schema.
 
-Every parameter a node has is declared with a description (the vehicle keys' from
-``observer_ros.vehicle.KNOWN_KEYS``/``SENSOR_KEYS``, which test/test_vehicle.py checks
-against docs/vehicle_schema.md), ``read_only`` for what the node reads once at start (the
-vehicle, model, sensors and topics, and the simulator's set-up), and a range for scalars
-with a lower bound. ``ros2 param describe`` shows them; ``ros2 param set`` of a read-only
-parameter is refused by rclpy with ``Trying to set a read-only parameter``.
+Every parameter a node has is declared with what ``observer_ros.vehicle.schema`` says of
+it (``KNOWN_KEYS``/``SENSOR_KEYS`` for the vehicle file, ``NODE_KEYS`` for the node's own):
+the description, ``read_only`` for what the node reads once at start (the vehicle, model,
+sensors and simulator sections), and the bound as ``floating_point_range`` or
+``integer_range``, with the bound in words in ``additional_constraints``.
+``ros2 param describe`` shows them; rclpy refuses a value outside the range, and
+``ros2 param set`` of a read-only parameter with ``Trying to set a read-only parameter``.
+
+ROS ranges are closed intervals: a bound that excludes 0 (``> 0``) is given as the least
+positive double, 5e-324 (``schema.ros_range``), and said as ``> 0`` in the constraints.
+
+A writable vehicle key that the file did not give (``observer.rate_hz``) is declared
+when it is first set (:func:`set_undeclared`); any other undeclared name is refused
+with a reason that names it.
 
 """
 
-import sys
-
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                SetParametersResult)
 from rclpy.exceptions import InvalidParameterValueException
 
 from ..core.errors import ObserverError
-from ..vehicle import known_keys
+from ..vehicle.schema import (bound_problem, interval_text, known_keys, NODE_KEYS,
+                              READ_ONLY_SECTIONS, ros_range)
 
-__all__ = ['READ_ONLY_SECTIONS', 'declare_parameters', 'describe']
+__all__ = ['READ_ONLY_SECTIONS', 'declare_parameters', 'describe', 'node_schema',
+           'set_undeclared']
 
-# Vehicle sections a node reads once, at start: changing them at run time would have no
-# effect (or leave the node inconsistent), so they are read-only.
-READ_ONLY_SECTIONS = ('vehicle', 'model', 'sensors', 'simulator')
+_OPEN_NOTE = ' (Min value 5e-324, the least double above 0: ROS ranges are closed)'
 
-_INT_MAX = 2 ** 63 - 1
+
+def _matches(param_type, value):
+    if param_type == 'DOUBLE':
+        return isinstance(value, float)
+    return param_type == 'INTEGER' and isinstance(value, int) and not isinstance(value, bool)
 
 
 def describe(name, value, schema, own=None):
@@ -37,40 +48,52 @@ def describe(name, value, schema, own=None):
     name : str
         The parameter name (``model.A``, ``diagnostics_period``).
     value : object
-        Its value (the range is given only when its type is the schema's).
+        Its value (the range is given only when its type is the schema's: a value of
+        another type is refused by the loader with its own message).
     schema : dict
-        :func:`observer_ros.vehicle.known_keys` for the node's sensors.
+        :func:`node_schema` (or :func:`observer_ros.vehicle.known_keys`) for the node.
     own : str, optional
-        The description of one of the node's own parameters.
+        The description of a parameter of the node's own that the schema does not have.
 
     Returns
     -------
     rcl_interfaces.msg.ParameterDescriptor
 
     """
-    section = name.split('.', 1)[0]
     descriptor = ParameterDescriptor(name=name)
-    spec = schema.get(name)
-    if own is not None:
-        descriptor.description = own
-    elif spec is not None:
-        text = spec.description + ('; required' if spec.required else '')
-        if spec.choices:
-            text += f'; one of {", ".join(spec.choices)}'
-        descriptor.description = text
-        if spec.minimum is not None:
-            if spec.param_type == 'DOUBLE' and isinstance(value, float):
-                descriptor.floating_point_range = [FloatingPointRange(
-                    from_value=float(spec.minimum), to_value=sys.float_info.max)]
-            elif spec.param_type == 'INTEGER' and isinstance(value, int) and \
-                    not isinstance(value, bool):
-                descriptor.integer_range = [IntegerRange(
-                    from_value=int(spec.minimum), to_value=_INT_MAX, step=1)]
-    else:
-        descriptor.description = ('not a key of the vehicle schema (docs/vehicle_schema.md); '
-                                  'ignored')
-    descriptor.read_only = section in READ_ONLY_SECTIONS
+    spec = schema.get(name, NODE_KEYS.get(name))
+    if spec is None:
+        descriptor.description = own if own is not None else (
+            'not a key of the vehicle schema (docs/vehicle_schema.md); ignored')
+        descriptor.read_only = own is None and name.split('.', 1)[0] in READ_ONLY_SECTIONS
+        return descriptor
+    text = spec.description + ('; required' if spec.required else '')
+    if spec.choices:
+        text += f'; one of {", ".join(spec.choices)}'
+    descriptor.description = text + (f' [{spec.unit}]' if spec.unit else '')
+    descriptor.read_only = spec.read_only
+    limits = ros_range(spec)
+    if limits is not None and _matches(spec.param_type, value):
+        if spec.param_type == 'DOUBLE':
+            descriptor.floating_point_range = [FloatingPointRange(
+                from_value=limits[0], to_value=limits[1])]
+        else:
+            descriptor.integer_range = [IntegerRange(from_value=limits[0],
+                                                     to_value=limits[1], step=1)]
+    said = [interval_text(spec) + (_OPEN_NOTE if spec.low_open else '')] if spec.bounded \
+        else []
+    said += [spec.rule] if spec.rule else []
+    descriptor.additional_constraints = '; '.join(said)
     return descriptor
+
+
+def node_schema(node):
+    """Return the schema of a node's parameters: the vehicle keys for its sensors."""
+    overrides = dict(node._parameter_overrides)    # noqa: SLF001 - rclpy keeps them here
+    declared = node._parameters                      # noqa: SLF001
+    names = declared.get('sensors.names') or overrides.get('sensors.names')
+    sensors = names.value if names is not None and isinstance(names.value, list) else []
+    return known_keys([s for s in sensors if isinstance(s, str)])
 
 
 def declare_parameters(node, own_parameters=()):
@@ -82,26 +105,29 @@ def declare_parameters(node, own_parameters=()):
     node : rclpy.node.Node
         Built with ``automatically_declare_parameters_from_overrides=False``: the
         overrides (``--params-file``, ``-p``) are declared here instead.
-    own_parameters : sequence of tuple
-        ``(name, default, description)`` of the node's own parameters.
+    own_parameters : sequence of str or tuple
+        The node's own parameters: names of ``NODE_KEYS`` (default, description and
+        bound from the schema), or ``(name, default, description)`` for others.
 
     Raises
     ------
     ObserverError
-        A value outside its range, naming the parameter.
+        A value outside its range, naming the parameter and the bound.
 
     """
     overrides = dict(node._parameter_overrides)    # noqa: SLF001 - rclpy keeps them here
-    names = overrides.get('sensors.names')
-    sensors = names.value if names is not None and isinstance(names.value, list) else []
-    schema = known_keys([s for s in sensors if isinstance(s, str)])
-    own = {entry[0]: entry for entry in own_parameters}
+    schema = node_schema(node)
+    own = {}
+    for entry in own_parameters:
+        if isinstance(entry, str):
+            entry = (entry, NODE_KEYS[entry].default, None)
+        name, default, text = (tuple(entry) + (None,))[:3]
+        own[name] = (default, None if name in NODE_KEYS else (text or ''))
     for name, param in overrides.items():
-        if node.has_parameter(name):
-            continue
-        text = own[name][2] if name in own else None
-        _declare(node, name, param.value, describe(name, param.value, schema, text))
-    for name, default, text in own_parameters:
+        if not node.has_parameter(name):
+            text = own[name][1] if name in own else None
+            _declare(node, name, param.value, describe(name, param.value, schema, text))
+    for name, (default, text) in own.items():
         if not node.has_parameter(name):
             _declare(node, name, default, describe(name, default, schema, text))
 
@@ -110,4 +136,56 @@ def _declare(node, name, value, descriptor):
     try:
         node.declare_parameter(name, value, descriptor)
     except InvalidParameterValueException as err:
-        raise ObserverError(f'{name}: {value!r} refused: {err}') from None
+        spec = node_schema(node).get(name, NODE_KEYS.get(name))
+        problem = bound_problem(spec, value) if spec is not None and spec.bounded and \
+            _matches(spec.param_type, value) else None
+        raise ObserverError(f'{name}: {problem}' if problem else
+                            f'{name}: {value!r} refused: {err}') from None
+
+
+def _reason(err, name):
+    """Return the reason in an rclpy InvalidParameterValueException's text."""
+    text = str(err)
+    text = text.split('Reason: ', 1)[1] if 'Reason: ' in text else text
+    return text[:-len(name) - 2] if text.endswith(f': {name}') else text
+
+
+def set_undeclared(node, parameters):
+    """
+    Declare parameters the node has not declared, with their values; return the result.
+
+    A writable vehicle key (``observer.*``, ``controller.*``) the file did not give is
+    declared with its value and its descriptor, which runs the node's checks of a change
+    as a set would; a read-only key or a name the schema does not know is refused with a
+    reason that names it, and then none is declared.
+
+    Parameters
+    ----------
+    node : rclpy.node.Node
+        The node (its parameters include ``sensors.names``).
+    parameters : sequence of rclpy.parameter.Parameter
+        Undeclared parameters, as a ``ros2 param set`` asks for them.
+
+    Returns
+    -------
+    rcl_interfaces.msg.SetParametersResult
+
+    """
+    schema = node_schema(node)
+    where = node.get_fully_qualified_name()
+    for p in parameters:
+        spec = schema.get(p.name)
+        if spec is None:
+            return SetParametersResult(successful=False, reason=(
+                f'{p.name}: not a parameter of {where}: neither a key of the vehicle schema '
+                f'(docs/vehicle_schema.md) nor one of its own (ros2 param list {where})'))
+        if spec.read_only:
+            return SetParametersResult(successful=False, reason=(
+                f'{p.name}: read-only (read once, at start), and not among the parameters '
+                f'{where} started with'))
+    for p in parameters:
+        try:
+            node.declare_parameter(p.name, p.value, describe(p.name, p.value, schema))
+        except InvalidParameterValueException as err:
+            return SetParametersResult(successful=False, reason=_reason(err, p.name))
+    return SetParametersResult(successful=True)

@@ -56,13 +56,8 @@ class PlantSimulatorNode(VehicleNode):
 
     def __init__(self):
         super().__init__('plant_simulator', own_parameters=(
-            ('start_time', 1.0, 's: simulated time of step 0 (a zero stamp reads as unset)'),
-            ('wait_for_subscribers', 1, 'lockstep: matched readers of each sensor to wait '
-             'for'),
-            ('wait_for_recorder', False, 'lockstep: start once recorder/ready is true'),
-            ('exit_when_done', True, 'exit (status 0) when simulator.duration is over'),
-            ('diagnostics_period', 1.0, 's (wall) between /diagnostics reports'),
-        ))
+            'start_time', 'wait_for_subscribers', 'wait_for_recorder', 'exit_when_done',
+            'diagnostics_period'))
         v = self.vehicle
         plant = v.plant
         self.dt = v.sample_time

@@ -384,8 +384,10 @@ def _print_summary(vehicle, summary):
             peak, mean = summary['final_reference_error'][name]
             verdict = (f'not settled: x - x_d in the last tenth of the run up to {peak:.3g} '
                        f'(mean {mean:.3g})')
-        print(f'  {name:>10}: final {summary["final_state"][j]: .6f}  '
-              f'estimate {summary["final_estimate"][j]: .6f}  {verdict}')
+        unit = vehicle.unit('state', name)
+        unit = f' {unit}' if unit else ''
+        print(f'  {name:>10}: final {summary["final_state"][j]: .6f}{unit}  '
+              f'estimate {summary["final_estimate"][j]: .6f}{unit}  {verdict}')
     problems = []
     if summary['lost_steps'] and vehicle.simulator.mode == 'lockstep':
         problems.append(f'{summary["lost_steps"]} of {summary["expected_steps"]} steps have no '

@@ -17,8 +17,8 @@ import numbers
 import numpy as np
 import yaml
 
-from .schema import KNOWN_KEYS, known_keys, ROS_RESERVED_KEYS, ROS_RESERVED_PREFIXES, \
-    SENSOR_KEYS
+from .schema import bound_problem, INT64_MAX, KNOWN_KEYS, known_keys, ROS_RESERVED_KEYS, \
+    ROS_RESERVED_PREFIXES, SENSOR_KEYS
 from ..core.errors import ObserverError, VehicleFileError
 from ..core.model import as_poles
 
@@ -79,31 +79,31 @@ class Checker:
     def given(self, key):
         return key in self.flat
 
-    def _raw(self, key, spec, required):
+    def _read(self, key, spec, required):
+        """Return the key's spec, its value (the default when absent), and whether given."""
+        spec = spec or KNOWN_KEYS.get(key)
+        if spec is None:
+            raise KeyError(f'{key} is not a key of the schema')
         if key in self.flat:
-            return self.flat[key], True
-        if required:
+            return spec, self.flat[key], True
+        if spec.required if required is None else required:
             self.fail(key, 'missing (required)')
-        return (spec.default if spec is not None else None), False
+        return spec, spec.default, False
 
     def string(self, key, spec=None, required=None, allow_empty=False):
-        spec = spec or KNOWN_KEYS.get(key)
-        required = spec.required if required is None else required
-        value, given = self._raw(key, spec, required)
+        spec, value, given = self._read(key, spec, required)
         if not given:
             return value
         if not isinstance(value, str):
             self.fail(key, f'expected a string; got {_describe(value)}')
-        if spec is not None and spec.choices and value not in spec.choices:
+        if spec.choices and value not in spec.choices:
             self.fail(key, f'{value!r} is not one of {list(spec.choices)}')
         if not value and not allow_empty:
             self.fail(key, 'empty string')
         return value
 
     def string_array(self, key, spec=None, required=None, unique=True):
-        spec = spec or KNOWN_KEYS.get(key)
-        required = spec.required if required is None else required
-        value, given = self._raw(key, spec, required)
+        spec, value, given = self._read(key, spec, required)
         if not given:
             return None
         items = _as_list(value)
@@ -123,18 +123,22 @@ class Checker:
                 self.fail(key, f'duplicate name {dup[0]!r} in {items}')
         return tuple(items)
 
+    def _bounded(self, key, spec, value, element=None):
+        """Refuse a number outside its key's bound (the schema's), with the reason."""
+        problem = bound_problem(spec, value)
+        if problem is not None:
+            self.fail(key, problem if element is None else f'element {element}: {problem}')
+
     def double_array(self, key, spec=None, required=None, allow_inf=False):
         """Return a list of floats, or None when the key is absent (or an empty list)."""
-        spec = spec or KNOWN_KEYS.get(key)
-        required = spec.required if required is None else required
-        value, given = self._raw(key, spec, required)
+        spec, value, given = self._read(key, spec, required)
         if not given:
             return None
         items = _as_list(value)
         if items is None:
             self.fail(key, f'expected a list of floats; got {_describe(value)}')
         if not items:
-            if required:
+            if spec.required if required is None else required:
                 self.fail(key, 'empty list (required)')
             return None
         ints = [v for v in items if _is_int(v)]
@@ -150,12 +154,13 @@ class Checker:
         for i, v in enumerate(out):
             if math.isnan(v) or (math.isinf(v) and not allow_inf):
                 self.fail(key, f'element {i} is {v}; values must be finite')
+            if spec.bounded:
+                self._bounded(key, spec, v, i)
         return out
 
-    def double(self, key, spec=None, required=None, minimum=None, positive=False):
-        spec = spec or KNOWN_KEYS.get(key)
-        required = spec.required if required is None else required
-        value, given = self._raw(key, spec, required)
+    def double(self, key, spec=None, required=None):
+        """Return a finite float within the key's bound, or its default when absent."""
+        spec, value, given = self._read(key, spec, required)
         if not given:
             return value
         if _is_int(value):
@@ -166,30 +171,24 @@ class Checker:
         value = float(value)
         if not math.isfinite(value):
             self.fail(key, f'{value} is not finite')
-        if positive and not value > 0.0:
-            self.fail(key, f'{value} must be > 0')
-        if minimum is not None and value < minimum:
-            self.fail(key, f'{value} must be >= {minimum}')
+        self._bounded(key, spec, value)
         return value
 
-    def integer(self, key, spec=None, required=None, minimum=None):
-        spec = spec or KNOWN_KEYS.get(key)
-        required = spec.required if required is None else required
-        value, given = self._raw(key, spec, required)
+    def integer(self, key, spec=None, required=None):
+        """Return an integer within the key's bound, or its default when absent."""
+        spec, value, given = self._read(key, spec, required)
         if not given:
             return value
         if not _is_int(value):
             self.fail(key, f'expected an integer; got {_describe(value)}')
         value = int(value)
-        if minimum is not None and value < minimum:
-            self.fail(key, f'{value} must be >= {minimum}')
-        if value >= 2 ** 63:
+        if not -INT64_MAX - 1 <= value <= INT64_MAX:
             self.fail(key, f'{value} does not fit a 64-bit integer')
+        self._bounded(key, spec, value)
         return value
 
     def boolean(self, key, spec=None):
-        spec = spec or KNOWN_KEYS.get(key)
-        value, given = self._raw(key, spec, spec.required if spec else False)
+        spec, value, given = self._read(key, spec, None)
         if not given:
             return value
         if not _is_bool(value):

@@ -9,14 +9,14 @@ parameter's name. No ROS imports: this module is used offline too.
 
 """
 
-import math
 import re
 
 import numpy as np
 
 from .checker import Checker, warn_unknown, warn_unloadable_strings, warn_unused
 from .overrides import apply_overrides
-from .schema import KNOWN_KEYS, SENSOR_KEYS
+from .schema import KNOWN_KEYS, MAX_RATE_HZ, SENSOR_KEYS
+from .units import read_units
 from ..core.errors import ObserverError, VehicleFileError
 from ..core.model import Plant
 from ..core.spec import ControllerSpec, ObserverSpec, SensorSpec, SimulatorSpec, Vehicle
@@ -124,9 +124,12 @@ def vehicle_from_parameters(flat, source='', extra_keys=()):
     simulator = _read_simulator(check, plant, discrete)
     controller = _read_controller(check, plant, discrete)
     observer = _read_observer(check, plant, discrete, sensors, simulator, warnings)
+    state_units, input_units, output_units = read_units(check, plant, sensors)
     return Vehicle(name=name, plant=plant, sensors=sensors, observer=observer,
                    controller=controller, simulator=simulator, description=description,
-                   source=source_text, warnings=tuple(warnings), origin=source)
+                   source=source_text, warnings=tuple(warnings), origin=source,
+                   state_units=state_units, input_units=input_units,
+                   output_units=output_units)
 
 
 def _read_model(check, warnings):
@@ -134,7 +137,7 @@ def _read_model(check, warnings):
     discrete = domain == 'discrete'
     dt = None
     if discrete:
-        dt = check.double('model.sample_time', required=True, positive=True)
+        dt = check.double('model.sample_time', required=True)
     else:
         warn_unused(check, ['model.sample_time'], 'by a continuous model', warnings)
     states = check.string_array('model.states')
@@ -192,10 +195,8 @@ def _read_sensors(check, plant, sensor_names):
         if len(noise) != len(fields):
             check.fail(key + 'noise_std', f'has {len(noise)} values; expected '
                        f'{len(fields)} (one per field in {key}fields)')
-        if min(noise) < 0.0:
-            check.fail(key + 'noise_std', f'{min(noise)} is negative')
-        timeout = check.double(key + 'timeout', spec('timeout'), positive=True)
-        divider = check.integer(key + 'rate_divider', spec('rate_divider'), minimum=1)
+        timeout = check.double(key + 'timeout', spec('timeout'))
+        divider = check.integer(key + 'rate_divider', spec('rate_divider'))
         frame_id = check.string(key + 'frame_id', spec('frame_id'))
         specs.append(SensorSpec(name=sensor, topic=topic, msg_type=msg_type, fields=fields,
                                 outputs=outputs, noise_std=np.array(noise), timeout=timeout,
@@ -223,30 +224,30 @@ def _valid_topic(topic):
 def _read_simulator(check, plant, discrete):
     n = plant.n
     if discrete:
-        rate = 1.0 / plant.dt if plant.dt > 1e-12 else math.inf
-        if not math.isfinite(rate):
-            check.fail('model.sample_time', f'{plant.dt} s is too small')
+        rate = 1.0 / plant.dt      # model.sample_time is within its bound
         if check.given('simulator.rate_hz'):
-            given = check.double('simulator.rate_hz', positive=True)
+            given = check.double('simulator.rate_hz')
             if abs(given - rate) > 1e-9 * rate:
                 check.fail('simulator.rate_hz', f'{given} Hz does not match model.sample_time '
                            f'{plant.dt} s (a discrete model runs at 1/sample_time = '
                            f'{rate:g} Hz)')
     else:
-        rate = check.double('simulator.rate_hz', positive=True)
+        rate = check.double('simulator.rate_hz')
     initial = check.vector('simulator.initial_state', n, 'states')
-    duration = check.double('simulator.duration', minimum=0.0)
+    duration = check.double('simulator.duration')
     if 0.0 < duration * rate < 1.0:
         check.fail('simulator.duration', f'{duration} s is shorter than one step '
                    f'(1/{rate:g} Hz)')
-    seed = check.integer('simulator.seed', minimum=0)
+    seed = check.integer('simulator.seed')
     noise = check.boolean('simulator.noise')
     process = check.vector('simulator.process_noise_std', n, 'states')
-    if process is not None and np.min(process) < 0.0:
-        check.fail('simulator.process_noise_std', f'{np.min(process)} is negative')
     mode = check.string('simulator.mode')
-    factor = check.double('simulator.realtime_factor', positive=True)
-    timeout = check.double('simulator.command_timeout', positive=True)
+    factor = check.double('simulator.realtime_factor')
+    if mode == 'realtime' and rate * factor > MAX_RATE_HZ:
+        check.fail('simulator.realtime_factor', f'{factor:g} steps {rate:g} Hz at '
+                   f'{rate * factor:g} Hz of wall time, more than the {MAX_RATE_HZ:g} Hz a '
+                   "node's timer can do here")
+    timeout = check.double('simulator.command_timeout')
     publish_clock = check.boolean('simulator.publish_clock')
     return SimulatorSpec(rate_hz=rate, initial_state=np.zeros(n) if initial is None else
                          initial, duration=duration, seed=seed, noise=noise,
@@ -288,8 +289,8 @@ def _read_controller(check, plant, discrete):
             check.fail('controller.u_max', f'{plant.input_names[i]}: u_max {u_max[i]} is '
                        f'not above u_min {u_min[i]}')
     safe = check.string('controller.safe_command')
-    stale = check.double('controller.stale_timeout', positive=True)
-    predict = check.double('controller.predict_timeout', minimum=0.0)
+    stale = check.double('controller.stale_timeout')
+    predict = check.double('controller.predict_timeout')
     delay = check.boolean('controller.delay_compensation')
     return ControllerSpec(poles=poles, K=K, lqr_Q=Q, lqr_R=R, reference=reference, Kd=Kd,
                           u_min=u_min, u_max=u_max, safe_command=safe, stale_timeout=stale,
@@ -364,9 +365,15 @@ def _read_observer(check, plant, discrete, sensors, simulator, warnings):
     else:   # open_loop
         warn_unused(check, design_keys + kalman_keys, 'by an open_loop observer', warnings)
     initial = check.vector('observer.initial_estimate', n, 'states')
-    rate = check.double('observer.rate_hz', positive=True)
-    history = check.double('observer.history_length', minimum=0.0)
-    publish_rate = check.double('observer.publish_rate_hz', positive=True)
+    rate = check.double('observer.rate_hz')
+    history = check.double('observer.history_length')
+    publish_rate = check.double('observer.publish_rate_hz')
+    fastest = max(simulator.rate_hz / s.rate_divider for s in sensors)
+    for key, value in (('observer.rate_hz', rate), ('observer.publish_rate_hz', publish_rate)):
+        if value is not None and value > fastest * (1.0 + 1e-12):
+            check.fail(key, f'{value:g} Hz is faster than the fastest sensor ({fastest:g} Hz: '
+                       'simulator.rate_hz / its rate_divider); a timer faster than the data '
+                       'adds no information')
     return ObserverSpec(kind=kind, poles=poles, gain=gain, method=method, Qd=Qd, Rd=Rd,
                         Bd=Bd, initial_estimate=initial, rate_hz=rate,
                         history_length=history, publish_rate_hz=publish_rate)

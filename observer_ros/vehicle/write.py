@@ -83,6 +83,10 @@ def vehicle_to_parameters(vehicle):
     flat['model.states'] = list(plant.state_names)
     flat['model.inputs'] = list(plant.input_names)
     flat['model.outputs'] = list(plant.output_names)
+    for kind in ('state', 'input', 'output'):
+        units = getattr(vehicle, f'{kind}_units')
+        if units and all(units):
+            flat[f'model.{kind}_units'] = list(units)
     for key in 'ABCD':
         flat[f'model.{key}'] = _floats(getattr(plant, key))
     flat['sensors.names'] = [s.name for s in vehicle.sensors]
