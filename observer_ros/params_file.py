@@ -18,7 +18,7 @@ import yaml
 from .core.errors import VehicleFileError
 
 __all__ = ['MAX_FILE_BYTES', 'MAX_ARRAY_LENGTH', 'read_text', 'check_parameters_file',
-           'flatten_parameters', 'load_parameters']
+           'yaml_load', 'flatten_parameters', 'load_parameters']
 
 # A vehicle file is a few kB (the largest here, aircraft_lateral.yaml, under 6 kB): 256 KiB
 # is 40 times that, and is read in about a second on a loaded 2-core machine
@@ -65,7 +65,7 @@ def check_parameters_file(path):
     the same refusals as the offline tools, as quickly.
 
     """
-    _yaml_load(read_text(path), str(path))
+    yaml_load(read_text(path), str(path))
 
 
 _FLOAT_RE = re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
@@ -148,7 +148,8 @@ def _construct_mapping(loader, node, deep=False):
 _Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
 
 
-def _yaml_load(text, where):
+def yaml_load(text, where):
+    """Parse YAML as ROS's parser does (no aliases, no duplicate keys); errors name where."""
     try:
         return yaml.load(text, Loader=_Loader)   # noqa: S506 - a SafeLoader subclass
     except yaml.MarkedYAMLError as err:     # one line: the problem and where it is
@@ -228,7 +229,7 @@ def load_parameters(path, node_name=None):
 
     """
     where = str(path)
-    doc = _yaml_load(read_text(path), where)
+    doc = yaml_load(read_text(path), where)
     if not isinstance(doc, dict) or not doc:
         raise VehicleFileError(f"{where}: not a ROS 2 parameters file (expected '/**:' "
                                "then 'ros__parameters:')")

@@ -2,7 +2,7 @@
 """Apply ``key:=value`` overrides (YAML values, as on a ROS command line) to parameters."""
 
 from ..core.errors import VehicleFileError
-from ..params_file import _yaml_load, flatten_parameters
+from ..params_file import flatten_parameters, yaml_load
 
 __all__ = ['parse_override', 'apply_overrides']
 
@@ -23,7 +23,7 @@ def parse_override(text):
     key = key.strip()
     if not key:
         raise VehicleFileError(f'override {text!r}: empty parameter name')
-    return key, _yaml_load(value, f'override {key}')
+    return key, yaml_load(value, f'override {key}')
 
 
 def apply_overrides(flat, overrides):
