@@ -25,8 +25,10 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data,
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64
 
-from .command_line import check_command_line, program_name
+from .callback_watch import CallbackWatch
+from .command_line import check_command_line, program_name, regular_params_files
 from .parameters import declare_parameters, set_undeclared
+from .topic_watch import level_rank, TopicWatch
 from ..core.errors import ObserverError
 from ..timeutil import ns_to_sec, sec_to_stamp_parts, stamp_to_sec
 from ..vehicle import vehicle_from_parameters
@@ -218,6 +220,38 @@ class VehicleNode(Node):
         # stands still whenever the simulation waits, and a dead time source must still be
         # noticed.
         self.steady_clock = Clock(clock_type=ClockType.STEADY_TIME)
+        # publishers this node cannot hear (QoS, type); its executor's lag, floods, and
+        # /diagnostics kept on time from a thread of its own (nodes/callback_watch.py)
+        self.topic_watch = TopicWatch(self)
+        self.callback_watch = CallbackWatch(self, self._publish_late, self._diagnostics_period)
+
+    def watched_subscription(self, msg_class, topic, callback, qos, shed=True, raw=False):
+        """
+        Create a subscription whose unheard publishers and floods are reported.
+
+        Its publishers of another type or of an incompatible QoS are named on /diagnostics
+        (:class:`~observer_ros.nodes.topic_watch.TopicWatch`); with ``shed`` its messages
+        are dropped while a flood keeps the callbacks behind
+        (:class:`~observer_ros.nodes.callback_watch.CallbackWatch`).
+        """
+        entry = None
+        if shed:
+            entry, callback = self.callback_watch.guard(topic, callback)
+        sub = self.create_subscription(msg_class, topic, callback, qos, raw=raw,
+                                       event_callbacks=self.topic_watch.event_callbacks(topic))
+        if entry is not None:
+            entry.subscription = sub
+        self.topic_watch.add(sub, msg_class, qos)
+        return sub
+
+    def _diagnostics_period(self):
+        param = self._parameters.get('diagnostics_period')
+        return None if param is None else param.value
+
+    def destroy_node(self):
+        """Stop the callback watch's thread, then destroy the node."""
+        self.callback_watch.stop()
+        return super().destroy_node()
 
     def wall_timer(self, period, callback):
         """Create a timer on the steady (wall) clock."""
@@ -308,13 +342,37 @@ class VehicleNode(Node):
         ``extra``: ``(name suffix, level, message, values)`` of statuses named
         ``<node>/<suffix>`` in the same array (the observer's per-sensor innovation health).
         """
+        items = dict(self._counters)
+        items.update(values or {})
+        # what keeps messages from this node: unheard publishers, a flood (worst first)
+        watch = self.topic_watch.problems()
+        flood = self.callback_watch.status()
+        if flood is not None:
+            watch = [flood] + watch
+        items.update(self.topic_watch.counters())
+        items.update(self.callback_watch.values())
+        for i, (_, text) in enumerate(watch, 1):
+            items[f'problem {i}'] = text
+        if watch and level_rank(watch[0][0]) >= level_rank(level):
+            more = f' (and {len(watch) - 1} more)' if len(watch) > 1 else ''
+            ok = level_rank(level) == level_rank(DiagnosticStatus.OK)
+            level, message = watch[0][0], watch[0][1] + more + ('' if ok else f'; {message}')
+        self._publish_status(level, message, items, extra)
+        now = time.monotonic()
+        self.callback_watch.status_at = self.callback_watch.reported_at = now
+
+    def _publish_late(self, level, message, values):
+        """Publish the callback watch's report for this node, its own being overdue (a thread)."""
+        items = dict(self._counters)
+        items.update(values)
+        self._publish_status(level, message, items)
+
+    def _publish_status(self, level, message, items, extra=()):
         status = DiagnosticStatus()
         status.level = level
         status.name = f'{self.get_fully_qualified_name()}'
         status.message = message
         status.hardware_id = self.vehicle.name
-        items = dict(self._counters)
-        items.update(values or {})
         status.values = [KeyValue(key=str(k), value=str(v)) for k, v in sorted(items.items())]
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
@@ -418,8 +476,9 @@ def init_ros(node_class, args=None, **init_options):
                               sys.modules[node_class.__module__].__doc__)
     if code is not None:    # --help, or a params file the loader refuses
         return code
+    ros_argv = regular_params_files(argv)       # a pipe was read once: rclpy reads a copy
     try:
-        rclpy.init(args=args, **init_options)
+        rclpy.init(args=args if ros_argv == argv else ros_argv, **init_options)
     except RCLError as err:     # e.g. a params file ROS's parser refuses: one line
         print(f'error: {" ".join(str(err).split())}', file=sys.stderr)
         return 2
@@ -472,19 +531,30 @@ def run_nodes(node_factories, args=None, names=None):
     try:
         for factory in node_factories:
             nodes.append(factory())
-        executor, _ = make_executor()
+        executor, kind = make_executor()
         for node in nodes:
             executor.add_node(node)
         # asked after every callback: one attribute per node, no generator (a generator
         # here was 2 % of the observer's CPU in P2)
         ending = [node for node in nodes if hasattr(node, 'exit_code')]
+        watches = [node.callback_watch for node in nodes if hasattr(node, 'callback_watch')]
+        if kind != 'events':
+            for watch in watches:
+                watch.may_overrun = False
 
         def stop():
             for node in ending:
                 if node.exit_code is not None:
                     return True
+            for watch in watches:
+                if watch.overrun:
+                    return True
             return False
-        spin_until(executor, stop=stop if ending else None)
+        while True:
+            spin_until(executor, stop=stop if ending or watches else None)
+            if not any(watch.overrun for watch in watches) or not executor.context.ok():
+                break
+            executor = _leave_events_executor(executor, nodes, watches)
         code = next((node.exit_code for node in ending if node.exit_code is not None), 0)
     except (KeyboardInterrupt, Exception) as err:   # noqa: BLE001 - reported by exit_status
         failed = len(nodes) if len(nodes) < len(node_factories) else None
@@ -502,6 +572,27 @@ def run_nodes(node_factories, args=None, names=None):
         rclpy.try_shutdown()
         _ignore_sigint()    # rclpy's shutdown puts back the handler it replaced
     return code
+
+
+def _leave_events_executor(executor, nodes, watches):
+    """
+    Go on in rclpy's wait-set executor: a flood overran the events executor's queue.
+
+    Shutting the EventsExecutor down drops the events it queued (one per message received,
+    without a bound) at once; the wait-set executor takes what the readers hold, so the
+    memory is bounded by their depth (nodes/callback_watch.py).
+    """
+    from rclpy.executors import SingleThreadedExecutor
+    executor.shutdown(5.0)
+    executor = SingleThreadedExecutor()
+    for node in nodes:
+        executor.add_node(node)
+    for watch in watches:
+        watch.overrun = watch.may_overrun = False
+    nodes[0].get_logger().error(
+        'a flood of messages overran the events executor even while they were dropped: its '
+        "queue dropped, going on with the wait-set executor (bounded by the readers' depth)")
+    return executor
 
 
 def _ignore_sigint():

@@ -80,12 +80,12 @@ class CompensatorNode(VehicleNode):
         # subscribed first, so that an executor takes a waiting sensor message first
         self._sensor_time = {}              # each sensor's newest stamp (its clock's jumps)
         self._plant_time = None             # the newest of them
-        self._sensor_subs = [self.create_subscription(
+        self._sensor_subs = [self.watched_subscription(
             MESSAGE_CLASSES[s.msg_type], s.topic,
             lambda msg, name=s.name: self._on_sensor(name, msg), SENSOR_QOS)
             for s in self.vehicle.sensors
             if self.delay is not None and hasattr(MESSAGE_CLASSES[s.msg_type], 'header')]
-        self._sub = self.create_subscription(
+        self._sub = self.watched_subscription(
             JointState, TOPICS['estimate'], self._on_estimate, STATE_QOS)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         period = min(self.vehicle.controller.stale_timeout / 2.0, 0.1)

@@ -82,10 +82,10 @@ class ObserverNode(ObserverHealth, VehicleNode):
         self._resolved = {s.name: self.resolve_topic_name(s.topic) for s in v.sensors}
         for sensor in v.sensors:
             cls = MESSAGE_CLASSES[sensor.msg_type]
-            self._subs.append(self.create_subscription(
+            self._subs.append(self.watched_subscription(
                 cls, sensor.topic, lambda msg, s=sensor: self._on_measurement(s, msg),
                 SENSOR_SUB_QOS))
-        self._cmd_sub = self.create_subscription(
+        self._cmd_sub = self.watched_subscription(
             JointState, TOPICS['command'], self._on_command, STATE_QOS)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._diag_timer = self.wall_timer(self.param('diagnostics_period'),

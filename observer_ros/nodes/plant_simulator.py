@@ -86,12 +86,12 @@ class PlantSimulatorNode(VehicleNode):
         self._clock_pub = None
         if v.simulator.publish_clock:
             self._clock_pub = self.create_publisher(Clock, '/clock', 10)
-        self._cmd_sub = self.create_subscription(
+        self._cmd_sub = self.watched_subscription(
             JointState, TOPICS['command'], self._on_command, STATE_QOS)
         self._recorder_ready = False
         if self.param('wait_for_recorder'):
-            self._ready_sub = self.create_subscription(
-                Bool, 'recorder/ready', self._on_recorder_ready, LATCHED_QOS)
+            self._ready_sub = self.watched_subscription(
+                Bool, 'recorder/ready', self._on_recorder_ready, LATCHED_QOS, shed=False)
         # lockstep bookkeeping
         self._due = []                  # sensors still to publish at this step
         self._answers = 0               # commands stamped t_k received so far

@@ -216,9 +216,9 @@ class RecorderNode(VehicleNode):
                                                   typestore=self.typestore,
                                                   offered_qos_profiles=[_bag_qos(qos)])
                 self.counts[resolved] = 0
-                self._subs.append(self.create_subscription(
+                self._subs.append(self.watched_subscription(
                     cls, name, lambda data, c=conn: self._on_message(c, data),
-                    _deeper(qos, depth), raw=True))
+                    _deeper(qos, depth), shed=False, raw=True))
         except BaseException:
             self._discard_bag()        # made a moment ago by this node: nothing else in it
             raise
