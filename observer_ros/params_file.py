@@ -3,51 +3,97 @@
 Read ROS 2 parameters files (``/**:`` then ``ros__parameters:``) into flat dicts.
 
 What ROS's parameter parser accepts and nothing more: no anchors or aliases, no duplicate
-keys, ``1e-3`` a float. Limits are checked before anything is built: the file's size
-(:data:`MAX_FILE_BYTES`, from its size on disk, before it is read) and each array's length
-(:data:`MAX_ARRAY_LENGTH`, while it is read). Every refusal is one
-:class:`VehicleFileError` naming the file and the limit. No ROS imports.
+keys, ``1e-3`` a float. Limits are checked before anything is built: what the path is
+(a regular file, or a pipe read without blocking for at most :data:`STREAM_TIMEOUT` s;
+never a folder or a device), the file's size (:data:`MAX_FILE_BYTES`, from its size on
+disk, before it is read) and each array's length (:data:`MAX_ARRAY_LENGTH`, while it is
+read). Every refusal is one :class:`VehicleFileError` naming the file and the limit. No
+ROS imports.
 
 """
 
+import atexit
 import os
 import re
+import select
+import stat
+import tempfile
+import time
 
 import yaml
 
 from .core.errors import VehicleFileError
 
-__all__ = ['MAX_FILE_BYTES', 'MAX_ARRAY_LENGTH', 'read_text', 'check_parameters_file',
-           'yaml_load', 'flatten_parameters', 'load_parameters']
+__all__ = ['MAX_FILE_BYTES', 'MAX_ARRAY_LENGTH', 'STREAM_TIMEOUT', 'read_text',
+           'regular_file', 'check_parameters_file', 'yaml_load', 'flatten_parameters',
+           'load_parameters']
 
 # A vehicle file is a few kB (the largest here, aircraft_lateral.yaml, under 6 kB): 256 KiB
 # is 40 times that, and is read in about a second on a loaded 2-core machine
 MAX_FILE_BYTES = 1 << 18
 # Entries of one array: the A matrix of a 100-state model
 MAX_ARRAY_LENGTH = 10000
+# s: a pipe (a FIFO, process substitution) must give its whole text within this time
+STREAM_TIMEOUT = 5.0
+
+
+def _kind(mode):
+    """Name what a non-regular file is: ``a folder``, ``a character device``, ..."""
+    for test, name in ((stat.S_ISDIR, 'a folder'), (stat.S_ISCHR, 'a character device'),
+                       (stat.S_ISBLK, 'a block device'), (stat.S_ISSOCK, 'a socket')):
+        if test(mode):
+            return name
+    return 'not a regular file'
 
 
 def read_text(path):
     """
-    Return a parameters file's text, refusing it before reading when it is too big.
+    Return a parameters file's text, refusing it before reading when it cannot be one.
+
+    What the path is, is checked (``os.stat``) before it is opened: a regular file is read
+    when it is at most :data:`MAX_FILE_BYTES`; a pipe (``<(cat v.yaml)``, ``cat v.yaml |
+    ... /dev/stdin``, a FIFO made by ``mkfifo``) is read without blocking, for at most
+    :data:`STREAM_TIMEOUT` s, and what it gave is kept for the process (a pipe is read
+    once: :func:`regular_file` gives a copy to a program that reads it again, such as
+    rclpy); a folder, a device (a terminal as ``/dev/stdin``, ``/dev/zero``) or a socket is
+    refused unopened.
 
     Raises
     ------
     VehicleFileError
-        Missing or unreadable file, over :data:`MAX_FILE_BYTES`, or not UTF-8.
+        Missing or unreadable file, not a regular file or a pipe, over
+        :data:`MAX_FILE_BYTES`, a pipe without a writer or whose writer does not finish
+        within :data:`STREAM_TIMEOUT` s, or not UTF-8.
 
     """
     where = str(path)
     try:
-        size = os.stat(path).st_size
-        if size > MAX_FILE_BYTES:
-            raise VehicleFileError(f'{where}: {size} bytes; a parameters file may have at '
-                                   f'most {MAX_FILE_BYTES} (MAX_FILE_BYTES)')
-        with open(path, 'rb') as stream:
-            data = stream.read(MAX_FILE_BYTES + 1)
+        st = os.stat(path)
     except OSError as err:
         raise VehicleFileError(f'{where}: cannot read: {err.strerror or err}') from None
-    if len(data) > MAX_FILE_BYTES:      # grew since stat, or a pipe
+    if stat.S_ISFIFO(st.st_mode):
+        key = (st.st_dev, st.st_ino)
+        if key not in _STREAMS:
+            _STREAMS[key] = _read_stream(path, where)
+        data = _STREAMS[key]
+    elif not stat.S_ISREG(st.st_mode):
+        raise VehicleFileError(f'{where}: {_kind(st.st_mode)}, not a parameters file (a '
+                               'regular file, or a pipe with a writer)')
+    else:
+        if st.st_size > MAX_FILE_BYTES:
+            raise VehicleFileError(f'{where}: {st.st_size} bytes; a parameters file may have '
+                                   f'at most {MAX_FILE_BYTES} (MAX_FILE_BYTES)')
+        try:
+            # O_NONBLOCK: if the path was swapped for a FIFO since the stat, opening it
+            # does not wait for a writer (a regular file ignores the flag)
+            fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+            with os.fdopen(fd, 'rb') as stream:
+                if not stat.S_ISREG(os.fstat(stream.fileno()).st_mode):
+                    raise VehicleFileError(f'{where}: changed while being opened; not read')
+                data = stream.read(MAX_FILE_BYTES + 1)
+        except OSError as err:
+            raise VehicleFileError(f'{where}: cannot read: {err.strerror or err}') from None
+    if len(data) > MAX_FILE_BYTES:      # grew since stat
         raise VehicleFileError(f'{where}: more than {MAX_FILE_BYTES} bytes (MAX_FILE_BYTES)')
     try:
         return data.decode('utf-8')
@@ -55,6 +101,80 @@ def read_text(path):
         line = data[:err.start].count(b'\n') + 1
         raise VehicleFileError(f'{where}: not UTF-8 text (byte 0x{data[err.start]:02x} at '
                                f'offset {err.start}, line {line})') from None
+
+
+# what each pipe read by this process gave, by (device, inode): a pipe is read once
+_STREAMS = {}
+
+
+def _read_stream(path, where):
+    """Read a pipe without blocking: at most STREAM_TIMEOUT s and MAX_FILE_BYTES + 1 bytes."""
+    deadline = time.monotonic() + STREAM_TIMEOUT
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)     # a FIFO: no wait for a writer
+    except OSError as err:
+        raise VehicleFileError(f'{where}: cannot read: {err.strerror or err}') from None
+    chunks, size = [], 0
+    try:
+        poller = select.poll()
+        poller.register(fd, select.POLLIN)
+        while size <= MAX_FILE_BYTES:
+            left = deadline - time.monotonic()
+            # a FIFO that never had a writer is not ready (Linux): it times out here
+            if left <= 0 or not poller.poll(left * 1000.0):
+                what = ('no writer gave it any text' if not size else
+                        f'its writer did not finish ({size} bytes so far)')
+                raise VehicleFileError(
+                    f'{where}: a pipe, and {what} within {STREAM_TIMEOUT:g} s '
+                    '(STREAM_TIMEOUT); give a regular file, or a pipe with a writer')
+            try:
+                chunk = os.read(fd, 1 << 16)
+            except BlockingIOError:
+                continue
+            if not chunk:
+                break                       # the writer closed it: the whole text
+            chunks.append(chunk)
+            size += len(chunk)
+    except OSError as err:
+        raise VehicleFileError(f'{where}: cannot read: {err.strerror or err}') from None
+    finally:
+        os.close(fd)
+    return b''.join(chunks)
+
+
+def regular_file(path):
+    """
+    Return a path a program can open and read again: ``path``, or a copy of a pipe's text.
+
+    A regular file is returned as it is. A pipe (``<(cat v.yaml)``) gives its text once:
+    it is read (:func:`read_text`) and written to a temporary file, deleted when the
+    process exits, whose path is returned (for rclpy's ``--params-file``, or for the
+    nodes ``observer-run`` starts).
+
+    Raises
+    ------
+    VehicleFileError
+        As :func:`read_text`.
+
+    """
+    text = read_text(path)
+    try:
+        if stat.S_ISREG(os.stat(path).st_mode):
+            return path
+    except OSError:
+        pass
+    fd, copy = tempfile.mkstemp(prefix='observer_ros_', suffix='.yaml')
+    with os.fdopen(fd, 'w', encoding='utf-8') as f:
+        f.write(text)
+    atexit.register(_remove, copy)
+    return copy
+
+
+def _remove(path):
+    try:
+        os.unlink(path)
+    except OSError:
+        pass
 
 
 def check_parameters_file(path):

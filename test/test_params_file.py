@@ -1,17 +1,21 @@
 # Reading parameters files: what ROS's parser accepts and nothing more, within limits.
 """The loader refuses aliases, oversized files, over-long arrays and non-UTF-8 text."""
 
+import os
+import signal
 import subprocess
 import sys
 import time
 
 from observer_ros.core.errors import VehicleFileError
-from observer_ros.params_file import MAX_ARRAY_LENGTH, MAX_FILE_BYTES
+from observer_ros.params_file import (MAX_ARRAY_LENGTH, MAX_FILE_BYTES, regular_file,
+                                      STREAM_TIMEOUT)
 from observer_ros.vehicle import load_parameters, load_vehicle
 import pytest
-from ros_helpers import CONFIG, ros_env
+from ros_helpers import CONFIG, ros_env, WAIT
 
 HEAD = '/**:\n  ros__parameters:\n'
+SAMPLE = CONFIG.parent / 'bags' / 'samples' / 'submarine'
 
 
 def _alias_bomb(path):
@@ -98,3 +102,84 @@ def test_node_refuses_a_file_as_the_tool_does(tmp_path, make):
     # the same refusal, before rclpy parses the file
     assert tool.stderr.strip().splitlines()[-1] == node.stderr.strip().splitlines()[-1]
     assert node_s < 30.0, node_s
+
+
+def _fifo(tmp_path):
+    path = tmp_path / 'v.yaml'
+    os.mkfifo(path)
+    return path
+
+
+def test_a_fifo_without_a_writer_is_refused_not_waited_on(tmp_path):
+    path = _fifo(tmp_path)
+    start = time.monotonic()
+    with pytest.raises(VehicleFileError, match=r'a pipe, and no writer gave it any text '
+                       r'within 5 s \(STREAM_TIMEOUT\)'):
+        load_parameters(path)
+    assert time.monotonic() - start < STREAM_TIMEOUT + 30.0     # bounded, not forever
+
+
+def test_a_pipe_with_a_writer_is_read_once_and_copied_for_rclpy(tmp_path):
+    path = _fifo(tmp_path)
+    writer = subprocess.Popen(['sh', '-c', f'cat "{CONFIG / "submarine.yaml"}" > "{path}"'])
+    try:
+        vehicle = load_vehicle(path)
+        assert vehicle.name == 'submarine'
+        # read again in the same process (observer-run loads it three times): the same text
+        assert load_vehicle(path).name == 'submarine'
+        copy = regular_file(path)
+        assert copy != path and os.path.isfile(copy)
+        assert open(copy).read() == (CONFIG / 'submarine.yaml').read_text()
+        assert regular_file(CONFIG / 'submarine.yaml') == CONFIG / 'submarine.yaml'
+    finally:
+        writer.wait(timeout=WAIT)
+
+
+@pytest.mark.parametrize('path, kind', [('/dev/zero', 'a character device'),
+                                        ('/dev/null', 'a character device'),
+                                        ('.', 'a folder')])
+def test_devices_and_folders_are_refused_unopened(path, kind):
+    with pytest.raises(VehicleFileError, match=f'{kind}, not a parameters file'):
+        load_parameters(path)
+
+
+@pytest.mark.parametrize('entry', [
+    ['observer_ros.tools.design_report', '{}'],
+    ['observer_ros.bag.evaluate', str(SAMPLE), '--vehicle', '{}'],
+    ['observer_ros.bag.tune', str(SAMPLE), '--vehicle', '{}'],
+    ['observer_ros.tools.run_closed_loop', '{}'],
+    ['observer_ros.nodes.observer_node', '--ros-args', '--params-file', '{}'],
+    ['observer_ros.nodes.container', 'observer', 'compensator', '--ros-args',
+     '--params-file', '{}'],
+])
+def test_every_entry_point_refuses_a_fifo_without_a_writer_in_one_line(tmp_path, entry):
+    path = _fifo(tmp_path)
+    result, _ = _run(entry[0], *[a.format(path) for a in entry[1:]])
+    assert result.returncode == 2, result.stderr
+    errors = [line for line in result.stderr.splitlines() if line.startswith('error:')]
+    assert len(errors) == 1 and 'Traceback' not in result.stderr, result.stderr
+    assert 'a pipe, and no writer gave it any text' in errors[0], result.stderr
+
+
+def test_process_substitution_works_for_a_tool_and_a_node(tmp_path):
+    vehicle = CONFIG / 'submarine.yaml'
+    tool = subprocess.run(['bash', '-c', f'"{sys.executable}" -W ignore -m '
+                           f'observer_ros.tools.design_report <(cat "{vehicle}")'],
+                          capture_output=True, text=True, timeout=120, env=ros_env())
+    assert tool.returncode == 0, tool.stderr
+    assert 'Vehicle: submarine' in tool.stdout
+    # the node reads the pipe for its check, rclpy a copy: it starts (and says so)
+    node = subprocess.Popen(['bash', '-c', f'exec "{sys.executable}" -W ignore -m '
+                             f'observer_ros.nodes.observer_node --ros-args --params-file '
+                             f'<(cat "{vehicle}") -p simulator.mode:=realtime'],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env=ros_env())
+    try:
+        for line in node.stdout:
+            if 'submarine: observer full' in line:
+                break
+        else:
+            pytest.fail('the node did not start')
+    finally:
+        node.send_signal(signal.SIGINT)
+        assert node.wait(timeout=WAIT) == 0

@@ -6,7 +6,9 @@ What a node does with its command line before ``rclpy.init``: ``--help``, params
 node's topics (its module's docstring), and exits 0. Each ``--params-file`` is read by the
 package's loader first (observer_ros.params_file: size and array-length limits, no aliases,
 UTF-8), so that a node refuses a file exactly as the offline tools do, as quickly, with one
-``error:`` line and exit status 2, instead of rclpy's RCLError traceback.
+``error:`` line and exit status 2, instead of rclpy's RCLError traceback. A pipe given as
+a params file (process substitution) is read once and handed to rclpy as a regular copy;
+a FIFO without a writer, a folder or a device is refused without waiting.
 
 """
 
@@ -14,9 +16,9 @@ import os
 import sys
 
 from ..core.errors import ObserverError
-from ..params_file import check_parameters_file
+from ..params_file import check_parameters_file, regular_file
 
-__all__ = ['usage', 'check_command_line', 'program_name']
+__all__ = ['usage', 'check_command_line', 'regular_params_files', 'program_name']
 
 USAGE = """usage: ros2 run observer_ros {prog} --ros-args --params-file VEHICLE.yaml \\
            [-p NAME:=VALUE ...] [-r __ns:=/NAMESPACE] [-r FROM:=TO ...]
@@ -63,6 +65,21 @@ def check_command_line(argv, prog, module, doc):
         print(f'error: {err}', file=sys.stderr)
         return 2
     return None
+
+
+def regular_params_files(argv):
+    """
+    Return ``argv`` with each ``--params-file`` that is a pipe replaced by a regular copy.
+
+    A pipe (``--params-file <(cat v.yaml)``) is read once, by the package's loader
+    (:func:`check_command_line`); rclpy then reads the copy. Call after
+    :func:`check_command_line`.
+    """
+    out = list(argv)
+    for i, arg in enumerate(out[:-1]):
+        if arg == '--params-file':
+            out[i + 1] = str(regular_file(out[i + 1]))
+    return out
 
 
 def program_name(default):
