@@ -23,7 +23,8 @@ from pathlib import Path
 
 from .errors import BagToolError
 
-__all__ = ['MARKER', 'TOOL_FILES', 'check_output', 'prepare_output', 'seal_output']
+__all__ = ['MARKER', 'TOOL_FILES', 'check_output', 'prepare_output', 'seal_output',
+           'mark_output']
 
 MARKER = '.observer_ros_output.json'
 
@@ -34,6 +35,8 @@ TOOL_FILES = {
                       'error_norm.png', 'residuals.png', 'results_bag'),
     'observer-tune': ('tune.txt', 'tune.json', 'search.csv', 'autocovariance.png',
                       'search.png', '.identified.yaml'),
+    'observer-run': tuple(f'{node}.log' for node in (
+        'plant_simulator', 'observer_node', 'compensator', 'container', 'recorder')),
 }
 
 
@@ -180,6 +183,11 @@ def seal_output(out, tool, paths):
                 st = p.stat()
                 files[p.relative_to(out).as_posix()] = [st.st_size, st.st_mtime_ns]
     _write_marker(out, tool, files)
+
+
+def mark_output(out, tool):
+    """Mark an existing folder as ``tool``'s, with no file of its yet (see seal_output)."""
+    _write_marker(Path(out), tool, {})
 
 
 def _write_marker(out, tool, files):

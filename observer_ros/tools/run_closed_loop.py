@@ -23,10 +23,13 @@ import warnings
 
 import numpy as np
 
+from ..bag.outputs import check_output, mark_output, MARKER, prepare_output, seal_output
 from ..core.errors import ObserverError
 from ..core.health import Envelope, ENVELOPE_FACTOR
 from ..core.vehicle_design import design_vehicle
 from ..nodes.checks import state_scale
+from ..params_file import regular_file
+from ..ros_names import check_namespace
 from ..vehicle import (apply_overrides, load_parameters, load_vehicle, parameters_to_yaml,
                        vehicle_from_parameters)
 
@@ -96,8 +99,14 @@ def run_closed_loop(params_file, bag_path, storage='mcap', namespace=None, overr
     timeout = timeout if timeout is not None else run_limit(params_file, overrides)
     bag_path = Path(bag_path)
     log_dir = Path(log_dir) if log_dir else bag_path.parent / (bag_path.name + '_logs')
-    check_outputs([bag_path] + [log_dir / f'{name}.log' for name in NODES])
-    log_dir.mkdir(parents=True, exist_ok=True)
+    check_outputs([bag_path])
+    check_logs(log_dir, bag_path)
+    log_files = [log_dir / f'{name}.log' for name in NODES]
+    if log_dir.is_dir() and (log_dir / MARKER).exists():
+        prepare_output(log_dir, True, 'observer-run')       # the logs of a run without a bag
+    else:
+        log_dir.mkdir(parents=True, exist_ok=True)
+        mark_output(log_dir, 'observer-run')
     common = ['use_sim_time:=true', *overrides]
     procs = {}
     env = dict(os.environ)
@@ -137,6 +146,8 @@ def run_closed_loop(params_file, bag_path, storage='mcap', namespace=None, overr
                                 f'{log_dir / "plant_simulator.log"}')
     finally:
         _stop_all(procs)
+        # the logs are this tool's: a rerun replaces them if the run left no bag
+        seal_output(log_dir, 'observer-run', [p for p in log_files if p.exists()])
     if not quiet:
         print(f'bag: {bag_path}  (logs: {log_dir})')
     return bag_path
@@ -164,6 +175,39 @@ def check_outputs(paths):
         if path.exists() or path.is_symlink():
             raise ObserverError(f'{path} exists; refusing to overwrite it (choose --out or '
                                 'move it away)')
+
+
+def check_logs(log_dir, bag):
+    """
+    Refuse log files a run would overwrite, unless they are an earlier run's that left no bag.
+
+    The log folder of a run that stopped before its recorder made the bag (a node that
+    could not start) does not block the next run with the same ``--out``: observer-run
+    recognises its own, unchanged log files (``.observer_ros_output.json``) and replaces
+    them. Any other file with a log's name is refused.
+    """
+    log_dir = Path(log_dir)
+    if not bag.exists() and not bag.is_symlink() and (log_dir / MARKER).exists():
+        try:
+            check_output(log_dir, True, 'observer-run')
+            return
+        except ObserverError:
+            pass
+    check_outputs([log_dir / f'{name}.log' for name in NODES])
+
+
+def _check_planned(bag, evaluate):
+    """Check every path ``observer-run`` (with ``--evaluate``) will create."""
+    logs = [bag.parent / (bag.name + '_logs')]
+    paths = [p for p in _planned_outputs(bag, evaluate) if p.parent not in logs]
+    if evaluate:
+        slow = bag.parent / (bag.name + '_slow_poles')
+        logs.append(slow.parent / (slow.name + '_logs'))
+        paths = [p for p in paths if p.parent not in logs]
+    check_outputs(paths)
+    check_logs(logs[0], bag)
+    if evaluate:
+        check_logs(logs[1], slow)
 
 
 def _planned_outputs(bag, evaluate):
@@ -439,12 +483,16 @@ def main(argv=None):
         args.param = args.param + ['simulator.publish_clock:=false']
     vehicle_path = Path(args.vehicle) if args.vehicle else _default_vehicle()
     try:
+        # names ROS would refuse only once a node is made, after others started
+        args.namespace = check_namespace(args.namespace)
+        # a pipe (<(cat v.yaml)) is read once: the nodes read a copy of it
+        vehicle_path = Path(regular_file(vehicle_path))
         # the file with every -p override, and every output, checked before anything starts
         vehicle = load_vehicle(vehicle_path, overrides=args.param)
         design = design_vehicle(vehicle)
         stamp = datetime.datetime.now().strftime('%Y%m%d_%H%M%S')
         bag = Path(args.out) if args.out else Path('bags/runs') / f'{vehicle.name}_{stamp}'
-        check_outputs(_planned_outputs(bag, args.evaluate))
+        _check_planned(bag, args.evaluate)
         bag.parent.mkdir(parents=True, exist_ok=True)
         t0 = time.monotonic()
         if args.timeout is not None and not args.timeout > 0:

@@ -1,0 +1,48 @@
+# observer_ros.ros_names: names and namespaces checked against ROS's rules before anything starts.
+"""
+Check a namespace, a node name or a topic name as rcl would, and say what is wrong in one line.
+
+rcl refuses a bad name only when a node is made (a namespace with ``é``: "Couldn't parse
+remap rule", after the other processes of a run have started). The tools check first, with
+rclpy's own validators, and name the offending character and its position.
+
+"""
+
+from .core.errors import ObserverError
+
+__all__ = ['check_namespace']
+
+
+def _one_line(err, what, name):
+    """Turn rclpy's three-line NameValidationException into one line."""
+    text = str(err.args[0] if err.args else err).split('\n', 1)[0]
+    text = text.split(': ', 1)[-1].rstrip(':')
+    index = None
+    lines = str(err.args[0] if err.args else '').split('\n')
+    if len(lines) == 3 and '^' in lines[2]:
+        index = lines[2].index('^') - 3          # under "  'name'": 2 spaces and a quote
+    where = f' (character {index + 1}, {name[index]!r})' if index is not None and \
+        0 <= index < len(name) else ''
+    return f'{what} {name!r}: {text}{where}'
+
+
+def check_namespace(namespace, what='--namespace'):
+    """
+    Return ``namespace`` made absolute (``sub1`` -> ``/sub1``) if ROS accepts it.
+
+    Raises
+    ------
+    ObserverError
+        One line naming the option, the namespace, the rule and the offending character.
+
+    """
+    from rclpy.exceptions import NameValidationException
+    from rclpy.validate_namespace import validate_namespace
+    if namespace is None:
+        return None
+    full = namespace if namespace.startswith('/') else '/' + namespace
+    try:
+        validate_namespace(full)
+    except NameValidationException as err:
+        raise ObserverError(_one_line(err, what, full)) from None
+    return full
