@@ -10,6 +10,7 @@ from bag_synth import bag_file, simulate, write_bag
 from observer_ros.bag.evaluate import main as eval_main
 from observer_ros.bag.outputs import MARKER
 from observer_ros.bag.recover import BagRecoveryError, recover_bag
+from observer_ros.core.errors import ObserverError
 from observer_ros.tools import run_closed_loop
 from observer_ros.tools.run_closed_loop import check_outputs, main as run_main, run_limit
 from observer_ros.vehicle import load_vehicle
@@ -245,3 +246,50 @@ def test_observer_run_limit_and_check_include_the_overrides(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith('error: ') and 'simulator.duration' in err
     assert not (tmp_path / 'runs').exists()
+
+
+@pytest.mark.parametrize('namespace, words', [
+    ('/véhicule_1', ["'/véhicule_1'", "(character 3, 'é')"]),
+    ('/1st', ['must not have a token that starts with a number']),
+    ('/a//b', ["repeated '/'"]),
+])
+def test_observer_run_refuses_a_namespace_ros_refuses_before_anything_starts(
+        tmp_path, capsys, namespace, words):
+    bag = tmp_path / 'runs' / 'dive'
+    assert run_main([str(CONFIG / 'submarine.yaml'), '--out', str(bag),
+                     '--namespace', namespace]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith('error: --namespace ') and err.count('\n') == 1, err
+    assert all(w in err for w in words), err
+    assert not (tmp_path / 'runs').exists()        # no bag, no logs: nothing started
+
+
+def test_observer_run_replaces_its_own_logs_of_a_run_that_left_no_bag(tmp_path):
+    """A run whose recorder refused to start leaves logs; the rerun is not blocked by them."""
+    from ros_helpers import domain_env
+    bag = tmp_path / 'runs' / 'dive'
+    logs = tmp_path / 'runs' / 'dive_logs'
+    vehicle = CONFIG / 'submarine.yaml'
+    with domain_env(), pytest.raises(ObserverError, match='recorder exited with code 2'):
+        run_closed_loop.run_closed_loop(vehicle, bag, overrides=['queue_depth:=0'],
+                                        timeout=120.0, quiet=True)
+    assert not bag.exists() and (logs / 'recorder.log').exists() and (logs / MARKER).exists()
+    assert 'queue_depth must be >= 1' in (logs / 'recorder.log').read_text()
+    # a user's file next to them is kept; the rerun's check passes
+    (logs / 'notes.txt').write_text('mine')
+    run_closed_loop.check_logs(logs, bag)
+    with domain_env():
+        run_closed_loop.run_closed_loop(vehicle, bag, timeout=300.0, quiet=True,
+                                        overrides=['simulator.duration:=1.0'])
+    assert bag.exists() and (logs / 'notes.txt').read_text() == 'mine'
+    assert 'queue_depth' not in (logs / 'recorder.log').read_text()
+    # now the logs belong to a run with a bag: refused
+    with pytest.raises(ObserverError, match='_logs/plant_simulator.log exists'):
+        run_closed_loop.check_logs(logs, bag)
+    # a log changed by hand is not replaced either (the bag gone)
+    import shutil
+    shutil.rmtree(bag)
+    with open(logs / 'observer_node.log', 'a') as f:
+        f.write('my note\n')
+    with pytest.raises(ObserverError, match='observer_node.log was changed after observer-run'):
+        run_closed_loop.check_logs(logs, bag)
