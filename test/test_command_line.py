@@ -88,5 +88,5 @@ def test_observer_run_no_clock_turns_the_simulators_clock_off(monkeypatch, tmp_p
     code = tool.main([str(CONFIG / 'submarine.yaml'), '--namespace', 'sub2', '--no-clock',
                       '--out', str(tmp_path / 'bag')])
     assert code == 2 and 'stopped by the test' in capsys.readouterr().err
-    assert seen['namespace'] == 'sub2'
+    assert seen['namespace'] == '/sub2'      # made absolute, as rcl needs it
     assert 'simulator.publish_clock:=false' in seen['overrides']
