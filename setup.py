@@ -29,11 +29,11 @@ setup(
         # names of the tools (observer-run, ...) are aliases that `make setup` adds to the
         # virtual environment's bin/ only.
         'console_scripts': [
-            'plant_simulator = observer_ros.nodes.plant_simulator:main',
-            'observer = observer_ros.nodes.observer_node:main',
-            'compensator = observer_ros.nodes.compensator:main',
-            'recorder = observer_ros.nodes.recorder:main',
-            'container = observer_ros.nodes.container:main',
+            'plant_simulator = observer_ros.nodes.entry:plant_simulator',
+            'observer = observer_ros.nodes.entry:observer',
+            'compensator = observer_ros.nodes.entry:compensator',
+            'recorder = observer_ros.nodes.entry:recorder',
+            'container = observer_ros.nodes.entry:container',
             'observer_design = observer_ros.tools.design_report:main',
             'observer_eval = observer_ros.bag.evaluate:main',
             'observer_eval_batch = observer_ros.bag.batch:main',

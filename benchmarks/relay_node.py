@@ -6,7 +6,7 @@ It republishes each Imu as the JointState the observer node publishes (the vehic
 three state names, the three angular rates as positions, the message's stamp and
 frame_id), built by the same helper (``nodes.common.joint_state``) and with the same
 QoS (what the observer subscribes and publishes with), in a node spun as the package's
-nodes are (``nodes.common.make_executor``: the EventsExecutor unless
+nodes are (``nodes.runner.make_executor``: the EventsExecutor unless
 ``OBSERVER_ROS_EXECUTOR`` says otherwise). So observer / relay is the cost of the
 estimator and its bookkeeping over the middleware's own.
 
@@ -19,8 +19,9 @@ import warnings
 
 warnings.filterwarnings('ignore', category=DeprecationWarning)
 
-from observer_ros.nodes.common import (joint_state, make_executor, SENSOR_SUB_QOS,  # noqa: E402
-                                       spin_until, stamp_to_sec, STATE_PUB_QOS, TOPICS)
+from observer_ros.nodes.common import (joint_state, SENSOR_SUB_QOS,  # noqa: E402
+                                       stamp_to_sec, STATE_PUB_QOS, TOPICS)
+from observer_ros.nodes.runner import make_executor, spin_until  # noqa: E402
 import rclpy  # noqa: E402
 from rclpy.executors import ExternalShutdownException  # noqa: E402
 from rclpy.node import Node  # noqa: E402

@@ -7,8 +7,8 @@ import subprocess
 import sys
 
 from observer_ros.core.errors import ObserverError
-from observer_ros.nodes import common
-from observer_ros.nodes.common import make_executor
+from observer_ros.nodes import signals
+from observer_ros.nodes.runner import make_executor
 import pytest
 from ros_helpers import CONFIG, ros_env
 
@@ -46,14 +46,17 @@ def test_unknown_executor_is_refused_naming_the_variable(monkeypatch):
         make_executor()
 
 
-def test_only_the_first_sigint_interrupts_a_node_process():
-    """Ctrl-C signals the group and ros2 launch signals again: one KeyboardInterrupt."""
-    old = signal.getsignal(signal.SIGINT)
+def test_stop_signals_are_recorded_never_raised():
+    """Ctrl-C signals the group and ros2 launch signals again: each only asks for a stop."""
+    old = {sig: signal.getsignal(sig) for sig in signals.STOP_SIGNALS}
     try:
-        common._interrupt_once()
-        with pytest.raises(KeyboardInterrupt):
-            signal.raise_signal(signal.SIGINT)
-        for _ in range(3):      # while the first is handled: ignored, no second exception
-            signal.raise_signal(signal.SIGINT)
+        signals.install()
+        assert not signals.requested()
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGINT):
+            signal.raise_signal(sig)    # nothing raised, whatever runs at that moment
+        assert signals.requested()
+        assert signals.RECEIVED == [signal.SIGINT, signal.SIGTERM, signal.SIGINT]
     finally:
-        signal.signal(signal.SIGINT, old)
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+        signals.RECEIVED.clear()

@@ -3,6 +3,7 @@
 
 import os
 from pathlib import Path
+import random
 import re
 import shlex
 import shutil
@@ -296,3 +297,62 @@ def test_recorded_lockstep_launch(ros2env, tmp_path):
               for t in meta['topics_with_message_count']}
     # pitch_imu: 3 s at 500 Hz in lock-step, one true state per step (1501 with step 0)
     assert counts['/state/true'] >= 1500, counts
+
+
+# Ctrl-C at a random moment: OBSERVER_ROS_SIGNAL_TRIES=50 is the on-demand bar
+# (docs/reliability.md); test_shutdown.py does the same through observer-run.
+SIGNAL_TRIES = int(os.environ.get('OBSERVER_ROS_SIGNAL_TRIES', '4'))
+CLEAN_LAUNCH_NODES = 3
+
+
+def _children(pid):
+    """Return the pids of a process's children (from /proc)."""
+    kids = []
+    for entry in Path('/proc').iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / 'stat').read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(')', 1)[1].split()[1]) == pid:
+                kids.append(int(entry.name))
+    return kids
+
+
+def _handles_sigterm(pid):
+    """Return True once a process has a handler for SIGTERM (a node's stop signals)."""
+    try:
+        status = Path(f'/proc/{pid}/status').read_text()
+    except OSError:
+        return False
+    caught = int(re.search(r'SigCgt:\s*([0-9a-f]+)', status).group(1), 16)
+    return bool(caught & (1 << (signal.SIGTERM - 1)))
+
+
+def _signal_moments(tries, seed):
+    rng = random.Random(seed)
+    return [('started' if i % 2 == 0 else 'running', rng.uniform(0.0, 3.0))
+            for i in range(tries)]
+
+
+@pytest.mark.parametrize('phase, delay', _signal_moments(SIGNAL_TRIES, os.getpid()))
+def test_ctrl_c_at_a_random_moment_stops_every_node_cleanly(ros2env, tmp_path, phase, delay):
+    """SIGINT to the launch's process group while the nodes start or while the loop runs."""
+    launch = Launch(ros2env, LAUNCH, tmp_path / 'launch.log')
+    try:
+        deadline = time.monotonic() + WAIT
+        while True:     # polling /proc and a log file, not timing anything
+            assert launch.proc.poll() is None and time.monotonic() < deadline, \
+                launch.output()[-3000:]
+            if phase == 'started':
+                kids = _children(launch.proc.pid)
+                if len(kids) >= CLEAN_LAUNCH_NODES and all(map(_handles_sigterm, kids)):
+                    break
+            elif 'realtime run of' in launch.output():
+                break
+            time.sleep(0.05)
+        time.sleep(delay)       # the random moment
+    finally:
+        _assert_stopped_cleanly(launch, CLEAN_LAUNCH_NODES)
+    out = launch.output()
+    assert 'FATAL' not in out and 'Exception in' not in out, out[-3000:]

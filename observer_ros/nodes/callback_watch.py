@@ -2,7 +2,7 @@
 """
 How far behind its input a node is, messages shed in a flood, /diagnostics on time.
 
-rclpy's EventsExecutor (the nodes' executor, :func:`~observer_ros.nodes.common.make_executor`)
+rclpy's EventsExecutor (the nodes' executor, :func:`~observer_ros.nodes.runner.make_executor`)
 queues one event per message received, in a queue without a bound, and runs timers from the
 same queue. A flood faster than the callbacks (16 kHz of Imu on the observer's sensor topic)
 therefore grew the process by 2 MB/s, and /diagnostics, a timer, came 5 to 8 s late. The
@@ -22,7 +22,7 @@ reader's depth (``SENSOR_SUB_QOS``, 100) bounds only what DDS holds, not the que
   on one core;
 - **a flood even that cannot keep up with** (the heartbeat more than :data:`LAG_SWITCH` s
   late while shedding: the process gets too little CPU): ``overrun`` is set, and
-  :func:`~observer_ros.nodes.common.run_nodes` drops the events executor's queue at once
+  :func:`~observer_ros.nodes.runner.run_nodes` drops the events executor's queue at once
   (shutting it down) and goes on in rclpy's wait-set executor, whose memory is bounded by
   the readers' depth, for the rest of the run;
 - **/diagnostics on time**: when the node's own report is overdue (1.5 periods), the

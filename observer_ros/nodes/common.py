@@ -1,24 +1,15 @@
-# observer_ros.nodes.common: what the three nodes share (parameters, QoS, messages, main).
-"""Shared pieces of the observer_ros nodes: vehicle parameters, QoS, conversions, main()."""
+# observer_ros.nodes.common: what the nodes share (parameters, QoS, messages).
+"""Shared pieces of the observer_ros nodes: vehicle parameters, QoS, conversions."""
 
 import array
 import math
-import os
-import signal
-import sys
-import threading
 import time
-import traceback
-import warnings
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
 from rcl_interfaces.msg import SetParametersResult
-import rclpy
 from rclpy.clock import Clock, ClockType
-from rclpy.executors import ExternalShutdownException
-from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data, QoSProfile,
                        ReliabilityPolicy)
@@ -26,7 +17,6 @@ from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64
 
 from .callback_watch import CallbackWatch
-from .command_line import check_command_line, program_name, regular_params_files
 from .parameters import declare_parameters, set_undeclared
 from .topic_watch import level_rank, TopicWatch
 from ..core.errors import ObserverError
@@ -36,14 +26,7 @@ from ..vehicle import vehicle_from_parameters
 __all__ = ['VEHICLE_SECTIONS', 'SAFE_COMMAND_FRAME', 'SENSOR_QOS', 'SENSOR_SUB_QOS',
            'STATE_QOS', 'STATE_PUB_QOS', 'LATCHED_QOS', 'MESSAGE_CLASSES', 'TOPICS',
            'VehicleNode', 'joint_state', 'checked_stamp', 'vector_from_joint_state',
-           'stamp_to_sec', 'to_stamp', 'make_executor', 'spin_until', 'exit_status',
-           'init_ros', 'run_node', 'run_nodes']
-
-RCLError = _rclpy.RCLError
-
-# Which executor spins the nodes: OBSERVER_ROS_EXECUTOR=events (default) or single_threaded.
-EXECUTOR_ENV = 'OBSERVER_ROS_EXECUTOR'
-EXECUTORS = ('events', 'single_threaded')
+           'stamp_to_sec', 'to_stamp']
 
 # The parameter namespaces that belong to the vehicle file; anything else is a node's own.
 VEHICLE_SECTIONS = ('vehicle', 'model', 'sensors', 'observer', 'controller', 'simulator')
@@ -383,239 +366,3 @@ class VehicleNode(Node):
             part.values = [KeyValue(key=str(k), value=str(v)) for k, v in sorted(more.items())]
             array.status.append(part)
         self._diag_pub.publish(array)
-
-
-def make_executor(kind=None):
-    """
-    Return the executor the package's nodes spin in, and its name.
-
-    ``events`` (the default): rclpy's C++ ``EventsExecutor`` (rclpy.experimental, in
-    Jazzy since rclpy 7.1.4). It dispatches each ready callback from C++ instead of
-    rebuilding a wait set in Python on every spin, which halves the latency and the CPU
-    per message of a small node here (benchmarks/README.md, P1 and P2). It ignores callback
-    groups; the nodes of this package use one group each. ``single_threaded``: rclpy's
-    ``SingleThreadedExecutor``, also used when rclpy has no EventsExecutor.
-
-    Parameters
-    ----------
-    kind : str, optional
-        ``events`` or ``single_threaded``; default ``$OBSERVER_ROS_EXECUTOR``, else
-        ``events``.
-
-    """
-    kind = kind or os.environ.get(EXECUTOR_ENV) or 'events'
-    if kind not in EXECUTORS:
-        raise ObserverError(f'{EXECUTOR_ENV}={kind!r}: expected one of {list(EXECUTORS)}')
-    if kind == 'events':
-        try:
-            from rclpy.experimental import EventsExecutor
-        except ImportError:     # rclpy before 7.1.4
-            kind = 'single_threaded'
-        else:
-            return EventsExecutor(), kind
-    from rclpy.executors import SingleThreadedExecutor
-    return SingleThreadedExecutor(), kind
-
-
-def spin_until(executor, stop=None, period=0.1):
-    """
-    Spin until the context shuts down (or ``stop()`` is true).
-
-    ``spin_once`` with a timeout rather than ``executor.spin()`` (or ``rclpy.spin``):
-    with rclpy 7.1.6 from PyPI, the EventsExecutor's ``spin()`` ran at 100 % CPU without
-    running a single callback here; ``spin_once`` works, and returning to Python every
-    ``period`` seconds also lets signal handlers and a stop flag run.
-
-    """
-    context = executor.context
-    while context.ok() and not (stop and stop()):
-        executor.spin_once(timeout_sec=period)
-
-
-def exit_status(err, name):
-    """
-    Report the exception that ended a node process; return the process's exit status.
-
-    0 for a shutdown (Ctrl-C, the context shut down); 2 for a file or parameter the node
-    cannot use (one ``error:`` line, and a FATAL log line under ``name``); 1 for anything
-    else (with its traceback).
-
-    """
-    if isinstance(err, (KeyboardInterrupt, ExternalShutdownException)):
-        return 0
-    if isinstance(err, ObserverError):
-        rclpy.logging.get_logger(name).fatal(f'cannot start: {err}')
-        print(f'error: {err}', file=sys.stderr)
-        return 2
-    traceback.print_exception(err)
-    return 1
-
-
-def init_ros(node_class, args=None, **init_options):
-    """
-    Handle ``--help``, check the params files, then ``rclpy.init``; None when it went on.
-
-    Returns the exit status instead when the process should end now: 0 after ``--help``,
-    2 (one ``error:`` line) for a params file the package's loader or ROS's parser refuses.
-
-    Parameters
-    ----------
-    node_class : type
-        The node (its module's docstring is the help's description of its topics).
-    args : list of str, optional
-        The command line (``sys.argv`` by default), ROS arguments included.
-    **init_options
-        Passed to ``rclpy.init``.
-
-    """
-    argv = list(sys.argv if args is None else args)
-    module = node_class.__module__
-    if module == '__main__':    # python -m observer_ros.nodes.<node>
-        module = getattr(sys.modules['__main__'].__spec__, 'name', module)
-    code = check_command_line(argv[1:], program_name(module.rsplit('.', 1)[-1]), module,
-                              sys.modules[node_class.__module__].__doc__)
-    if code is not None:    # --help, or a params file the loader refuses
-        return code
-    ros_argv = regular_params_files(argv)       # a pipe was read once: rclpy reads a copy
-    try:
-        rclpy.init(args=args if ros_argv == argv else ros_argv, **init_options)
-    except RCLError as err:     # e.g. a params file ROS's parser refuses: one line
-        print(f'error: {" ".join(str(err).split())}', file=sys.stderr)
-        return 2
-    return None
-
-
-def run_node(node_factory, args=None):
-    """
-    Run a node as ros2/demos do: init, spin, clean shutdown; exit 2 on an unusable file.
-
-    Parameters
-    ----------
-    node_factory : callable
-        Builds the node (after rclpy.init).
-    args : list of str, optional
-        Command-line arguments (ROS arguments included).
-
-    """
-    return run_nodes([node_factory], args)
-
-
-def run_nodes(node_factories, args=None, names=None):
-    """
-    Run nodes in one process and one executor: :func:`run_node` for several.
-
-    The nodes are built in order; a file one of them cannot use stops the process (exit 2,
-    one ``error:`` line) before the executor spins. A node that sets its ``exit_code``
-    (the simulator when its run is done) ends the process with that code, after its
-    callback has returned (an exception raised in a callback would be logged by rclpy as
-    FATAL with a traceback).
-
-    Parameters
-    ----------
-    node_factories : sequence of callable
-        Build the nodes (after rclpy.init).
-    args : list of str, optional
-        Command-line arguments (ROS arguments included).
-    names : sequence of str, optional
-        The nodes' names for a start-up error (default ``observer_ros``).
-
-    """
-    warnings.filterwarnings('ignore', category=DeprecationWarning)
-    _interrupt_once()
-    code = init_ros(node_factories[0], args)
-    if code is not None:
-        return code
-    nodes = []
-    executor = None
-    code = 0
-    try:
-        for factory in node_factories:
-            nodes.append(factory())
-        executor, kind = make_executor()
-        for node in nodes:
-            executor.add_node(node)
-        # asked after every callback: one attribute per node, no generator (a generator
-        # here was 2 % of the observer's CPU in P2)
-        ending = [node for node in nodes if hasattr(node, 'exit_code')]
-        watches = [node.callback_watch for node in nodes if hasattr(node, 'callback_watch')]
-        if kind != 'events':
-            for watch in watches:
-                watch.may_overrun = False
-
-        def stop():
-            for node in ending:
-                if node.exit_code is not None:
-                    return True
-            for watch in watches:
-                if watch.overrun:
-                    return True
-            return False
-        while True:
-            spin_until(executor, stop=stop if ending or watches else None)
-            if not any(watch.overrun for watch in watches) or not executor.context.ok():
-                break
-            executor = _leave_events_executor(executor, nodes, watches)
-        code = next((node.exit_code for node in ending if node.exit_code is not None), 0)
-    except (KeyboardInterrupt, Exception) as err:   # noqa: BLE001 - reported by exit_status
-        failed = len(nodes) if len(nodes) < len(node_factories) else None
-        code = exit_status(err, names[failed] if names and failed is not None else
-                           'observer_ros')
-    finally:
-        # Ctrl-C in a terminal signals the whole process group, and ros2 launch then sends
-        # SIGINT to each node again: a second SIGINT must not cut the clean-up short with a
-        # KeyboardInterrupt (a traceback and exit status -2 under ros2 launch)
-        _ignore_sigint()
-        if executor is not None:
-            executor.shutdown()
-        for node in nodes:
-            node.destroy_node()
-        rclpy.try_shutdown()
-        _ignore_sigint()    # rclpy's shutdown puts back the handler it replaced
-    return code
-
-
-def _leave_events_executor(executor, nodes, watches):
-    """
-    Go on in rclpy's wait-set executor: a flood overran the events executor's queue.
-
-    Shutting the EventsExecutor down drops the events it queued (one per message received,
-    without a bound) at once; the wait-set executor takes what the readers hold, so the
-    memory is bounded by their depth (nodes/callback_watch.py).
-    """
-    from rclpy.executors import SingleThreadedExecutor
-    executor.shutdown(5.0)
-    executor = SingleThreadedExecutor()
-    for node in nodes:
-        executor.add_node(node)
-    for watch in watches:
-        watch.overrun = watch.may_overrun = False
-    nodes[0].get_logger().error(
-        'a flood of messages overran the events executor even while they were dropped: its '
-        "queue dropped, going on with the wait-set executor (bounded by the readers' depth)")
-    return executor
-
-
-def _ignore_sigint():
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-def _interrupt_once():
-    """
-    Make the first SIGINT a KeyboardInterrupt, and ignore every later one.
-
-    Ctrl-C signals the whole process group and ros2 launch sends SIGINT again: with
-    Python's default handler that second SIGINT could come while the first
-    KeyboardInterrupt was being handled, before the clean-up ignores SIGINT (a traceback
-    and exit status -2 under ros2 launch, seen in test_ros2cli). Installed before
-    ``rclpy.init``, whose SIGINT handler calls it after its own.
-    """
-    if threading.current_thread() is not threading.main_thread():
-        return
-    interrupted = []
-
-    def on_sigint(signum, frame):
-        if not interrupted:
-            interrupted.append(signum)
-            raise KeyboardInterrupt
-    signal.signal(signal.SIGINT, on_sigint)

@@ -31,9 +31,10 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from .checks import changed_pole_problem, divergence_envelopes, own_parameter_problem
-from .common import (checked_stamp, joint_state, LATCHED_QOS, MESSAGE_CLASSES, run_node,
+from .common import (checked_stamp, joint_state, LATCHED_QOS, MESSAGE_CLASSES,
                      SAFE_COMMAND_FRAME, SENSOR_QOS, stamp_to_sec, STATE_PUB_QOS, STATE_QOS,
                      TOPICS, vector_from_joint_state, VehicleNode)
+from .runner import run_node
 from ..core.control_law import command_problem, control_law, ControlLaw
 from ..core.delay_compensation import DelayCompensation
 from ..core.errors import ObserverError

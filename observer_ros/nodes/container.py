@@ -20,7 +20,7 @@ import importlib
 import sys
 
 from .command_line import usage
-from .common import run_nodes
+from .runner import run_nodes
 
 __all__ = ['NODES', 'main']
 

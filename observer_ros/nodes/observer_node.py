@@ -34,9 +34,10 @@ from rclpy.event_handler import PublisherEventCallbacks, UnsupportedEventTypeErr
 from sensor_msgs.msg import JointState
 
 from .checks import changed_pole_problem, own_parameter_problem
-from .common import (checked_stamp, joint_state, MESSAGE_CLASSES, run_node, SENSOR_SUB_QOS,
+from .common import (checked_stamp, joint_state, MESSAGE_CLASSES, SENSOR_SUB_QOS,
                      STATE_PUB_QOS, STATE_QOS, TOPICS, vector_from_joint_state, VehicleNode)
 from .observer_health import ObserverHealth
+from .runner import run_node
 from ..core.errors import ObserverError
 from ..core.estimators import History, make_estimator
 from ..core.innovation import InnovationMonitor, transient_time

@@ -36,9 +36,10 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool
 
 from .checks import own_parameter_problem
-from .common import (joint_state, LATCHED_QOS, MESSAGE_CLASSES, run_node, SAFE_COMMAND_FRAME,
+from .common import (joint_state, LATCHED_QOS, MESSAGE_CLASSES, SAFE_COMMAND_FRAME,
                      SENSOR_QOS, stamp_to_sec, STATE_PUB_QOS, STATE_QOS, to_stamp, TOPICS,
                      vector_from_joint_state, VehicleNode)
+from .runner import run_node
 from ..core.model import zoh_matrices
 from ..core.simulate import process_noise_factor
 from ..sensors import fill_measurement

@@ -30,7 +30,6 @@ overwritten: the recorder refuses to start (status 2) and names the path.
 import os
 from pathlib import Path
 import shutil
-import signal
 import sqlite3
 import sys
 import time
@@ -39,15 +38,15 @@ import warnings
 from diagnostic_msgs.msg import DiagnosticStatus
 import rclpy
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.signals import SignalHandlerOptions
 from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
                                 QosReliability, QosTime)
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.typesys import get_typestore, Stores
 from std_msgs.msg import Bool
 
-from .common import (exit_status, init_ros, LATCHED_QOS, make_executor, SENSOR_QOS, spin_until,
-                     STATE_PUB_QOS, STATE_QOS, TOPICS, VehicleNode)
+from . import signals
+from .common import LATCHED_QOS, SENSOR_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS, VehicleNode
+from .runner import exit_status, init_ros, make_executor, spin_until
 from ..bag.integrity import CrcWriter
 from ..bag.play import message_class
 from ..core.errors import ObserverError
@@ -393,36 +392,32 @@ def main(args=None):
     """
     Run the recorder node; return the exit status.
 
-    rclpy turns SIGINT and SIGTERM into a clean shutdown, and the bag is closed. Status 2:
+    SIGINT and SIGTERM stop it cleanly (nodes/signals.py): the messages already delivered
+    are drained into the bag, and it is closed; status 0. Status 2:
     it cannot start (bad parameters, the output exists); 1: writing failed.
 
     """
     warnings.filterwarnings('ignore', category=DeprecationWarning)
-    # Our own SIGINT/SIGTERM handling: a signal stops the spinning, then the messages DDS
-    # already delivered (a recorder lags a fast lock-step run) are drained into the bag.
-    code = init_ros(RecorderNode, args, signal_handler_options=SignalHandlerOptions.NO)
-    if code is not None:    # --help, or an unusable params file
+    # A stop signal (nodes/signals.py) stops the spinning, then the messages DDS already
+    # delivered (a recorder lags a fast lock-step run) are drained into the bag.
+    code = init_ros(RecorderNode, args)
+    if code is not None:    # --help, an unusable params file, or stopped already
         return code
-    stop = []
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.append(True))
     node = executor = None
     code = 0
     try:
         node = RecorderNode()
         executor, _ = make_executor()
         executor.add_node(node)
-        spin_until(executor, lambda: stop or node.failed)
+        spin_until(executor, lambda: node.failed)
         _drain(executor, node)
     except RecordingError as err:
         print(f'error: recorder: {err}', file=sys.stderr)
         code = 1
-    except (KeyboardInterrupt, Exception) as err:   # noqa: BLE001 - reported by exit_status
+    except Exception as err:   # noqa: BLE001 - reported by exit_status
         code = exit_status(err, 'recorder')
     finally:
-        # a second signal while the bag is being closed must not cut the close short
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        # a later signal only records itself: the bag is closed whatever comes
         if executor is not None:
             executor.shutdown()
         if node is not None:
@@ -431,6 +426,7 @@ def main(args=None):
                 code = 1
             node.destroy_node()
         rclpy.try_shutdown()
+        signals.ignore()    # the process only exits now (nodes/runner.py)
     return code
 
 

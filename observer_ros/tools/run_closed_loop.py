@@ -23,10 +23,12 @@ import warnings
 
 import numpy as np
 
+from . import interrupt
 from ..bag.outputs import check_output, mark_output, MARKER, prepare_output, seal_output
 from ..core.errors import ObserverError
 from ..core.health import Envelope, ENVELOPE_FACTOR
 from ..core.vehicle_design import design_vehicle
+from ..nodes import signals
 from ..nodes.checks import state_scale
 from ..params_file import regular_file
 from ..ros_names import check_namespace
@@ -43,13 +45,14 @@ def node_command(node, params_file, *ros_args, namespace=None, remaps=(), nodes=
     """
     Return the argv that runs one of the package's nodes with a vehicle file.
 
-    The node runs as ``python -m observer_ros.nodes.<node>`` with this interpreter, which is
-    what the installed console scripts run too (lib/observer_ros/<exe> on a colcon install).
+    The node runs as ``python -m observer_ros.nodes.entry <node>`` with this interpreter,
+    which is what the installed console scripts run too (lib/observer_ros/<exe> on a colcon
+    install): the stop signals are handled before the node's modules load.
     For ``node='container'``, ``nodes`` names the nodes it runs.
 
     """
     cmd = [sys.executable, '-W', 'ignore::DeprecationWarning', '-m',
-           f'observer_ros.nodes.{node}', *nodes, '--ros-args', '--params-file',
+           'observer_ros.nodes.entry', node, *nodes, '--ros-args', '--params-file',
            str(params_file)]
     if namespace:
         cmd += ['-r', f'__ns:={namespace}']
@@ -113,10 +116,13 @@ def run_closed_loop(params_file, bag_path, storage='mcap', namespace=None, overr
     env.setdefault('PYTHONUNBUFFERED', '1')
 
     def start(name, *args, nodes=()):
-        out = open(log_dir / f'{name}.log', 'x')     # checked above: never overwritten
-        procs[name] = (subprocess.Popen(node_command(name, params_file, *args,
-                                                     namespace=namespace, nodes=nodes),
-                                        stdout=out, stderr=subprocess.STDOUT, env=env), out)
+        with interrupt.deferred():     # a Ctrl-C now: after the process is recorded
+            out = open(log_dir / f'{name}.log', 'x')     # checked above: never overwritten
+            procs[name] = (subprocess.Popen(node_command(name, params_file, *args,
+                                                         namespace=namespace, nodes=nodes),
+                                            stdout=out, stderr=subprocess.STDOUT, env=env,
+                                            preexec_fn=signals.block_until_installed),
+                           out)
 
     try:
         start('recorder', *common, f'output:={bag_path}', f'storage:={storage}')
@@ -144,6 +150,9 @@ def run_closed_loop(params_file, bag_path, storage='mcap', namespace=None, overr
         if sim.returncode != 0:
             raise ObserverError(f'plant_simulator exited with code {sim.returncode}; see '
                                 f'{log_dir / "plant_simulator.log"}')
+    except interrupt.RunInterrupted as err:
+        err.exit_codes = _stop_all(procs)
+        raise
     finally:
         _stop_all(procs)
         # the logs are this tool's: a rerun replaces them if the run left no bag
@@ -218,20 +227,30 @@ def _planned_outputs(bag, evaluate):
 
 
 def _stop_all(procs):
-    """SIGINT every process still running (the recorder closes its bag), then wait."""
+    """
+    SIGINT every process still running (the recorder closes its bag), then wait.
+
+    Returns each process's exit status by name; a Ctrl-C meanwhile does not cut it short.
+    """
     # the recorder last, so it records everything the others publish while stopping
     order = [n for n in NODES if n != 'recorder'] + ['recorder']
-    for name in order:
-        if name not in procs:
-            continue
-        proc, out = procs[name]
-        stop_process(proc)
-        out.close()
+    codes = {}
+    with interrupt.deferred():
+        for name in order:
+            if name not in procs:
+                continue
+            proc, out = procs[name]
+            codes[name] = stop_process(proc)
+            out.close()
+    return codes
 
 
-def stop_process(proc, timeout=10.0):
+def stop_process(proc, timeout=30.0):
     """
     Stop a node process as Ctrl-C would: SIGINT, then SIGKILL after `timeout` s.
+
+    (A node stopped while it imports its modules, seconds on a loaded machine, exits once
+    they are loaded.)
 
     Parameters
     ----------
@@ -478,6 +497,12 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if args.no_clock:       # one /clock per ROS graph
         args.param = args.param + ['simulator.publish_clock:=false']
+    with interrupt.handling():  # Ctrl-C: the nodes are stopped cleanly, the bag closed
+        return _run(args)
+
+
+def _run(args):
+    """Run observer-run's job for the parsed arguments; return the exit status."""
     vehicle_path = Path(args.vehicle) if args.vehicle else _default_vehicle()
     try:
         # names ROS would refuse only once a node is made, after others started
@@ -504,7 +529,21 @@ def main(argv=None):
     except ObserverError as err:
         print(f'error: {err}', file=sys.stderr)
         return 2
+    except interrupt.RunInterrupted as err:
+        return _interrupted(err)
     return 1 if problems else 0
+
+
+def _interrupted(err):
+    """Say how an interrupted run stopped; return 130 (1 if a node did not exit 0)."""
+    codes = ', '.join(f'{name} {code}' for name, code in err.exit_codes.items())
+    failed = [name for name, code in err.exit_codes.items() if code != 0]
+    print(f'observer-run: {err}' + (f'; node exit statuses: {codes}' if codes else ''),
+          file=sys.stderr)
+    if failed:
+        print(f'error: {", ".join(failed)} did not stop cleanly; see its log', file=sys.stderr)
+        return 1
+    return 130
 
 
 def _evaluate(vehicle_path, vehicle, design, bag, summary, args):
