@@ -18,6 +18,8 @@ setup(
         (os.path.join('share', package_name, 'launch'), sorted(glob('launch/*.launch.py'))),
     ],
     install_requires=['setuptools'],
+    # observer-eval-batch --dashboard: the Dask dashboard needs bokeh (optional)
+    extras_require={'dashboard': ['bokeh>=3.1']},
     zip_safe=True,
     maintainer='observer_ros developers',
     maintainer_email='observer_ros@example.com',

@@ -24,7 +24,9 @@ pays for importing numpy, scipy, python-control and rosbags (about 1 s here):
   the measurement and command arrays, already in memory.
 
 Figures: eval / (a) and eval / (b), per round [median <= 1.0 each]; peak RSS of eval
-per message. ``--big`` also writes a 10^7-message bag (about 3 GB, several minutes)
+per message; the replay's CPU per message of a Kalman variant over the design's
+(pole placement), alternated in one process on the recording read once
+[median <= 2.0]. ``--big`` also writes a 10^7-message bag (about 3 GB, several minutes)
 and checks that observer-eval's peak RSS on it stays within 1 GiB, with the time
 and peak RSS of baseline (a) on the same bag. ``--jitter`` also evaluates the same
 simulation with every stamp moved by up to +-0.3 ms (seeded), once per round, against
@@ -58,6 +60,7 @@ DATA = Path(os.environ.get('OBSERVER_ROS_BENCH_DATA') or
 CMD_EVERY = 10           # steps between commands (and true states)
 JITTER_NS = 300_000      # --jitter: every stamp moved by up to +-0.3 ms
 FORMAT = 2               # bump when the bag's content changes
+GEN_BLOCK = 65_540       # steps simulated and written at a time (a multiple of CMD_EVERY)
 
 
 # ---------------------------------------------------------------- the synthetic bag
@@ -97,6 +100,15 @@ def _fill(template, count, stamp_ns, sec_off, nsec_off, doubles):
     return rows
 
 
+def _npy(path, dtype, shape):
+    """Open a .npy file for rows appended a block at a time (the header first)."""
+    import numpy as np
+    f = open(path, 'wb')
+    np.lib.format.write_array_header_1_0(f, {'descr': np.lib.format.dtype_to_descr(
+        np.dtype(dtype)), 'fortran_order': False, 'shape': tuple(shape)})
+    return f
+
+
 def generate(messages, seed=0, data=DATA, log=print, jitter_ns=0):
     """
     Write (or reuse) the synthetic bag of ``messages`` Imu messages.
@@ -104,8 +116,12 @@ def generate(messages, seed=0, data=DATA, log=print, jitter_ns=0):
     With ``jitter_ns`` every stamp (and receive time) is moved by a seeded uniform amount
     in [-jitter_ns, jitter_ns] (the order of the messages is kept).
 
-    Returns the bag directory; next to it ``arrays.npz`` holds, for baseline (b), the
-    stamps, the measurements and the command held at each measurement.
+    The simulation, the messages and the arrays go a block of :data:`GEN_BLOCK` steps at
+    a time: memory does not grow with ``messages`` (the simulator's random stream is
+    drawn step by step as before, so the regular bag is the same one).
+
+    Returns the bag directory; next to it ``arrays/`` holds, for baseline (b), the
+    stamps, the measurements and the command held at each measurement (.npy files).
 
     """
     import numpy as np
@@ -116,13 +132,13 @@ def generate(messages, seed=0, data=DATA, log=print, jitter_ns=0):
     from observer_ros.vehicle import load_vehicle
 
     root = Path(data) / (f'imu_{messages}_s{seed}_v{FORMAT}' +
-                         (f'_j{jitter_ns}' if jitter_ns else ''))
+                         (f'_j{jitter_ns}b' if jitter_ns else ''))
     bag = root / 'bag'
     if (root / 'DONE').exists():
         return bag
     if root.exists():
         shutil.rmtree(root)
-    root.mkdir(parents=True)
+    (root / 'arrays').mkdir(parents=True)
     t_start = time.perf_counter()
     vehicle = load_vehicle(VEHICLE)
     plant = vehicle.plant
@@ -134,26 +150,9 @@ def generate(messages, seed=0, data=DATA, log=print, jitter_ns=0):
     row = plant.output_rows(gyro.outputs)
     n_cmd = (messages + CMD_EVERY - 1) // CMD_EVERY
     commands = rng.uniform(-0.05, 0.05, size=(n_cmd, plant.m))
-    y = np.empty(messages)
-    x_true = np.empty((n_cmd, plant.n))
-    u_held = np.empty((messages, plant.m))      # the command held when y_k was measured
-    u = np.zeros(plant.m)
-    for k in range(messages):
-        if k % CMD_EVERY == 0:
-            x_true[k // CMD_EVERY] = sim.x
-        y[k] = sim.measure(row)[0]
-        u_held[k] = u
-        if k % CMD_EVERY == 0:
-            u = commands[k // CMD_EVERY]
-        sim.step(u, dt)
     t0_ns = 1_000_000_000
     step_ns = int(round(dt * 1e9))
-    stamps = t0_ns + step_ns * np.arange(messages, dtype=np.int64)
-    if jitter_ns:
-        stamps += np.random.default_rng(seed + 2).integers(
-            -jitter_ns, jitter_ns + 1, size=messages)
-    np.savez(root / 'arrays.npz', stamp_ns=stamps, y=y, u_held=u_held, dt=dt)
-    log(f'  P3: simulated {messages} steps in {time.perf_counter() - t_start:.1f} s')
+    np.save(root / 'arrays' / 'dt.npy', np.array(dt))
 
     store = get_typestore(Stores.ROS2_JAZZY)
     T = store.types
@@ -200,31 +199,62 @@ def generate(messages, seed=0, data=DATA, log=print, jitter_ns=0):
                              dict(enumerate(u_markers)))
     u_sec, u_nsec = _stamp_offsets(store, lambda s, ns: vector(plant.input_names,
                                                                np.zeros(m), s, ns))
-    imu_rows = _fill(imu_raw, messages, stamps, imu_sec, imu_nsec, [(imu_off['y'], y)])
-    cmd_stamps = stamps[::CMD_EVERY]
-    st_rows = _fill(st_raw, n_cmd, cmd_stamps, st_sec, st_nsec,
-                    [(st_off[i], x_true[:, i]) for i in range(n)])
-    u_rows = _fill(u_raw, n_cmd, cmd_stamps, u_sec, u_nsec,
-                   [(u_off[i], commands[:, i]) for i in range(m)])
-    # sanity: the templated bytes deserialise to the values written
-    check = store.deserialize_cdr(imu_rows[messages // 2].tobytes(), IMU)
-    assert getattr(getattr(check, field[0]), field[1]) == y[messages // 2]
-    assert check.header.stamp.sec * 10**9 + check.header.stamp.nanosec == stamps[messages // 2]
-
+    files = {name: _npy(root / 'arrays' / f'{name}.npy', dtype, shape) for name, dtype, shape
+             in (('stamp_ns', np.int64, (messages,)), ('y', np.float64, (messages,)),
+                 ('u_held', np.float64, (messages, m)))}
+    u = np.zeros(m)
     ns = ''                                  # topics as recorded without a namespace
+    checked = False
     with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         c_imu = writer.add_connection(f'{ns}/{gyro.topic}', IMU, typestore=store)
         c_true = writer.add_connection(f'{ns}/state/true', JS, typestore=store)
         c_u = writer.add_connection(f'{ns}/control/u', JS, typestore=store)
         write = writer.write
-        stamp_list = stamps.tolist()
-        for k in range(messages):
-            ts = stamp_list[k]
-            if k % CMD_EVERY == 0:
-                write(c_true, ts, st_rows[k // CMD_EVERY].tobytes())
-            write(c_imu, ts, imu_rows[k].tobytes())
-            if k % CMD_EVERY == 0:
-                write(c_u, ts, u_rows[k // CMD_EVERY].tobytes())
+        for k0 in range(0, messages, GEN_BLOCK):      # a multiple of CMD_EVERY
+            count = min(GEN_BLOCK, messages - k0)
+            y = np.empty(count)
+            u_held = np.empty((count, m))   # the command held when y_k was measured
+            x_true = np.empty(((count + CMD_EVERY - 1) // CMD_EVERY, n))
+            for i in range(count):
+                k = k0 + i
+                if k % CMD_EVERY == 0:
+                    x_true[i // CMD_EVERY] = sim.x
+                y[i] = sim.measure(row)[0]
+                u_held[i] = u
+                if k % CMD_EVERY == 0:
+                    u = commands[k // CMD_EVERY]
+                sim.step(u, dt)
+            stamps = t0_ns + step_ns * np.arange(k0, k0 + count, dtype=np.int64)
+            if jitter_ns:                   # a seeded stream per block
+                stamps += np.random.default_rng([seed + 2, k0 // GEN_BLOCK]).integers(
+                    -jitter_ns, jitter_ns + 1, size=count)
+            for name, values in (('stamp_ns', stamps), ('y', y), ('u_held', u_held)):
+                files[name].write(np.ascontiguousarray(values).tobytes())
+            imu_rows = _fill(imu_raw, count, stamps, imu_sec, imu_nsec, [(imu_off['y'], y)])
+            cmd_stamps = stamps[::CMD_EVERY]
+            cmds = commands[k0 // CMD_EVERY:k0 // CMD_EVERY + cmd_stamps.size]
+            st_rows = _fill(st_raw, cmd_stamps.size, cmd_stamps, st_sec, st_nsec,
+                            [(st_off[i], x_true[:, i]) for i in range(n)])
+            u_rows = _fill(u_raw, cmd_stamps.size, cmd_stamps, u_sec, u_nsec,
+                           [(u_off[i], cmds[:, i]) for i in range(m)])
+            if not checked:     # sanity: the templated bytes deserialise to the values
+                check = store.deserialize_cdr(imu_rows[count // 2].tobytes(), IMU)
+                assert getattr(getattr(check, field[0]), field[1]) == y[count // 2]
+                assert check.header.stamp.sec * 10**9 + check.header.stamp.nanosec == \
+                    stamps[count // 2]
+                checked = True
+            stamp_list = stamps.tolist()
+            for i in range(count):
+                ts = stamp_list[i]
+                if i % CMD_EVERY == 0:
+                    write(c_true, ts, st_rows[i // CMD_EVERY].tobytes())
+                write(c_imu, ts, imu_rows[i].tobytes())
+                if i % CMD_EVERY == 0:
+                    write(c_u, ts, u_rows[i // CMD_EVERY].tobytes())
+            if k0 and k0 % (16 * GEN_BLOCK) == 0:
+                log(f'  P3: {k0} of {messages} steps written')
+    for f in files.values():
+        f.close()
     (root / 'DONE').write_text(json.dumps({'messages': messages, 'seed': seed}))
     log(f'  P3: wrote {bag} ({_size(bag) / 2**20:.0f} MiB) in '
         f'{time.perf_counter() - t_start:.1f} s')
@@ -267,8 +297,13 @@ def worker_a(bag):
 def worker_b(arrays):
     """Baseline (b): python-control forced_response of the discrete observer, in memory."""
     import numpy as np
-    data = np.load(arrays)
-    y, u_held, dt = data['y'], data['u_held'], float(data['dt'])
+    arrays = Path(arrays)
+    if arrays.is_dir():
+        y, u_held = np.load(arrays / 'y.npy'), np.load(arrays / 'u_held.npy')
+        dt = float(np.load(arrays / 'dt.npy'))
+    else:                   # a bag generated before the arrays were streamed
+        data = np.load(arrays)
+        y, u_held, dt = data['y'], data['u_held'], float(data['dt'])
     N = y.size
     import control
     from observer_ros.core.estimators import make_estimator
@@ -294,6 +329,33 @@ def worker_b(arrays):
     x_hat = resp.outputs
     return {'seconds': time.perf_counter() - t0, 'messages': int(N),
             'x_hat_last': np.asarray(x_hat)[:, -1].tolist()}
+
+
+KALMAN = ['observer.type:=kalman',
+          'observer.Qd:=[1.0e-6,0.0,0.0, 0.0,1.0e-4,0.0, 0.0,0.0,1.0e-4]']
+
+
+def worker_replay(bag, rounds):
+    """Time the replay alone: the design (poles) and a Kalman variant, alternated (us/msg)."""
+    import numpy as np  # noqa: F401
+    from observer_ros.bag.reader import read_recording
+    from observer_ros.bag.replay import replay
+    from observer_ros.vehicle import load_vehicle
+    design = load_vehicle(VEHICLE)
+    kalman = load_vehicle(VEHICLE, overrides=KALMAN)
+    recording = read_recording(bag, design)
+    out = {'poles': [], 'kalman': [], 'bulk': {}}
+    for vehicle in (design, kalman):        # warm: designs, caches, first-use imports
+        replay(recording, vehicle, spill=True)
+    for _ in range(int(rounds)):
+        for name, vehicle in (('poles', design), ('kalman', kalman)):
+            t0 = time.process_time()
+            rep = replay(recording, vehicle, spill=True)
+            seconds = time.process_time() - t0
+            out[name].append(seconds / len(rep) * 1e6)
+            out['bulk'][name] = [rep.bulk_steps, len(rep), list(rep.warnings)]
+            del rep
+    return out
 
 
 def worker_eval(bag, out):
@@ -333,7 +395,9 @@ def run(smoke=False, rounds=None, big=False, messages=None, log=print, jitter=Fa
     messages = messages or (10_000 if smoke else 1_000_000)
     rounds = rounds or (1 if smoke else 3)
     bag = generate(messages, log=log)
-    arrays = bag.parent / 'arrays.npz'
+    arrays = bag.parent / 'arrays'
+    if not arrays.is_dir():
+        arrays = bag.parent / 'arrays.npz'
     results = {'eval': [], 'a': [], 'b': [], 'baseline': []}
     order = ['eval', 'a', 'b']
     with tempfile.TemporaryDirectory(prefix='p3_eval_') as tmp:
@@ -374,6 +438,7 @@ def run(smoke=False, rounds=None, big=False, messages=None, log=print, jitter=Fa
              f'for {messages} msgs (bag {_size(bag) / 2**20:.0f} MiB)'))
     data = {'benchmark': 'P3', 'smoke': smoke, 'messages': messages, 'figures': figures,
             'runs': results, 'bag_mib': _size(bag) / 2**20}
+    data['kalman'] = _kalman(bag, messages, rounds, smoke, figures, log, baseline)
     if jitter:
         data['jitter'] = _jitter(messages, rounds, smoke, results['eval'], figures, log)
     if big:
@@ -393,6 +458,29 @@ def _versus_baseline(figures, runs, base_runs, messages, baseline, smoke=False):
              f'{summary(bs)["median"]:.2f} s; peak RSS '
              f'{summary([x["maxrss_mib"] for x in runs])["median"]:.0f} against '
              f'{summary([x["maxrss_mib"] for x in base_runs])["median"]:.0f} MiB'))
+
+
+def _kalman(bag, messages, rounds, smoke, figures, log, baseline=None):
+    """Add the figure of the replay's CPU per message: Kalman against the design's poles."""
+    res = _run_worker('replay', bag, max(2, rounds))
+    ratios = [k / p for k, p in zip(res['kalman'], res['poles'])]
+    log(f'  P3 replay per message: poles {res["poles"]}, kalman {res["kalman"]} us '
+        f'(bulk steps {res["bulk"]})')
+    figures.append(ratio_line(
+        'P3', f'kalman_replay/poles_replay_per_msg[{messages}]', ratios, '<=', 2.0,
+        smoke=smoke, note=f'CPU per message: kalman {summary(res["kalman"])["median"]:.2f} '
+                          f'us, poles {summary(res["poles"])["median"]:.2f} us'))
+    out = {'this': res}
+    if baseline:
+        base = _run_worker('replay', bag, 1, pythonpath=baseline)
+        log(f'  P3 replay per message of {baseline}: poles {base["poles"]}, kalman '
+            f'{base["kalman"]} us')
+        figures.append(ratio_line(
+            'P3', f'kalman_replay/kalman_replay_of_baseline[{messages}]',
+            [summary(res['kalman'])['median'] / base['kalman'][0]], '<=', 1.0, smoke=smoke,
+            note=f'{baseline}: kalman {base["kalman"][0]:.2f} us per message'))
+        out['baseline'] = base
+    return out
 
 
 def _jitter(messages, rounds, smoke, regular, figures, log):
@@ -444,7 +532,8 @@ def main(argv=None):
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ['--worker']:
         kind, args = argv[1], argv[2:]
-        func = {'a': worker_a, 'b': worker_b, 'eval': worker_eval}[kind]
+        func = {'a': worker_a, 'b': worker_b, 'eval': worker_eval,
+                'replay': worker_replay}[kind]
         res = func(*args)
         res['maxrss_mib'] = _maxrss_mib()
         print(json.dumps(res))

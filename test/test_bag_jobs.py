@@ -38,7 +38,8 @@ def _jobs():
 
 def _numbers(rows):
     """Return the rows without their timings, as comparable text (NaN compares equal)."""
-    return [json.dumps({k: v for k, v in r.items() if k != 'seconds'}, sort_keys=True)
+    return [json.dumps({k: v for k, v in r.items() if k not in ('seconds', 'cpu_seconds')},
+                       sort_keys=True)
             for r in rows]
 
 
@@ -157,3 +158,32 @@ def test_jobs_run_on_an_existing_cluster_named_by_the_environment(monkeypatch):
         assert cluster.scheduler_address
         again = run_jobs(jobs, 'dask', scheduler=cluster.scheduler_address)
     assert _numbers(rows) == _numbers(serial) == _numbers(again)
+
+
+def test_a_local_cluster_listens_on_the_loopback_interface_only():
+    import os
+    import psutil
+    from observer_ros.bag.jobs import connect, workers_of
+    client, cluster = connect(workers=1)
+    try:
+        assert cluster.scheduler_address.startswith('tcp://127.0.0.1:')
+        assert all(w.startswith('tcp://127.0.0.1:') for w in workers_of(client))
+        pids = {os.getpid(), *client.run(os.getpid).values(), *client.run(os.getppid).values()}
+        listening = [c for c in psutil.net_connections('inet') if c.pid in pids and
+                     c.status == psutil.CONN_LISTEN]
+        assert len(listening) >= 2             # the scheduler's and the worker's (+ nanny)
+        assert {c.laddr.ip for c in listening} == {'127.0.0.1'}, listening
+    finally:
+        client.close()
+        cluster.close()
+
+
+def test_the_efficiency_line_says_when_serial_would_have_been_faster():
+    from observer_ros.bag.batch import _efficiency
+    rows = [{'cpu_seconds': 3.0}, {'cpu_seconds': 3.0}]
+    line = _efficiency(rows, 4.0, 2)
+    assert line.startswith('parallel efficiency 75%: speed-up 1.50x on 2 workers')
+    assert 'serially' not in line
+    slow = _efficiency(rows, 8.0, 2)
+    assert 'speed-up 0.75x' in slow and 'running serially (--serial) would have been faster' \
+        in slow

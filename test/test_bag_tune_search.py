@@ -169,3 +169,28 @@ def test_per_pole_search_refusals(two_bags, tmp_path, capsys):
                     rtol=1e-12)
     assert np.all(np.abs(space.poles(space.start + 5.0)) < 1.0)
     assert np.all(np.abs(space.poles(space.start - 30.0)) < 1.0)
+
+
+def test_the_same_filter_is_replayed_once(monkeypatch):
+    """A Qd of zeros times every scale is one filter: one replay, one score for all."""
+    from observer_ros.bag import evaluate, gain_search as gs
+    calls = []
+    real = evaluate.replay
+
+    def counting(recording, vehicle, name='design', overrides=(), **kw):
+        calls.append(tuple(overrides))
+        return real(recording, vehicle, name, overrides, **kw)
+    monkeypatch.setattr(evaluate, 'replay', counting)
+    bag = Path(__file__).resolve().parents[1] / 'bags' / 'samples' / 'submarine'
+    zero = ['observer.type:=kalman', 'observer.Qd:=[0.0,0.0,0.0, 0.0,0.0,0.0, 0.0,0.0,0.0]']
+    other = ['observer.type:=kalman',
+             'observer.Qd:=[1.0e-6,0.0,0.0, 0.0,1.0e-4,0.0, 0.0,0.0,1.0e-4]']
+    per_bag, truth = gs.score_variants([bag], CONFIG / 'submarine.yaml',
+                                       [zero, other, zero, zero], 1)
+    assert truth and len(calls) == 2
+    values = next(iter(per_bag.values()))
+    assert values[0] == values[2] == values[3] != values[1]
+    alone = evaluate_bag(bag, CONFIG / 'submarine.yaml', {'z': zero}, include_live=False,
+                         include_design=False)
+    assert values[0] == alone.variants['z'].summary['error_rms']
+    assert alone.variants['z'].sensors            # observer-eval still judges the health

@@ -10,20 +10,32 @@ one merged table (``results.csv``: one row per bag and variant), the summary acr
 ``results.txt`` and a plot of each bag's error (or residual) RMS per variant
 (``error_rms.png``).
 
+Every job's row is written to ``jobs/`` in the output folder as soon as the job
+finishes (``batch.json`` lists the jobs), so nothing finished is lost: a run that loses
+every worker for ``--lost-timeout`` seconds, or is interrupted, ends with one ``error:``
+line and the command that finishes it (``--resume``: the jobs already in ``jobs/`` are
+skipped). A worker lost or joining is said as it happens. A local cluster listens on the
+loopback interface only. At the end the measured parallel efficiency is printed (the
+jobs' CPU time over the wall time, per worker), and a local cluster of more workers than
+free cores is warned about before it starts.
+
 """
 
 import argparse
 import csv
 import json
 import math
+import os
 from pathlib import Path
+import shlex
 import sys
 import time
 import warnings
 
 from .errors import BagToolError
 from .evaluate import _Progress, IN_MEMORY_HELP, parse_options
-from .jobs import job_dict, make_jobs, run_jobs, SCHEDULER_ENV, summarize
+from .jobs import (connect, job_dict, LOST_TIMEOUT, make_jobs, run_jobs, SCHEDULER_ENV,
+                   summarize, workers_of, WorkersLost)
 from .report import text_table
 from .results import jsonable
 from ..core.errors import ObserverError
@@ -140,10 +152,63 @@ _CSV = ['bag', 'variant', 'observer_type', 'estimates', 'overrides', 'seconds', 
 _SUMMARY = ['matched', 'error_rms', 'settling_time']
 
 
-def write_batch(out, jobs, rows, summary, plots=True):
-    """Write the merged table, the summary, the JSON and the plot to a new folder."""
+_MANIFEST = 'batch.json'        # the jobs of a batch's output folder (for --resume)
+_FINISHED = 'jobs'              # one JSON row per finished job, written as it finishes
+
+
+def _row_file(out, i):
+    return Path(out) / _FINISHED / f'{i:06d}.json'
+
+
+def start_output(out, jobs, resume):
+    """
+    Prepare the output folder; return the rows of the jobs already finished there.
+
+    A new folder gets the manifest (every job) and an empty ``jobs/``; with ``resume``
+    the folder must hold the manifest of the same jobs, and the rows in ``jobs/`` of the
+    jobs that match are returned ``{index: row}`` (the others run again).
+
+    """
     out = Path(out)
-    out.mkdir(parents=True)
+    wanted = json.loads(json.dumps([job_dict(j) for j in jobs]))     # as read back
+    if not resume:
+        if out.exists():
+            raise BagToolError(f'{out} exists; refusing to overwrite it (--resume to finish '
+                               'the batch that wrote it)')
+        (out / _FINISHED).mkdir(parents=True)
+        _write_json(out / _MANIFEST, {'jobs': wanted})
+        return {}
+    try:
+        manifest = json.loads((out / _MANIFEST).read_text())
+    except (OSError, ValueError):
+        raise BagToolError(f'--resume: {out} holds no observer-eval-batch run '
+                           f'({_MANIFEST} missing or unreadable)') from None
+    if manifest.get('jobs') != wanted:
+        raise BagToolError(f'--resume: the jobs differ from those of the run in {out} '
+                           '(give the same bags, vehicle, variants and options)')
+    (out / _FINISHED).mkdir(exist_ok=True)
+    done = {}
+    for i, job in enumerate(wanted):
+        try:
+            row = json.loads(_row_file(out, i).read_text())
+        except (OSError, ValueError):
+            continue
+        if row.get('job') == job:
+            done[i] = row['row']
+    return done
+
+
+def _write_json(path, data):
+    """Write JSON to a file atomically (a file written whole, or not at all)."""
+    tmp = path.with_name(path.name + '.tmp')
+    tmp.write_text(json.dumps(data))
+    os.replace(tmp, path)
+
+
+def write_batch(out, jobs, rows, summary, plots=True):
+    """Write the merged table, the summary, the JSON and the plot to the folder."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
     states = list(dict.fromkeys(k for r in rows for k in r['states']))
     outputs = list(dict.fromkeys(k for r in rows for k in r['outputs']))
     with open(out / 'results.csv', 'w', newline='') as f:
@@ -183,8 +248,11 @@ def _parser():
         epilog='Variants as observer-eval --variant. The jobs run on a local Dask cluster '
                f'unless --scheduler (or ${SCHEDULER_ENV}) names an existing one, whose '
                'workers need observer_ros installed (not ROS) and the same paths to the '
-               'bags and the vehicle file. exit status: 0 every job ran; 1 some jobs '
-               'failed (their row says why); 2 bad arguments (one line "error: ...").')
+               'bags and the vehicle file. Each finished job is written to OUT/jobs/ at '
+               'once. exit status: 0 every job ran; 1 some jobs failed (their row says '
+               'why); 2 bad arguments (one line "error: ..."); 3 every worker lost for '
+               '--lost-timeout s, 130 interrupted (one line "error: ...", the finished '
+               'results kept, then the command to resume).')
     parser.add_argument('bags', nargs='+', help='bags, or folders holding bags')
     parser.add_argument('--vehicle', required=True, help='vehicle file of every bag')
     parser.add_argument('--variant', action='append', default=[],
@@ -199,6 +267,15 @@ def _parser():
     where.add_argument('--scheduler', metavar='ADDRESS',
                        help=f'an existing Dask scheduler (default ${SCHEDULER_ENV})')
     where.add_argument('--serial', action='store_true', help='run the jobs in this process')
+    parser.add_argument('--resume', action='store_true',
+                        help='finish the run that wrote --out: skip the jobs whose results '
+                             'are there (after lost workers or Ctrl-C)')
+    parser.add_argument('--lost-timeout', type=float, default=LOST_TIMEOUT, metavar='S',
+                        help='end the run when the cluster has had no worker for S seconds '
+                             f'(default {LOST_TIMEOUT:g}); the finished results are kept')
+    parser.add_argument('--dashboard', nargs='?', const='127.0.0.1:8787', metavar='HOST:PORT',
+                        help="the local cluster's Dask dashboard (needs bokeh: the "
+                             "'dashboard' extra; default 127.0.0.1:8787)")
     parser.add_argument('--in-memory', action='store_true', help=IN_MEMORY_HELP)
     parser.add_argument('--no-plots', action='store_true', help='do not write the plot')
     parser.add_argument('--progress', action='store_true',
@@ -206,30 +283,105 @@ def _parser():
     return parser
 
 
+def _free_cores():
+    """Return (CPU count, 1-minute load average, cores free of it)."""
+    cores = os.cpu_count() or 1
+    try:
+        load = os.getloadavg()[0]
+    except OSError:
+        load = 0.0
+    return cores, load, max(0.0, cores - load)
+
+
+def _efficiency(rows, wall, workers):
+    """Return the line on the measured speed-up, and whether serial would have been faster."""
+    cpu = sum(r.get('cpu_seconds') or 0.0 for r in rows)
+    if not rows or wall <= 0.0 or not workers:
+        return None
+    speedup = cpu / wall
+    line = (f'parallel efficiency {speedup / workers:.0%}: speed-up {speedup:.2f}x on '
+            f'{workers} workers (the jobs took {cpu:.1f} s of CPU, done in {wall:.1f} s)')
+    if speedup < 1.0:
+        line += '; running serially (--serial) would have been faster'
+    return line
+
+
 def main(argv=None):
     """Entry point of ``observer-eval-batch``; returns the exit status."""
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = _parser().parse_args(argv)
     started = time.perf_counter()
     progress = _Progress(args.progress or sys.stderr.isatty(), sys.stderr)
+
+    def say(text):                       # on its own line, the progress bar after it
+        progress.finish()
+        print(f'warning: {text}', file=sys.stderr, flush=True)
+    out = Path(args.out)
+    done = {}
     try:
         if args.workers is not None and args.workers < 1:
             raise BagToolError(f'--workers must be at least 1, not {args.workers}')
+        if not args.lost_timeout > 0:
+            raise BagToolError(f'--lost-timeout must be positive, not {args.lost_timeout:g}')
         variants = parse_options(args.variant, args.tolerance)
         if not Path(args.vehicle).is_file():
             raise BagToolError(f'--vehicle {args.vehicle}: no such file')
-        out = Path(args.out)
-        if out.exists():
-            raise BagToolError(f'{out} exists; refusing to overwrite it')
         jobs = make_jobs(find_bags(args.bags), args.vehicle, variants, args.namespace,
                          args.tolerance, args.exact)
-        with warnings.catch_warnings():
-            warnings.simplefilter('ignore')
-            rows = run_jobs(jobs, 'serial' if args.serial else 'dask', args.workers,
-                            args.scheduler, lambda d, t: progress('jobs done', d, t),
-                            spill=None if args.in_memory else True)
+        done = start_output(out, jobs, args.resume)
+        todo = [i for i in range(len(jobs)) if i not in done]
+        if done:
+            print(f'resuming: {len(done)} of {len(jobs)} jobs already done in {out}/',
+                  file=sys.stderr)
+
+        def finished(k, row):           # k: index among todo
+            _write_json(_row_file(out, todo[k]), {'job': job_dict(jobs[todo[k]]),
+                                                  'row': row})
+        client = cluster = None
+        workers = 1
+        if not args.serial and todo:
+            client, cluster = connect(args.workers, args.scheduler, len(todo),
+                                      dashboard=args.dashboard)
+            workers = len(workers_of(client)) or 1
+            if cluster is not None:
+                cores, load, free = _free_cores()
+                if workers > max(1.0, free):
+                    say(f'{workers} workers on {cores} cores with about {free:.1f} free '
+                        f'(load average {load:.2f}): running serially (--serial) would '
+                        'likely be faster')
+        run_started = time.perf_counter()
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter('ignore')
+                ran = run_jobs([jobs[i] for i in todo], 'serial' if args.serial else 'dask',
+                               progress=lambda d, t: progress('jobs done', len(done) + d,
+                                                              len(jobs)),
+                               spill=None if args.in_memory else True, on_row=finished,
+                               on_event=say, lost_timeout=args.lost_timeout, client=client)
+        finally:
+            if client is not None:
+                client.close()
+            if cluster is not None:
+                cluster.close()
+        wall = time.perf_counter() - run_started
         progress.finish()
+        rows = [None] * len(jobs)
+        for i, row in done.items():
+            rows[i] = row
+        for i, row in zip(todo, ran):
+            rows[i] = row
         summary = summarize(rows)
         files = write_batch(out, jobs, rows, summary, plots=not args.no_plots)
+    except (WorkersLost, KeyboardInterrupt) as err:
+        progress.finish()
+        kept = len(list((out / _FINISHED).glob('*.json'))) if (out / _FINISHED).is_dir() \
+            else 0
+        why = 'interrupted' if isinstance(err, KeyboardInterrupt) else str(err)
+        print(f'error: {why}; {kept} finished results kept in {out}/{_FINISHED}/',
+              file=sys.stderr)
+        again = argv if '--resume' in argv else argv + ['--resume']
+        print(f'resume with: observer-eval-batch {shlex.join(again)}', file=sys.stderr)
+        return 130 if isinstance(err, KeyboardInterrupt) else 3
     except (ObserverError, OSError) as err:
         progress.finish()
         text = str(err).splitlines()[0] if str(err) else type(err).__name__
@@ -239,6 +391,9 @@ def main(argv=None):
     failed = [r for r in rows if r['error']]
     for r in failed:
         print(f'warning: {r["bag"]} {r["variant"]}: {r["error"]}', file=sys.stderr)
+    line = None if args.serial else _efficiency([rows[i] for i in todo], wall, workers)
+    if line:
+        print(f'\n{line}')
     print(f'\n{len(jobs)} jobs written to {out}/ ({", ".join(f.name for f in files)}) in '
           f'{time.perf_counter() - started:.1f} s')
     return 1 if failed else 0

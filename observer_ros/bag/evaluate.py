@@ -201,7 +201,7 @@ def _load_vehicle(vehicle, overrides=()):
 def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=None,
                  exact=False, progress=None, clock_jump_tolerance=CLOCK_JUMP_TOLERANCE,
                  include_live=True, include_design=True, compare=None, spill=None,
-                 keep_rows=True):
+                 keep_rows=True, health=True):
     """
     Replay a bag through the vehicle's design and variants, and score them.
 
@@ -243,6 +243,9 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
         (its ``replay`` becomes a :class:`~observer_ros.bag.results.ScoredReplay`): the
         memory of a search does not grow with the number of variants. Either way every
         variant is scored right after its replay, with the same figures.
+    health : bool
+        Judge each sensor's innovation health (``VariantResult.sensors``); a gain
+        search, whose metric does not use it, turns it off.
 
     Returns
     -------
@@ -333,19 +336,20 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
             warnings_out.append(f'{name}: {text}')
         if not len(rep):
             warnings_out.append(f'{name}: no measurement was accepted')
-        _scored(result, VariantResult(name, v.observer.kind, overrides, rep), keep_rows)
+        _scored(result, VariantResult(name, v.observer.kind, overrides, rep), keep_rows,
+                health)
         del rep
     if include_live:
         live = live_replay(recording, base, clock_jump_tolerance)
         if live is not None:
-            _scored(result, VariantResult('live', 'recorded', (), live), keep_rows)
+            _scored(result, VariantResult('live', 'recorded', (), live), keep_rows, health)
     result.seconds = time.perf_counter() - start
     return result
 
 
-def _scored(result, vr, keep_rows):
+def _scored(result, vr, keep_rows, health=True):
     """Score a variant and add it to the result; without ``keep_rows``, drop its rows."""
-    score_variant(result, vr)
+    score_variant(result, vr, health)
     if not keep_rows:
         vr.replay, vr.error, vr.matched = ScoredReplay.of(vr.replay), None, None
     result.variants[vr.name] = vr

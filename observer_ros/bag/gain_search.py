@@ -136,26 +136,38 @@ def score_variants(bags, vehicle, overrides, ref, namespace=None, exact=False,
     each bag x variant is a job of :mod:`observer_ros.bag.jobs` on a Dask cluster, with
     the same numbers. ``spill``: :func:`evaluate_bag`'s (True: the replay's rows in
     temporary files; None: in memory); each variant's rows are dropped once scored.
+    Variants with the same overrides are one observer, replayed once (a Qd of zeros
+    times every scale of a grid). The sensors' innovation health is not judged (the
+    metric does not use it).
 
     """
-    names = tuple(f'scale_{i}' for i in range(len(overrides)))
+    # the same observer is replayed once: its overrides as text name it (a Qd of zeros
+    # times any scale is one filter); the others take its scores
+    unique = list(dict.fromkeys(tuple(o) for o in overrides))
+    names = tuple(f'scale_{i}' for i in range(len(unique)))
+    which = [unique.index(tuple(o)) for o in overrides]
     keys = bag_keys(bags)
     if dask is not None:
-        return _score_jobs(bags, vehicle, dict(zip(names, overrides)), ref, namespace,
-                           exact, progress, dask, spill)
+        per_bag, truth = _score_jobs(bags, vehicle, dict(zip(names, unique)),
+                                     which[ref], namespace, exact, progress, dask, spill)
+        return {k: [v[j] for j in which] for k, v in per_bag.items()}, truth
     per_bag, truth = {}, True
     for i, (key, bag) in enumerate(zip(keys, bags)):
         if progress:
             progress('searching', i, len(bags))
-        r = evaluate_bag(bag, vehicle, dict(zip(names, overrides)), namespace, exact=exact,
-                         include_live=False, include_design=False, spill=spill,
-                         keep_rows=False)
+        r = evaluate_bag(bag, vehicle, dict(zip(names, map(list, unique))), namespace,
+                         exact=exact, include_live=False, include_design=False, spill=spill,
+                         keep_rows=False, health=False)
         truth = truth and r.truth is not None
         per_bag[key] = ({n: r.variants[n].summary for n in names},
                         {n: r.variants[n].outputs for n in names})
     if progress:
         progress('searching', len(bags), len(bags))
-    return {k: _bag_metric(*v, names, names[ref], truth) for k, v in per_bag.items()}, truth
+    out = {}
+    for key, scored in per_bag.items():
+        metric = _bag_metric(*scored, names, names[which[ref]], truth)
+        out[key] = [metric[j] for j in which]
+    return out, truth
 
 
 def _score_jobs(bags, vehicle, variants, ref, namespace, exact, progress, dask, spill):

@@ -31,9 +31,15 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-__all__ = ['Job', 'make_jobs', 'run_job', 'run_jobs', 'summarize', 'job_dict', 'SCHEDULER_ENV']
+from .errors import BagToolError
+
+__all__ = ['Job', 'make_jobs', 'run_job', 'run_jobs', 'connect', 'summarize', 'job_dict',
+           'workers_of', 'WorkersLost', 'SCHEDULER_ENV', 'LOST_TIMEOUT']
 
 SCHEDULER_ENV = 'DASK_SCHEDULER_ADDRESS'
+LOCAL_HOST = '127.0.0.1'        # a local cluster listens on the loopback interface only
+LOST_TIMEOUT = 60.0             # s without any worker before a Dask run gives up
+POLL_SECONDS = 0.5              # s between looks at the cluster's workers
 
 
 @dataclass(frozen=True)
@@ -91,6 +97,7 @@ def run_job(job, spill=True):
     from .evaluate import evaluate_job
     from ..core.errors import ObserverError
     start = time.perf_counter()
+    cpu = time.process_time()
     try:
         with warnings.catch_warnings():
             warnings.simplefilter('ignore')
@@ -102,13 +109,24 @@ def run_job(job, spill=True):
                 'observer_type': None, 'overrides': list(job.overrides), 'estimates': 0,
                 'counts': {}, 'summary': {}, 'states': {}, 'outputs': {},
                 'ground_truth': False, 'warnings': [],
-                'seconds': time.perf_counter() - start, 'error': text}
+                'seconds': time.perf_counter() - start,
+                'cpu_seconds': time.process_time() - cpu, 'error': text}
     row = result.to_dict()
+    row['cpu_seconds'] = time.process_time() - cpu
     row['error'] = None
     return row
 
 
-def run_jobs(jobs, backend='dask', workers=None, scheduler=None, progress=None, spill=True):
+class WorkersLost(BagToolError):
+    """Every worker of the cluster was gone for longer than the timeout; ``rows`` so far."""
+
+    def __init__(self, message, rows):
+        super().__init__(message)
+        self.rows = rows
+
+
+def run_jobs(jobs, backend='dask', workers=None, scheduler=None, progress=None, spill=True,
+             on_row=None, on_event=None, lost_timeout=LOST_TIMEOUT, client=None):
     """
     Run jobs; return their rows in the jobs' order.
 
@@ -128,6 +146,19 @@ def run_jobs(jobs, backend='dask', workers=None, scheduler=None, progress=None, 
         ``progress(done, total)`` after each finished job.
     spill : True or path or None
         Every job's :func:`run_job` ``spill`` (None: the rows in memory).
+    on_row : callable, optional
+        ``on_row(index, row)`` as soon as each job has finished (to write it at once).
+    on_event : callable, optional
+        ``on_event(text)``: a worker lost or back (Dask), said as it happens.
+    lost_timeout : float
+        Dask: seconds without any worker after which the run ends with
+        :class:`WorkersLost` (its ``rows``: None for the jobs not finished).
+    client : distributed.Client, optional
+        Run on this client (from :func:`connect`; left open) instead of connecting.
+
+    A job whose worker died under it is given to another worker by Dask; one that
+    killed its workers three times (Dask's ``KilledWorker``) gets a row with ``error``
+    and ``lost: True`` (not finished: not passed to ``on_row``).
 
     """
     jobs = list(jobs)
@@ -135,45 +166,133 @@ def run_jobs(jobs, backend='dask', workers=None, scheduler=None, progress=None, 
         rows = []
         for i, job in enumerate(jobs):
             rows.append(run_job(job, spill))
+            if on_row is not None:
+                on_row(i, rows[-1])
             if progress is not None:
                 progress(i + 1, len(jobs))
         return rows
     if backend != 'dask':
         raise ValueError(f'backend must be "dask" or "serial", not {backend!r}')
-    return _run_dask(jobs, workers, scheduler or os.environ.get(SCHEDULER_ENV) or None,
-                     progress, spill)
-
-
-def _run_dask(jobs, workers, scheduler, progress, spill):
+    if client is not None:
+        return _run_dask(client, jobs, progress, spill, on_row, on_event, lost_timeout)
+    client, cluster = connect(workers, scheduler, len(jobs))
     try:
-        from distributed import as_completed, Client, LocalCluster
-    except ImportError:
-        from .errors import BagToolError
-        raise BagToolError('Dask is not installed (`pip install dask distributed`); or run '
-                           'the jobs serially (--serial)') from None
-    cluster = None
-    if scheduler is None:
-        n = workers or min(os.cpu_count() or 1, max(1, len(jobs)))
-        cluster = LocalCluster(n_workers=int(n), threads_per_worker=1, processes=True,
-                               dashboard_address=None)
-        client = Client(cluster)
-    else:
-        client = Client(scheduler, timeout='30s')
-    try:
-        futures = {client.submit(run_job, job, spill, pure=False): i
-                   for i, job in enumerate(jobs)}
-        rows = [None] * len(jobs)
-        done = 0
-        for future in as_completed(futures):
-            rows[futures[future]] = future.result()
-            done += 1
-            if progress is not None:
-                progress(done, len(jobs))
-        return rows
+        return _run_dask(client, jobs, progress, spill, on_row, on_event, lost_timeout)
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+def connect(workers=None, scheduler=None, jobs=1, host=LOCAL_HOST, dashboard=None):
+    """
+    Return ``(client, cluster)``: a client of the scheduler, or of a new local cluster.
+
+    ``scheduler`` (default ``$DASK_SCHEDULER_ADDRESS``) names an existing cluster
+    (``cluster`` is then None); otherwise a local cluster of ``workers`` processes (default:
+    the CPU count, at most ``jobs``), one thread each, whose scheduler and workers listen
+    on ``host`` only (the loopback interface by default: nothing reachable from the
+    network), with the Dask dashboard at ``dashboard`` (``HOST:PORT``; it needs bokeh,
+    the ``dashboard`` extra) or none.
+
+    """
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise BagToolError('Dask is not installed (`pip install dask distributed`); or run '
+                           'the jobs serially (--serial)') from None
+    scheduler = scheduler or os.environ.get(SCHEDULER_ENV) or None
+    if scheduler is not None:
+        try:
+            return Client(scheduler, timeout='30s'), None
+        except (OSError, TimeoutError) as err:
+            raise BagToolError(f'cannot reach the Dask scheduler at {scheduler}: '
+                               f'{str(err).splitlines()[0] if str(err) else err}') from None
+    if dashboard is not None:
+        try:
+            import bokeh  # noqa: F401
+        except ImportError:
+            raise BagToolError('--dashboard needs bokeh: pip install "observer_ros[dashboard]" '
+                               '(or pip install "bokeh>=3.1")') from None
+    n = workers or min(os.cpu_count() or 1, max(1, jobs))
+    cluster = LocalCluster(n_workers=int(n), threads_per_worker=1, processes=True,
+                           host=host, dashboard_address=dashboard)
+    return Client(cluster), cluster
+
+
+def workers_of(client):
+    """Return the addresses of the scheduler's workers now (asked, not a cached view)."""
+    return set(client.run_on_scheduler(_worker_addresses))
+
+
+def _worker_addresses(dask_scheduler=None):
+    return list(dask_scheduler.workers)
+
+
+def _run_dask(client, jobs, progress, spill, on_row, on_event, lost_timeout):
+    from distributed import wait
+    from distributed.scheduler import KilledWorker
+    futures = {client.submit(run_job, job, spill, pure=False): i
+               for i, job in enumerate(jobs)}
+    rows = [None] * len(jobs)
+    done = 0
+    pending = set(futures)
+    known = workers_of(client)
+    alone_since = None if known else time.monotonic()
+    while pending:
+        try:
+            finished, pending = wait(pending, timeout=POLL_SECONDS,
+                                     return_when='FIRST_COMPLETED')
+        except TimeoutError:                    # none finished in the poll's time
+            finished = ()
+        for future in finished:
+            i = futures[future]
+            try:
+                rows[i] = future.result()
+            except KilledWorker:
+                rows[i] = _lost_row(jobs[i])
+            else:
+                if on_row is not None:
+                    on_row(i, rows[i])
+            done += 1
+            if progress is not None:
+                progress(done, len(jobs))
+        if not pending:
+            break
+        now = workers_of(client)
+        for gone in sorted(known - now):
+            _say(on_event, f'lost worker {gone}: {len(now)} left, {done}/{len(jobs)} jobs '
+                           'done (its jobs go to the others)' if now else
+                           f'lost worker {gone}: no worker left, {done}/{len(jobs)} jobs '
+                           f'done; waiting {lost_timeout:g} s for one')
+        for new in sorted(now - known):
+            _say(on_event, f'worker {new} joined: {len(now)} now')
+        known = now
+        if now:
+            alone_since = None
+        elif alone_since is None:
+            alone_since = time.monotonic()
+        elif time.monotonic() - alone_since > lost_timeout:
+            for future in pending:
+                future.cancel()
+            raise WorkersLost(f'every worker lost: none for {lost_timeout:g} s, {done} of '
+                              f'{len(jobs)} jobs done', rows)
+    return rows
+
+
+def _say(on_event, text):
+    if on_event is not None:
+        on_event(text)
+
+
+def _lost_row(job):
+    """Return the row of a job Dask gave up on (it killed its workers): not finished."""
+    return {'bag': job.bag, 'vehicle': job.vehicle, 'variant': job.variant,
+            'observer_type': None, 'overrides': list(job.overrides), 'estimates': 0,
+            'counts': {}, 'summary': {}, 'states': {}, 'outputs': {}, 'ground_truth': False,
+            'warnings': [], 'seconds': 0.0, 'cpu_seconds': 0.0, 'lost': True,
+            'error': 'its worker died each time it ran (Dask KilledWorker); run again with '
+                     '--resume'}
 
 
 def _stats(values):

@@ -234,8 +234,14 @@ def _finite_column(values, j, block=BLOCK):
     return out
 
 
-def score_variant(result, vr):
-    """Fill a VariantResult's metrics (states against the truth, outputs' whiteness)."""
+def score_variant(result, vr, health=True):
+    """
+    Fill a VariantResult's metrics (states against the truth, outputs' whiteness).
+
+    ``health``: also each sensor's innovation health (``vr.sensors``; a gain search,
+    which does not score it, leaves it out).
+
+    """
     rep = vr.replay
     plant = result.vehicle.plant
     if result.truth is not None and len(rep):
@@ -254,4 +260,4 @@ def score_variant(result, vr):
     for j, name in enumerate(plant.output_names):
         vr.outputs[name] = whiteness(_finite_column(rep.residual, j)) if len(rep) else \
             whiteness([])
-    vr.sensors = innovation_health(rep)
+    vr.sensors = innovation_health(rep) if health else {}
