@@ -194,3 +194,68 @@ def test_the_same_filter_is_replayed_once(monkeypatch):
                          include_design=False)
     assert values[0] == alone.variants['z'].summary['error_rms']
     assert alone.variants['z'].sensors            # observer-eval still judges the health
+
+
+def test_model_errors_are_least_at_the_true_covariances_and_match_a_simulation():
+    """The model's predicted RMS error: least at scale 1, and what a long run measures."""
+    from observer_ros.bag.gain_search import model_errors
+    from observer_ros.bag.sampled import sampled_model
+    from observer_ros.core.estimators import process_noise_covariance
+    v, q, r = _true('submarine')
+    Ad, _ = sampled_model(v, v.sample_time)
+    C = v.plant.C
+    Qk = process_noise_covariance(v.plant.A, [[q]], v.sample_time, v.plant.B)
+    R = np.array([[r]])
+    scales = [0.25, 0.5, 1.0, 2.0, 4.0]
+    rms = model_errors(Ad, C, Qk, R, scales)
+    assert int(np.argmin(rms)) == 2 and rms[0] > rms[2] < rms[4]
+    # a long simulation of the steady-state filter of scale 2 on that model
+    import scipy.linalg
+    P = scipy.linalg.solve_discrete_are(Ad.T, C.T, 2.0 * Qk, R)
+    K = np.linalg.solve(C @ P @ C.T + R, C @ P).T
+    rng = np.random.default_rng(5)
+    w = rng.multivariate_normal(np.zeros(v.plant.n), Qk, size=200_000)
+    e = np.zeros(v.plant.n)
+    sq = 0.0
+    for k in range(w.shape[0]):
+        e = Ad @ e + w[k]                                       # prior error
+        e = e - K @ (C @ e + np.sqrt(r) * rng.standard_normal(1))   # after the correction
+        if k >= 1000:
+            sq += e @ e
+    assert np.sqrt(sq / (w.shape[0] - 1000)) == pytest.approx(rms[3], rel=0.03)
+
+
+def test_the_kalman_search_replays_the_scales_around_the_models_best(two_bags, tmp_path,
+                                                                     monkeypatch):
+    from observer_ros.bag import gain_search as gs
+    from observer_ros.bag.identify import identify
+    from observer_ros.bag.tuned_vehicle import write_tuned_vehicle
+    bags = two_bags['submarine'][:1]
+    ident = identify(bags, CONFIG / 'submarine.yaml', input_noise=True)
+    r = ident.result
+    identified = tmp_path / 'identified.yaml'
+    write_tuned_vehicle(CONFIG / 'submarine.yaml', identified, {
+        'observer.type': 'kalman', 'observer.Qd': list(np.ravel(r.Q)),
+        'observer.Rd': list(np.ravel(r.R)), 'observer.Bd': list(np.ravel(ident.G))},
+        {}, ['test'])
+    replayed = []
+    real = gs.score_variants
+
+    def counting(bags, vehicle, overrides, *args, **kw):
+        replayed.extend(map(tuple, overrides))
+        return real(bags, vehicle, overrides, *args, **kw)
+    monkeypatch.setattr(gs, 'score_variants', counting)
+    first = gs.gain_search(bags, identified, 'kalman', model=ident)
+    assert first.model is not None and int(np.nanargmin(first.model)) == \
+        first.scales.index(1.0)
+    done = [i for i, m in enumerate(first.mean) if np.isfinite(m)]
+    assert 3 <= len(done) < len(first.scales)
+    assert len(set(replayed)) == len(done)               # each scale replayed once
+    best = int(np.nanargmin(first.mean))
+    # a minimum bracketed by replayed scales (or the grid's end)
+    assert all(j in done for j in (best - 1, best + 1) if 0 <= j < len(first.scales))
+    replayed.clear()
+    full = gs.gain_search(bags, identified, 'kalman')     # every scale, the same numbers
+    assert full.model is None and len(set(replayed)) == len(full.scales)
+    for i in done:
+        assert first.mean[i] == full.mean[i]

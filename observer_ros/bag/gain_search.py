@@ -25,15 +25,17 @@ jobs on Dask (``dask``), with the numbers of this process.
 
 from dataclasses import dataclass, field
 import math
-from typing import Dict, List
+import warnings
+from typing import Dict, List, Optional
 
 import numpy as np
+import scipy.linalg
 
 from .errors import BagToolError
 from .evaluate import evaluate_bag
 
 __all__ = ['DEFAULT_SCALES', 'SearchResult', 'search_overrides', 'score_variants',
-           'bag_keys', 'gain_search']
+           'bag_keys', 'gain_search', 'model_errors']
 
 DEFAULT_SCALES = tuple(float(s) for s in np.round(np.geomspace(0.25, 4.0, 9), 4))
 
@@ -49,6 +51,9 @@ class SearchResult:
     mean: List[float]
     best: float
     overrides: Dict[float, List[str]] = field(default_factory=dict)
+    # predicted metric of each scale on the identified model (``model_errors``), or None;
+    # with it, only the scales around the model's best were replayed (NaN: not replayed)
+    model: Optional[List[float]] = None
 
     def rows(self):
         """Return the table rows: scale, mean metric, then one per bag."""
@@ -59,7 +64,8 @@ class SearchResult:
         """Return JSON-ready data."""
         return {'kind': self.kind, 'metric': self.metric, 'scales': self.scales,
                 'per_bag': self.per_bag, 'mean': self.mean, 'best': self.best,
-                'overrides': {str(k): v for k, v in self.overrides.items()}}
+                'overrides': {str(k): v for k, v in self.overrides.items()},
+                'model': self.model}
 
 
 def metric_name(truth):
@@ -210,8 +216,81 @@ def _scores(bags, vehicle, base, kind, scales, namespace, exact, progress=None, 
                           ref, namespace, exact, progress, dask, spill)
 
 
+def model_errors(Ad, C, Qk, R, scales):
+    """
+    Return the steady-state RMS error of the Kalman filter of each scale, on a model.
+
+    The filter of ``(s Qk, R)`` (steady-state gain of ``scipy.linalg.solve_discrete_are``)
+    on the sampled model ``x+ = Ad x + w``, ``y = C x + v`` whose noises are ``(Qk, R)``:
+    its error covariance solves a discrete Lyapunov equation
+    (``scipy.linalg.solve_discrete_lyapunov``), and the RMS of the error norm is the
+    square root of its trace after the correction. NaN where a scale has no steady state.
+
+    """
+    Ad, C, Qk, R = (np.atleast_2d(np.asarray(M, dtype=float)) for M in (Ad, C, Qk, R))
+    eye = np.eye(Ad.shape[0])
+    out = []
+    for s in scales:
+        try:
+            P = scipy.linalg.solve_discrete_are(Ad.T, C.T, s * Qk, R)
+            K = np.linalg.solve(C @ P @ C.T + R, C @ P).T
+            IKC = eye - K @ C
+            KRK = K @ R @ K.T
+            prior = scipy.linalg.solve_discrete_lyapunov(Ad @ IKC, Ad @ KRK @ Ad.T + Qk)
+            post = IKC @ prior @ IKC.T + KRK
+            value = math.sqrt(max(float(np.trace(post)), 0.0))
+        except (ValueError, np.linalg.LinAlgError):
+            value = math.nan
+        out.append(value if math.isfinite(value) else math.nan)
+    return out
+
+
+def _identified_model(ident):
+    """Return ``(Ad, C, Qk, R)`` of an identification (its sampled model), or None."""
+    try:
+        from .sampled import sampled_model
+        Ad, _ = sampled_model(ident.vehicle, ident.dt)
+        r = ident.result
+        return Ad, ident.vehicle.plant.C, r.Qk, r.R
+    except (AttributeError, TypeError, ValueError):
+        return None
+
+
+def _model_first(bags, vehicle, base, scales, predicted, namespace, exact, progress, spill):
+    """
+    Replay the model's best scale and its neighbours, then more until a minimum is bracketed.
+
+    Returns ``(per_bag, truth)`` with NaN for the scales not replayed. Every batch of
+    replays includes the scale nearest 1 (the residual metric's base).
+
+    """
+    ref = int(np.argmin([abs(math.log(s)) for s in scales]))
+    start = int(np.nanargmin(predicted))
+    per_bag, truth, done = None, True, set()
+    batch = {i for i in (start - 1, start, start + 1) if 0 <= i < len(scales)}
+    while batch:
+        idx = sorted(batch | {ref})
+        got, t = score_variants(bags, vehicle, [search_overrides(base, 'kalman', scales[i])
+                                                for i in idx], idx.index(ref), namespace,
+                                exact, progress, None, spill)
+        truth = truth and t
+        if per_bag is None:
+            per_bag = {k: [math.nan] * len(scales) for k in got}
+        for key, values in got.items():
+            for i, v in zip(idx, values):
+                per_bag[key][i] = v
+        done |= set(idx)
+        mean = np.array([np.nanmean([v[i] for v in per_bag.values()]) if i in done
+                         else math.nan for i in range(len(scales))])
+        if not np.isfinite(mean).any():
+            break
+        best = int(np.nanargmin(mean))
+        batch = {i for i in (best - 1, best + 1) if 0 <= i < len(scales)} - done
+    return per_bag, truth
+
+
 def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exact=False,
-                progress=None, refine=0, dask=None, spill=True):
+                progress=None, refine=0, dask=None, spill=True, model=None):
     """
     Score a family of observers (see the module) on one or many bags.
 
@@ -242,6 +321,11 @@ def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exac
     spill : True or path or None
         Each replay's rows in temporary files (True: in TMPDIR) or in memory (None);
         either way a scale's rows are dropped once it is scored (:func:`score_variants`).
+    model : Identification, optional
+        ``kalman``: score every scale on the identified model first (:func:`model_errors`)
+        and replay only the model's best scale and its grid neighbours, then further
+        neighbours until the best replayed scale has both replayed (or is at the grid's
+        end); the others stay NaN. Without it (or with ``dask``) every scale is replayed.
 
     Returns
     -------
@@ -253,9 +337,27 @@ def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exac
     scales = sorted(float(s) for s in scales)
     if not scales or any(not (s > 0 and math.isfinite(s)) for s in scales):
         raise BagToolError(f'--grid: scales must be positive numbers; got {scales}')
-    per_bag, truth = _scores(bags, vehicle, base, kind, scales, namespace, exact, progress,
-                             dask, spill)
-    mean = np.nanmean(np.array(list(per_bag.values())), axis=0)
+    predicted = None
+    parts = _identified_model(model) if model is not None and kind == 'kalman' and \
+        dask is None else None
+    if parts is not None:
+        Qd = np.asarray(base.observer.Qd, float)
+        scale0 = 1.0                # the file's Qd against the identified one (tune: 1)
+        ident_Q = np.asarray(model.result.Q, float)
+        if Qd.shape == ident_Q.shape and np.any(ident_Q) and np.allclose(Qd, ident_Q):
+            predicted = model_errors(*parts[:2], parts[2], parts[3],
+                                     [s * scale0 for s in scales])
+        if predicted is not None and not np.isfinite(predicted).any():
+            predicted = None
+    if predicted is not None:
+        per_bag, truth = _model_first(bags, vehicle, base, scales, predicted, namespace,
+                                      exact, progress, spill)
+    else:
+        per_bag, truth = _scores(bags, vehicle, base, kind, scales, namespace, exact,
+                                 progress, dask, spill)
+    with np.errstate(all='ignore'), warnings.catch_warnings():
+        warnings.simplefilter('ignore', RuntimeWarning)     # a scale no bag replayed
+        mean = np.nanmean(np.array(list(per_bag.values())), axis=0)
     i = int(np.nanargmin(mean)) if np.isfinite(mean).any() else -1
     if refine and 0 < i < len(scales) - 1:
         from scipy.optimize import minimize_scalar
@@ -279,7 +381,12 @@ def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exac
             for key in per_bag:
                 per_bag[key] = list(per_bag[key])
                 per_bag[key].insert(k, values[key])
-        mean = np.nanmean(np.array(list(per_bag.values())), axis=0)
+        with warnings.catch_warnings():
+            warnings.simplefilter('ignore', RuntimeWarning)
+            mean = np.nanmean(np.array(list(per_bag.values())), axis=0)
     best = scales[int(np.nanargmin(mean))] if np.isfinite(mean).any() else math.nan
+    if predicted is not None and len(predicted) < len(scales):      # refined scales
+        predicted = None
     return SearchResult(kind, metric_name(truth), scales, per_bag, [float(v) for v in mean],
-                        best, {s: search_overrides(base, kind, s) for s in scales})
+                        best, {s: search_overrides(base, kind, s) for s in scales},
+                        predicted)

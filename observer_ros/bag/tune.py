@@ -199,9 +199,10 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
         sr = pole_search(bags, vehicle_path, scales, namespace, progress=progress,
                          evaluations=evaluations, refine=refine, dask=dask, spill=spill)
     elif search != 'none':
+        # kalman: scored on the identified model first, the scales around its best replayed
         sr = gain_search(bags, tmp if search == 'kalman' else vehicle_path, search, scales,
                          namespace, progress=progress, refine=refine, dask=dask,
-                         spill=spill)
+                         spill=spill, model=ident if search == 'kalman' else None)
     replace = OBSERVER_KEYS
     if ident is None:           # only the poles change: the rest of the design stays
         replace = ('observer.poles', 'observer.poles_imag')
