@@ -25,8 +25,8 @@ jobs on Dask (``dask``), with the numbers of this process.
 
 from dataclasses import dataclass, field
 import math
-import warnings
 from typing import Dict, List, Optional
+import warnings
 
 import numpy as np
 import scipy.linalg
