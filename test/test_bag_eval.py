@@ -555,7 +555,9 @@ def test_bag_missing_metadata_reads_the_storage_file(runs, bags, tmp_path):
     bag = shutil.copytree(bags['sub'], tmp_path / 'nometa')
     (bag / 'metadata.yaml').unlink()
     rec = read_recording(bag, vehicle)
-    assert any('metadata.yaml is missing; reading' in w for w in rec.warnings)
+    assert any('metadata.yaml is missing (a recording that was not closed? '
+               f'`observer-bag-recover {bag}` completes it); reading' in w
+               for w in rec.warnings)
     assert len(rec.sensors['gyro']) == 601
     # a bare storage file is a bag too
     assert bag_info(bag_file(bag)).message_count == bag_info(bags['sub']).message_count

@@ -9,6 +9,7 @@ import subprocess
 import sys
 
 from diagnostic_msgs.msg import DiagnosticArray
+from observer_ros.bag.errors import BagToolError
 from observer_ros.bag.reader import BagReader
 from observer_ros.bag.recover import BagRecoveryError, recover_bag
 from observer_ros.nodes.common import STATE_PUB_QOS, STATE_QOS
@@ -255,3 +256,29 @@ def test_recovery_refuses_what_is_not_a_bag(tmp_path):
     (tmp_path / 'junk' / 'junk.mcap').write_bytes(b'not an mcap file at all')
     with pytest.raises(BagRecoveryError, match='not an mcap file'):
         recover_bag(tmp_path / 'junk')
+
+
+def test_a_bag_being_recorded_is_refused_by_recovery_and_evaluation(tmp_path, feeder):
+    """The recorder's lock: recovery and evaluation refuse it; once killed, recovery works."""
+    bag = tmp_path / 'bag'
+    rec = _recorder(bag, 'mcap', 'flush_period:=0.1', log_dir=tmp_path)
+    try:
+        feeder.wait_recorder()
+        feeder.publish(20)
+        before = {p.name: p.read_bytes() for p in bag.iterdir()}
+        pid = rec.popen.pid
+        with pytest.raises(BagRecoveryError, match=rf'is being recorded \(the recorder '
+                           rf'\(process {pid}\) holds .*\.recording\.lock\); nothing changed'):
+            recover_bag(bag)
+        # nothing touched: the live recorder's reserve is still there
+        assert (bag / '.disk_reserve').exists()
+        assert {p.name for p in bag.iterdir()} == set(before)
+        with pytest.raises(BagToolError, match='is being recorded'):
+            BagReader(bag).load()
+        rec.stop(signal.SIGKILL)
+    finally:
+        rec.stop(signal.SIGKILL)
+    # the lock went with the process; its file stays until recovery removes it
+    assert (bag / '.recording.lock').exists()
+    report = recover_bag(bag)
+    assert report['messages'][TOPIC] >= 20 and not (bag / '.recording.lock').exists()

@@ -18,6 +18,8 @@ from typing import Dict, List, Optional, Tuple
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
 
+from .bag_checks import (check_metadata_file, check_regular, LOCK_NAME, metadata_disagreement,
+                         recording_holder, still_growing)
 from .cdr_decode import _PAD
 from .errors import BagToolError
 from .integrity import checksum_note, chunk_crcs
@@ -65,8 +67,10 @@ def _reason(path, err):
     low = text.lower()
     if 'end magic' in low or 'unexpected end' in low or 'could not read' in low \
             and 'bytes' in low:
-        hint = ('the file ends early: truncated, or a recording that was not closed '
-                '(`ros2 bag reindex` or `mcap recover` may repair it)')
+        bag = Path(path).parent if Path(path).suffix in _STORAGE_SUFFIXES else Path(path)
+        hint = ('the file ends early: a recording that was not closed (killed, or the disk '
+                f'filled), or a truncated copy; `observer-bag-recover {bag}` completes it up '
+                'to its last complete chunk')
     elif 'file magic' in low:
         hint = 'not an MCAP file'
     elif 'malformed' in low or 'not a database' in low:
@@ -135,10 +139,19 @@ class BagReader:
         p = self.path
         if not p.exists():
             raise BagToolError(f'{p}: no such file or directory')
+        folder = p if p.is_dir() else p.parent
+        holder = recording_holder(folder)
+        if holder:
+            raise BagToolError(f'{folder} is being recorded ({holder} holds '
+                               f'{folder / LOCK_NAME}); read it once the recorder has closed '
+                               'it (Ctrl-C or SIGTERM closes the bag)')
         if p.is_dir():
-            if (p / 'metadata.yaml').exists():
-                return p
             files = sorted(x for x in p.iterdir() if x.suffix in _STORAGE_SUFFIXES)
+            for file in files:
+                check_regular(file)
+            if (p / 'metadata.yaml').exists() or (p / 'metadata.yaml').is_symlink():
+                check_metadata_file(p / 'metadata.yaml')
+                return p
             if not files:
                 raise BagToolError(
                     f'{p}: not a bag: the directory has no metadata.yaml and no .mcap or '
@@ -148,8 +161,13 @@ class BagReader:
                     f'{p}: metadata.yaml is missing and the directory holds '
                     f'{len(files)} storage files ({", ".join(f.name for f in files)}); '
                     f'restore it with `ros2 bag reindex {p}` or pass one file')
+            growing = still_growing(files[0])
+            if growing:
+                raise BagToolError(f'{p} is still being written by another program: '
+                                   f'{growing}; read it once its recorder has closed it')
             self.warnings.append(
-                f'{p}: metadata.yaml is missing; reading {files[0].name} directly')
+                f'{p}: metadata.yaml is missing (a recording that was not closed? '
+                f'`observer-bag-recover {p}` completes it); reading {files[0].name} directly')
             return files[0]
         if p.suffix == '.bag':
             raise BagToolError(
@@ -158,6 +176,7 @@ class BagReader:
         if p.suffix not in _STORAGE_SUFFIXES:
             raise BagToolError(
                 f'{p}: not a bag: expected a bag directory, a .mcap or a .db3 file')
+        check_regular(p)
         return p
 
     def load(self):
@@ -170,6 +189,26 @@ class BagReader:
             raise
         except Exception as err:   # noqa: BLE001 - rosbags raises many types
             raise BagToolError(_reason(_storage_file(storage_path), err)) from None
+        lies = metadata_disagreement(reader.readers[0].storage) if storage_path.is_dir() \
+            else []
+        if lies:
+            # the storage file is the truth: metadata.yaml only summarises it
+            file = _storage_file(storage_path)
+            more = f'; and {len(lies) - 4} more' if len(lies) > 4 else ''
+            self.warnings.append(
+                f'{storage_path / "metadata.yaml"} disagrees with {file.name}: '
+                f'{"; ".join(lies[:4])}{more}; the bag is read from {file.name}, its storage '
+                f'(`observer-bag-recover {storage_path}` rewrites metadata.yaml from it)')
+            try:
+                reader.close()
+            except Exception:   # noqa: BLE001 - reopened from the file below
+                pass
+            storage_path = file
+            try:
+                reader = AnyReader([storage_path], default_typestore=jazzy_typestore())
+                reader.open()
+            except Exception as err:   # noqa: BLE001 - rosbags raises many types
+                raise BagToolError(_reason(storage_path, err)) from None
         self.reader = reader
         try:
             self.info = self._make_info(storage_path)

@@ -38,7 +38,8 @@ from .jobs import (connect, job_dict, LOST_TIMEOUT, make_jobs, run_jobs, SCHEDUL
                    summarize, workers_of, WorkersLost)
 from .report import text_table
 from .results import jsonable
-from ..core.errors import ObserverError
+from ..core.errors import error_text, ObserverError
+from ..params_file import regular_file
 
 __all__ = ['find_bags', 'write_batch', 'format_batch', 'main']
 
@@ -324,8 +325,8 @@ def main(argv=None):
         if not args.lost_timeout > 0:
             raise BagToolError(f'--lost-timeout must be positive, not {args.lost_timeout:g}')
         variants = parse_options(args.variant, args.tolerance)
-        if not Path(args.vehicle).is_file():
-            raise BagToolError(f'--vehicle {args.vehicle}: no such file')
+        # a pipe (<(cat v.yaml)) is read once: the jobs (other processes) read a copy
+        args.vehicle = str(regular_file(args.vehicle))
         jobs = make_jobs(find_bags(args.bags), args.vehicle, variants, args.namespace,
                          args.tolerance, args.exact)
         done = start_output(out, jobs, args.resume)
@@ -384,8 +385,7 @@ def main(argv=None):
         return 130 if isinstance(err, KeyboardInterrupt) else 3
     except (ObserverError, OSError) as err:
         progress.finish()
-        text = str(err).splitlines()[0] if str(err) else type(err).__name__
-        print(f'error: {text}', file=sys.stderr)
+        print(f'error: {error_text(err)}', file=sys.stderr)
         return 2
     print(format_batch(rows, summary))
     failed = [r for r in rows if r['error']]

@@ -3,7 +3,7 @@
 
 from ..core.errors import ObserverError
 
-__all__ = ['BagToolError']
+__all__ = ['BagToolError', 'BagRecoveryError']
 
 
 class BagToolError(ObserverError):
@@ -15,3 +15,7 @@ class BagToolError(ObserverError):
     command-line tools print it as one line ``error: ...`` and exit with status 2.
 
     """
+
+
+class BagRecoveryError(ObserverError):
+    """A bag cannot be recovered; the message names the bag and the reason."""

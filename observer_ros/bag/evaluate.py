@@ -46,7 +46,7 @@ from .reader import read_recording
 from .replay import CLOCK_JUMP_TOLERANCE, epochs_of, live_replay, replay
 from .report import BAG_MAX_MESSAGES, format_table, write_results
 from .results import EvalResult, jsonable, ScoredReplay, VariantResult
-from ..core.errors import ObserverError
+from ..core.errors import error_text, ObserverError
 from ..core.vehicle_design import design_vehicle
 
 __all__ = ['DEFAULT_TOLERANCE', 'STEADY_FRACTION', 'WHITENESS_LAGS', 'VariantResult',
@@ -488,8 +488,7 @@ def tool_error(progress, err):
     if isinstance(err, KeyboardInterrupt):
         print('error: interrupted', file=sys.stderr)
         return 130
-    text = str(err).splitlines()[0] if str(err) else type(err).__name__
-    print(f'error: {text}', file=sys.stderr)
+    print(f'error: {error_text(err)}', file=sys.stderr)
     return 2
 
 

@@ -95,7 +95,7 @@ def run_job(job, spill=True):
     """
     import warnings
     from .evaluate import evaluate_job
-    from ..core.errors import ObserverError
+    from ..core.errors import error_text, ObserverError
     start = time.perf_counter()
     cpu = time.process_time()
     try:
@@ -104,7 +104,7 @@ def run_job(job, spill=True):
             result = evaluate_job(job.bag, job.vehicle, job.variant, job.overrides,
                                   job.namespace, job.tolerance, job.exact, spill=spill)
     except (ObserverError, OSError) as err:
-        text = str(err).splitlines()[0] if str(err) else type(err).__name__
+        text = error_text(err)
         return {'bag': job.bag, 'vehicle': job.vehicle, 'variant': job.variant,
                 'observer_type': None, 'overrides': list(job.overrides), 'estimates': 0,
                 'counts': {}, 'summary': {}, 'states': {}, 'outputs': {},

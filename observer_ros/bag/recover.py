@@ -22,340 +22,34 @@ storage holds, and the bag is opened with rosbags' AnyReader to check it. A bag 
 already intact is left as it is. The original mcap, when it is cut, is not kept: copy the
 bag first to keep the damaged bytes.
 
+Refused before anything is touched: a bag being recorded (the recorder holds its lock,
+``.recording.lock``; or, without one, its storage file still changes: another program
+records it), a file of the bag that is a link, a FIFO or a device. A storage file with
+other hard links (``cp -al bag backup``) is copied first, inside the bag, and the copy is
+repaired: the other names keep every byte, and the report says so. A ``metadata.yaml`` that
+disagrees with the storage (message counts 0 on a full mcap) is rewritten from it.
+
 """
 
 import argparse
-import io
 import os
 from pathlib import Path
+import shutil
 import sqlite3
-import struct
 import sys
 
 import yaml
 
-from ..core.errors import ObserverError
+from .bag_checks import (check_regular, LOCK_NAME, metadata_disagreement, recording_holder,
+                         still_growing)
+from .errors import BagRecoveryError
+from .mcap_repair import channel_counts, repair_mcap, scan_mcap, time_range
+from ..core.errors import error_text
 
 __all__ = ['BagRecoveryError', 'recover_bag', 'main']
 
-MAGIC = b'\x89MCAP0\r\n'
-# mcap opcodes (https://mcap.dev/spec)
-OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE = 0x01, 0x02, 0x03, 0x04, 0x05
-OP_CHUNK, OP_MESSAGE_INDEX, OP_CHUNK_INDEX = 0x06, 0x07, 0x08
-OP_METADATA, OP_METADATA_INDEX, OP_STATISTICS = 0x0C, 0x0D, 0x0B
-OP_SUMMARY_OFFSET, OP_DATA_END = 0x0E, 0x0F
-MAX_TIME = 2**63 - 1
-
-
-class BagRecoveryError(ObserverError):
-    """A bag cannot be recovered; the message names the bag and the reason."""
-
-
-# ------------------------------------------------------------------------------ encoding
-def _u16(v):
-    return struct.pack('<H', v)
-
-
-def _u32(v):
-    return struct.pack('<I', v)
-
-
-def _u64(v):
-    return struct.pack('<Q', v)
-
-
-def _string(text):
-    data = text.encode() if isinstance(text, str) else bytes(text)
-    return _u32(len(data)) + data
-
-
-def _record(op, body):
-    return bytes([op]) + _u64(len(body)) + body
-
-
-class _Cursor:
-    """Read little-endian mcap primitives from a bytes object."""
-
-    def __init__(self, data, pos=0):
-        self.data = data
-        self.pos = pos
-
-    def take(self, n):
-        if self.pos + n > len(self.data):
-            raise ValueError('record ends early')
-        out = self.data[self.pos:self.pos + n]
-        self.pos += n
-        return out
-
-    def u16(self):
-        return struct.unpack('<H', self.take(2))[0]
-
-    def u32(self):
-        return struct.unpack('<I', self.take(4))[0]
-
-    def u64(self):
-        return struct.unpack('<Q', self.take(8))[0]
-
-    def string(self):
-        return self.take(self.u32()).decode()
-
-    def blob(self):
-        return self.take(self.u32())
-
-
-# -------------------------------------------------------------------------------- mcap
-def _decompress(data, compression, size):
-    if compression == '':
-        out = data
-    elif compression == 'zstd':
-        if sys.version_info >= (3, 14):
-            from compression import zstd
-        else:
-            from backports import zstd
-        out = zstd.decompress(data)
-    elif compression == 'lz4':
-        import lz4.frame
-        out = lz4.frame.decompress(data)
-    else:
-        raise ValueError(f'unsupported chunk compression {compression!r}')
-    if len(out) != size:
-        raise ValueError('chunk size does not match its header')
-    return out
-
-
-def _parse_records(records, schemas, channels):
-    """
-    Parse a run of mcap records (a chunk's content); collect schemas and channels.
-
-    Returns ``{channel id: [(log_time, offset of the record)]}``. Raises ValueError (or
-    struct.error, UnicodeDecodeError) on a damaged record.
-
-    """
-    inner = _Cursor(records)
-    messages = {}
-    while inner.pos < len(records):
-        offset = inner.pos
-        op = inner.take(1)[0]
-        rec = _Cursor(inner.take(inner.u64()))
-        if op == OP_SCHEMA:
-            sid = rec.u16()
-            schemas[sid] = (sid, rec.string(), rec.string(), rec.blob())
-        elif op == OP_CHANNEL:
-            cid, sid = rec.u16(), rec.u16()
-            topic, encoding = rec.string(), rec.string()
-            meta = {}
-            meta_data = _Cursor(rec.blob())
-            while meta_data.pos < len(meta_data.data):
-                key = meta_data.string()
-                meta[key] = meta_data.string()
-            channels[cid] = {'id': cid, 'schema_id': sid, 'topic': topic,
-                             'encoding': encoding, 'metadata': meta}
-        elif op == OP_MESSAGE:
-            cid = rec.u16()
-            rec.u32()                           # sequence
-            messages.setdefault(cid, []).append((rec.u64(), offset))
-    return messages
-
-
-def _parse_chunk(body, schemas, channels):
-    """
-    Parse a chunk record's body; return its summary dict (messages per channel).
-
-    Raises ValueError when the chunk is damaged (then it is not kept).
-
-    """
-    cur = _Cursor(body)
-    start, end, usize = cur.u64(), cur.u64(), cur.u64()
-    cur.u32()                                   # crc (0: not computed by rosbags)
-    compression = cur.string()
-    csize = cur.u64()
-    records = _decompress(cur.take(csize), compression, usize)
-    # parse into copies, so that a damaged chunk adds nothing
-    new_schemas, new_channels = dict(schemas), dict(channels)
-    messages = _parse_records(records, new_schemas, new_channels)
-    schemas.update(new_schemas)
-    channels.update(new_channels)
-    times = [t for entries in messages.values() for t, _ in entries]
-    t_min, t_max = (min(times), max(times)) if times else (MAX_TIME, 0)
-    return {'start': start if times else t_min, 'end': end if times else t_max,
-            'usize': usize, 'csize': csize, 'compression': compression,
-            'messages': messages, 'message_start': t_min, 'message_end': t_max}
-
-
-def _message_index_records(chunk):
-    """Return (bytes, {channel: relative offset}) of a chunk's message index records."""
-    out = io.BytesIO()
-    offsets = {}
-    for cid, entries in chunk['messages'].items():
-        offsets[cid] = out.tell()
-        body = _u16(cid) + _u32(16 * len(entries)) + b''.join(
-            _u64(t) + _u64(off) for t, off in entries)
-        out.write(_record(OP_MESSAGE_INDEX, body))
-    return out.getvalue(), offsets
-
-
-def _scan_mcap(path):
-    """
-    Scan an mcap file's data section.
-
-    Returns
-    -------
-    dict
-        ``schemas``, ``channels``, ``chunks`` (with file offsets), ``cut`` (offset after
-        the last complete chunk), ``intact`` (a summary and footer were found after the
-        data), ``size``.
-
-    """
-    size = path.stat().st_size
-    schemas, channels, chunks = {}, {}, []
-    with path.open('rb') as f:
-        if f.read(8) != MAGIC:
-            raise BagRecoveryError(f'{path}: not an mcap file (no magic at the start)')
-        head = f.read(9)
-        if len(head) < 9 or head[0] != OP_HEADER:
-            raise BagRecoveryError(f'{path}: the mcap header record is missing or cut')
-        (length,) = struct.unpack('<Q', head[1:])
-        header = f.read(length)
-        if len(header) < length:
-            raise BagRecoveryError(f'{path}: the mcap header record is cut')
-        pos = 8 + 9 + length
-        cut = pos
-        data_end = None
-        while True:
-            f.seek(pos)
-            head = f.read(9)
-            if len(head) < 9:
-                break
-            op = head[0]
-            (length,) = struct.unpack('<Q', head[1:])
-            end = pos + 9 + length
-            if end > size:
-                break                               # a record cut short: stop here
-            if op in (OP_DATA_END, OP_FOOTER, OP_METADATA, OP_METADATA_INDEX,
-                      OP_CHUNK_INDEX, OP_STATISTICS, OP_SUMMARY_OFFSET):
-                data_end = pos
-                break
-            body = f.read(length)
-            if op == OP_CHUNK:
-                try:
-                    chunk = _parse_chunk(body, schemas, channels)
-                except (ValueError, UnicodeDecodeError, struct.error):
-                    break                           # damaged: keep what came before
-                chunk.update(offset=pos, length=end - pos, index_offsets={}, index_end=end)
-                chunks.append(chunk)
-                cut = end
-            elif op == OP_MESSAGE_INDEX and chunks:
-                cid = struct.unpack('<H', body[:2])[0]
-                chunks[-1]['index_offsets'][cid] = pos
-                chunks[-1]['index_end'] = end
-            elif op in (OP_SCHEMA, OP_CHANNEL):
-                # top-level definitions (rosbags puts them in the first chunk)
-                try:
-                    _parse_records(_record(op, body), schemas, channels)
-                except (ValueError, UnicodeDecodeError, struct.error):
-                    break
-                cut = end
-            elif op == OP_MESSAGE:
-                raise BagRecoveryError(f'{path}: messages outside chunks are not supported')
-            pos = end
-        intact = False
-        if data_end is not None and size >= 8 + 37:
-            f.seek(size - 8)
-            intact = f.read(8) == MAGIC
-    # a chunk whose message indexes are incomplete gets them rebuilt (only the last can be)
-    if chunks:
-        last = chunks[-1]
-        if set(last['index_offsets']) != set(last['messages']):
-            last['index_offsets'] = {}
-            last['index_end'] = last['offset'] + last['length']
-        cut = max(cut, last['index_end'])
-    return {'schemas': schemas, 'channels': channels, 'chunks': chunks, 'cut': cut,
-            'intact': intact, 'size': size}
-
-
-def _repair_mcap(path, scan, metadata_text):
-    """Cut the file after its last complete chunk and append indexes, summary, footer."""
-    schemas, channels, chunks = scan['schemas'], scan['channels'], scan['chunks']
-    with path.open('r+b') as f:
-        f.truncate(scan['cut'])
-        f.seek(scan['cut'])
-        out = io.BytesIO()
-        base = scan['cut']
-        if chunks and not chunks[-1]['index_offsets']:
-            last = chunks[-1]
-            data, rel = _message_index_records(last)
-            last['index_offsets'] = {cid: base + off for cid, off in rel.items()}
-            last['index_end'] = base + len(data)
-            out.write(data)
-        metadata_start = base + out.tell()
-        pairs = _string('serialized_metadata') + _string(metadata_text)
-        meta = _string('rosbag2') + _u32(len(pairs)) + pairs
-        out.write(_record(OP_METADATA, meta))
-        metadata_end = base + out.tell()
-        out.write(_record(OP_DATA_END, _u32(0)))
-        schema_start = base + out.tell()
-        for sid in sorted(schemas):
-            _, name, encoding, data = schemas[sid]
-            out.write(_record(OP_SCHEMA, _u16(sid) + _string(name) + _string(encoding)
-                              + _u32(len(data)) + data))
-        channel_start = base + out.tell()
-        for cid in sorted(channels):
-            ch = channels[cid]
-            meta_blob = b''.join(_string(k) + _string(v) for k, v in ch['metadata'].items())
-            out.write(_record(OP_CHANNEL, _u16(cid) + _u16(ch['schema_id'])
-                              + _string(ch['topic']) + _string(ch['encoding'])
-                              + _u32(len(meta_blob)) + meta_blob))
-        chunk_index_start = base + out.tell()
-        for chunk in chunks:
-            offsets = sorted(chunk['index_offsets'].items())
-            body = (_u64(chunk['start']) + _u64(chunk['end']) + _u64(chunk['offset'])
-                    + _u64(chunk['length']) + _u32(10 * len(offsets))
-                    + b''.join(_u16(c) + _u64(o) for c, o in offsets)
-                    + _u64(chunk['index_end'] - chunk['offset'] - chunk['length'])
-                    + _string(chunk['compression']) + _u64(chunk['csize'])
-                    + _u64(chunk['usize']))
-            out.write(_record(OP_CHUNK_INDEX, body))
-        metadata_index_start = base + out.tell()
-        out.write(_record(OP_METADATA_INDEX, _u64(metadata_start)
-                          + _u64(metadata_end - metadata_start) + _string('rosbag2')))
-        statistics_start = base + out.tell()
-        counts = _channel_counts(scan)
-        t_min, t_max = _time_range(scan)
-        body = (_u64(sum(counts.values())) + _u16(len(schemas)) + _u32(len(channels))
-                + _u32(0) + _u32(1) + _u32(len(chunks)) + _u64(t_min) + _u64(t_max)
-                + _u32(10 * len(counts))
-                + b''.join(_u16(c) + _u64(n) for c, n in sorted(counts.items())))
-        out.write(_record(OP_STATISTICS, body))
-        summary_offset_start = base + out.tell()
-        groups = ((OP_SCHEMA, schema_start, channel_start),
-                  (OP_CHANNEL, channel_start, chunk_index_start),
-                  (OP_CHUNK_INDEX, chunk_index_start, metadata_index_start),
-                  (OP_METADATA_INDEX, metadata_index_start, statistics_start),
-                  (OP_STATISTICS, statistics_start, summary_offset_start))
-        for op, start, stop in groups:
-            if stop != start:
-                out.write(_record(OP_SUMMARY_OFFSET, bytes([op]) + _u64(start)
-                                  + _u64(stop - start)))
-        out.write(_record(OP_FOOTER, _u64(schema_start) + _u64(summary_offset_start)
-                          + _u32(0)))
-        out.write(MAGIC)
-        f.write(out.getvalue())
-        f.flush()
-        os.fsync(f.fileno())
-
-
-def _channel_counts(scan):
-    counts = dict.fromkeys(scan['channels'], 0)
-    for chunk in scan['chunks']:
-        for cid, entries in chunk['messages'].items():
-            counts[cid] = counts.get(cid, 0) + len(entries)
-    return counts
-
-
-def _time_range(scan):
-    starts = [c['message_start'] for c in scan['chunks'] if c['messages']]
-    ends = [c['message_end'] for c in scan['chunks'] if c['messages']]
-    return (min(starts), max(ends)) if starts else (0, 0)
+# the files next to a storage file that its writer or SQLite may leave, and recovery touches
+_SIDE_FILES = ('-journal', '-wal', '-shm')
 
 
 # ---------------------------------------------------------------------------- metadata
@@ -405,13 +99,15 @@ def _write_metadata(bag, metadata):
     text = yaml.safe_dump(metadata, default_flow_style=False, sort_keys=False)
     target = bag / 'metadata.yaml'
     try:
-        if target.read_text() == text:
+        if target.is_file() and target.read_text() == text:
             return
-    except OSError:
+    except (OSError, UnicodeDecodeError):
         pass
     tmp = bag / 'metadata.yaml.tmp'
     try:
-        tmp.write_text(text)
+        tmp.unlink(missing_ok=True)         # never written through (another link to it)
+        with open(tmp, 'x') as f:
+            f.write(text)
         tmp.replace(target)
     except OSError as err:
         tmp.unlink(missing_ok=True)
@@ -419,7 +115,7 @@ def _write_metadata(bag, metadata):
 
 
 def _mcap_topics(scan):
-    counts = _channel_counts(scan)
+    counts = channel_counts(scan)
     schema_names = {sid: s[1] for sid, s in scan['schemas'].items()}
     return [(ch['topic'], schema_names.get(ch['schema_id'], ''), ch['encoding'],
              ch['metadata'].get('offered_qos_profiles', ''), '', counts.get(cid, 0))
@@ -427,14 +123,14 @@ def _mcap_topics(scan):
 
 
 def _recover_mcap(bag, file):
-    scan = _scan_mcap(file)
-    t_min, t_max = _time_range(scan)
+    scan = scan_mcap(file)
+    t_min, t_max = time_range(scan)
     metadata = _metadata('mcap', file.name, _mcap_topics(scan), t_min, t_max)
     repaired = not scan['intact']
     if repaired:
         inner = yaml.safe_dump(metadata['rosbag2_bagfile_information'],
                                default_flow_style=False, sort_keys=False).strip()
-        _repair_mcap(file, scan, inner)
+        repair_mcap(file, scan, inner)
     _write_metadata(bag, metadata)
     return {'storage': 'mcap', 'file': str(file), 'repaired': repaired,
             'dropped_bytes': scan['size'] - scan['cut'] if repaired else 0,
@@ -488,13 +184,14 @@ def _check_opens(bag):
 
 
 def _check_inside(bag, paths):
-    """Refuse, before touching anything, a file of the bag that is a link (never followed)."""
+    """Refuse, before touching anything, a file of the bag that is a link or not a file."""
     for path in paths:
         if path.is_symlink():
             raise BagRecoveryError(f'{path} is a link (to {os.readlink(path)}); refusing to '
                                    'write through it: copy the file into the bag first')
         if path.exists() and path.resolve().parent != bag.resolve():
             raise BagRecoveryError(f'{path} lies outside the bag folder; refusing it')
+        check_regular(path, BagRecoveryError)
 
 
 def _is_intact(bag, file):
@@ -503,11 +200,59 @@ def _is_intact(bag, file):
         return False
     if file.suffix == '.mcap':
         try:
-            return _scan_mcap(file)['intact']
+            if not scan_mcap(file)['intact']:
+                return False
         except BagRecoveryError:
             return False
     # sqlite3: a writer that died leaves its journal (or write-ahead log) next to the file
-    return not any(file.with_name(file.name + tail).exists() for tail in ('-journal', '-wal'))
+    elif any(file.with_name(file.name + tail).exists() for tail in ('-journal', '-wal')):
+        return False
+    return not _metadata_lies(bag)
+
+
+def _metadata_lies(bag):
+    """Return what metadata.yaml says that the storage does not ([] when it agrees)."""
+    from rosbags.rosbag2 import Reader
+    try:
+        with Reader(bag) as reader:
+            return metadata_disagreement(reader.storage)
+    except Exception:   # noqa: BLE001 - unreadable metadata: recovery rewrites it
+        return ['it cannot be read']
+
+
+def _own_copies(bag, file):
+    """
+    Give each file recovery writes in place a name of its own, if it has other hard links.
+
+    The file is copied beside itself and the copy renamed over it: the other names keep
+    the original's bytes. Returns the names copied.
+    """
+    copied = []
+    for path in [file] + [file.with_name(file.name + tail) for tail in _SIDE_FILES]:
+        try:
+            links = os.lstat(path).st_nlink
+        except FileNotFoundError:
+            continue
+        if links < 2:
+            continue
+        tmp = path.with_name(path.name + '.recover-copy')
+        try:
+            tmp.unlink(missing_ok=True)
+            with open(path, 'rb') as src, open(tmp, 'xb') as dst:
+                shutil.copyfileobj(src, dst, 1 << 20)
+                dst.flush()
+                os.fsync(dst.fileno())
+            shutil.copystat(path, tmp)
+            tmp.replace(path)
+        except OSError as err:
+            tmp.unlink(missing_ok=True)
+            raise BagRecoveryError(
+                f'{path} has {links} hard links (another name shares its bytes, e.g. a '
+                f'cp -al backup); copying it first failed ({err.strerror or err}), and '
+                'recovering in place would change the other names too: nothing changed') \
+                from None
+        copied.append((path.name, links))
+    return copied
 
 
 def _read_counts(bag):
@@ -553,19 +298,33 @@ def recover_bag(path):
                                f'{[f.name for f in files] or "none"}')
     file = files[0]
     _check_inside(bag, [file, bag / 'metadata.yaml', bag / 'metadata.yaml.tmp',
-                        bag / '.disk_reserve'])
+                        bag / '.disk_reserve', bag / LOCK_NAME] +
+                  [file.with_name(file.name + tail) for tail in _SIDE_FILES])
+    holder = recording_holder(bag)
+    if holder:
+        raise BagRecoveryError(f'{bag} is being recorded ({holder} holds {bag / LOCK_NAME}); '
+                               'nothing changed: stop the recorder (Ctrl-C), it closes the '
+                               'bag itself')
     if _is_intact(bag, file):
         # a bag closed cleanly: nothing is rewritten, not even its metadata.yaml
         return {'storage': file.suffix[1:].replace('db3', 'sqlite3'), 'file': str(file),
-                'repaired': False, 'dropped_bytes': 0, 'untouched': True,
+                'repaired': False, 'dropped_bytes': 0, 'untouched': True, 'copied': [],
                 'messages': _read_counts(bag), 'total': _check_opens(bag)}
+    growing = still_growing(file)
+    if growing:
+        raise BagRecoveryError(f'{bag} is still being written ({growing}, and no '
+                               'observer_ros recorder holds it: another program records '
+                               'it); nothing changed: recover it once its writer stopped')
+    lies = _metadata_lies(bag) if (bag / 'metadata.yaml').is_file() else []
+    copied = _own_copies(bag, file)
     # the space the recorder kept free for this moment (nodes.recorder, disk_reserve)
     (bag / '.disk_reserve').unlink(missing_ok=True)
     if file.suffix == '.mcap':
         report = _recover_mcap(bag, file)
     else:
         report = _recover_sqlite3(bag, file)
-    report['untouched'] = False
+    (bag / LOCK_NAME).unlink(missing_ok=True)      # a killed recorder's (held by nobody)
+    report.update(untouched=False, copied=copied, metadata_disagreed=lies)
     report['total'] = _check_opens(bag)
     return report
 
@@ -584,9 +343,15 @@ def main(argv=None):
         try:
             rep = recover_bag(bag)
         except (BagRecoveryError, OSError) as err:
-            print(f'error: {err}', file=sys.stderr)
+            print(f'error: {error_text(err)}', file=sys.stderr)
             code = 2
             continue
+        for name, links in rep.get('copied', ()):
+            print(f'{bag}: {name} had {links} hard links: copied first, the copy recovered; '
+                  'the other names keep the original bytes')
+        if rep.get('metadata_disagreed'):
+            print(f'{bag}: metadata.yaml disagreed with the storage '
+                  f'({"; ".join(rep["metadata_disagreed"][:3])}): rewritten from it')
         what = (f'cut after chunk {rep["chunks"]} ({rep["dropped_bytes"]} bytes dropped) '
                 'and completed' if rep['repaired'] else 'storage intact')
         meta = 'nothing changed' if rep['untouched'] else 'metadata.yaml written'

@@ -3,7 +3,8 @@
 
 __all__ = ['ObserverError', 'DimensionError', 'NotObservableError',
            'NotDetectableError', 'NotControllableError', 'DesignError',
-           'VehicleFileError', 'ObserverDesignWarning', 'DesignVerificationError']
+           'VehicleFileError', 'ObserverDesignWarning', 'DesignVerificationError',
+           'error_text']
 
 
 class ObserverError(Exception):
@@ -40,3 +41,20 @@ class ObserverDesignWarning(UserWarning):
 
 class DesignVerificationError(DesignError):
     """A designed or given gain fails verification: an achieved pole is unstable or misplaced."""
+
+
+def error_text(err):
+    """
+    Return an exception as one line for an ``error:`` message.
+
+    An OSError says where and why in words (``out/results.txt: Read-only file system``),
+    not Python's ``[Errno 30] Read-only file system: 'out/results.txt'``; any other
+    exception, its first line.
+    """
+    if isinstance(err, OSError) and err.strerror:
+        where = err.filename if err.filename is not None else ''
+        if err.filename2 is not None:
+            where = f'{err.filename} -> {err.filename2}'
+        return f'{where}: {err.strerror}' if where else err.strerror
+    text = str(err).splitlines()[0] if str(err) else type(err).__name__
+    return text

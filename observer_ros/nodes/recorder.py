@@ -23,7 +23,9 @@ when even that fails, left for ``observer-bag-recover``). So that recovery finds
 a full disk, the recorder holds ``disk_reserve`` bytes (default 1 MiB) in a file
 ``.disk_reserve`` inside the bag, and frees them before recovering (a clean close and
 ``observer-bag-recover`` delete the file). An existing ``output`` is never
-overwritten: the recorder refuses to start (status 2) and names the path.
+overwritten: the recorder refuses to start (status 2) and names the path. While it writes,
+it holds an exclusive lock on ``BAG/.recording.lock`` (its process id inside):
+``observer-bag-recover`` and ``observer-eval`` refuse a bag being recorded.
 
 """
 
@@ -47,9 +49,10 @@ from std_msgs.msg import Bool
 from . import signals
 from .common import LATCHED_QOS, SENSOR_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS, VehicleNode
 from .runner import exit_status, init_ros, make_executor, spin_until
+from ..bag.bag_checks import hold_recording_lock, LOCK_NAME
 from ..bag.integrity import CrcWriter
 from ..bag.play import message_class
-from ..core.errors import ObserverError
+from ..core.errors import error_text, ObserverError
 
 __all__ = ['RecorderNode', 'RecordingError', 'main', 'recorded_topics']
 
@@ -200,14 +203,24 @@ class RecorderNode(VehicleNode):
         try:
             self.writer.open()
         except OSError as err:
-            raise ObserverError(f'recorder: cannot create the bag {path}: {err}') from None
+            raise ObserverError(f'recorder: cannot create the bag: {error_text(err)}') \
+                from None
         self.path = path
         self.failed = None
         self._reserve = None
+        self._lock = None
         self.counts = {}
         self.flushes = 0
         self._subs = []
         try:
+            # held until the bag is closed: recovery and evaluation refuse a bag being
+            # recorded (bag/bag_checks.py); a killed recorder's lock goes with it
+            try:
+                self._lock = hold_recording_lock(path)
+            except OSError as err:      # a file system without locks: record all the same
+                self.get_logger().warning(
+                    f'cannot lock {path / LOCK_NAME} ({err.strerror or err}): recovery and '
+                    'evaluation will not know that the bag is being recorded')
             self._reserve = _hold_reserve(path, reserve)
             for (name, msgtype, qos), cls in zip(topics, classes):
                 resolved = self.resolve_topic_name(name)
@@ -265,6 +278,7 @@ class RecorderNode(VehicleNode):
             writer.abort()
         except Exception:   # noqa: BLE001 - the files go either way
             pass
+        self._release_lock()
         for child in self.path.iterdir():
             if child.is_file() and not child.is_symlink():
                 child.unlink()
@@ -307,6 +321,14 @@ class RecorderNode(VehicleNode):
             self._fail(err)
         self.counts[connection.topic] += 1
 
+    def _release_lock(self, remove=False):
+        """Release the recording lock (and remove its file once the bag is closed)."""
+        if self._lock is not None:
+            lock, self._lock = self._lock, None
+            if remove:
+                (self.path / LOCK_NAME).unlink(missing_ok=True)
+            lock.close()
+
     def _release_reserve(self):
         if self._reserve is not None:
             self._reserve.unlink(missing_ok=True)
@@ -317,7 +339,7 @@ class RecorderNode(VehicleNode):
         writer, self.writer = self.writer, None
         log = self.get_logger()
         self._release_reserve()
-        reason = os.strerror(err.errno) if isinstance(err, OSError) and err.errno else err
+        reason = error_text(err) if isinstance(err, OSError) else err
         text = f'cannot write the bag {self.path}: {reason}'
         log.error(f'{text}; recording stopped')
         self.failed = text
@@ -326,13 +348,14 @@ class RecorderNode(VehicleNode):
         except Exception:   # noqa: BLE001 - the file is closed either way
             pass
         from ..bag.recover import BagRecoveryError, recover_bag
+        self._release_lock()        # recovery takes the bag over (and removes the lock file)
         try:
             report = recover_bag(self.path)
             log.error(f'bag {self.path} recovered up to its last flush: '
                       f'{report["total"]} messages readable')
         except (BagRecoveryError, OSError) as rec_err:
-            log.error(f'bag {self.path} not recovered now ({rec_err}); free some space and '
-                      f'run: observer-bag-recover {self.path}')
+            log.error(f'bag {self.path} not recovered now ({error_text(rec_err)}); free '
+                      f'some space and run: observer-bag-recover {self.path}')
         try:
             self.publish_diagnostics(DiagnosticStatus.ERROR, text,
                                      {'messages': sum(self.counts.values())})
@@ -348,14 +371,16 @@ class RecorderNode(VehicleNode):
             try:
                 writer.close()
             except (OSError, sqlite3.Error) as err:
-                with_abort = f'cannot close the bag {self.path}: {err}'
+                with_abort = f'cannot close the bag {self.path}: {error_text(err)}'
                 self.get_logger().error(f'{with_abort}; run observer-bag-recover {self.path}')
                 self.failed = with_abort
                 try:
                     writer.abort()
                 except Exception:   # noqa: BLE001 - the file is closed either way
                     pass
+                self._release_lock()
                 return
+            self._release_lock(remove=True)
             total = sum(self.counts.values())
             self.get_logger().info(f'bag closed: {self.path} ({total} messages)')
 

@@ -15,7 +15,7 @@ import json
 import sys
 import warnings
 
-from ..core.errors import ObserverError
+from ..core.errors import error_text, ObserverError
 from ..core.sensor_subsets import format_sensor_subsets, sensor_subsets
 from ..core.vehicle_design import design_vehicle
 from ..core.vehicle_report import format_report, to_json_dict
@@ -53,7 +53,7 @@ def main(argv=None):
         extra = [str(w.message) for w in caught
                  if not issubclass(w.category, DeprecationWarning)]
     except (ObserverError, OSError) as err:
-        print(f'error: {err}', file=sys.stderr)
+        print(f'error: {error_text(err)}', file=sys.stderr)
         return 2
     if args.json:
         out = to_json_dict(design)
