@@ -35,17 +35,9 @@ import warnings
 
 REPO = Path(__file__).resolve().parents[1]
 FLOOD = REPO / 'test' / 'flood_publisher.py'
+sys.path.insert(0, str(REPO / 'benchmarks'))   # benchmarks/ is not a package
 
-
-def rss_kib(pid):
-    """Return the resident set size (VmRSS) of a process in KiB (None once it is gone)."""
-    try:
-        for line in Path(f'/proc/{pid}/status').read_text().splitlines():
-            if line.startswith('VmRSS:'):
-                return int(line.split()[1])
-    except OSError:
-        return None
-    return None
+from soak_observer import rss_kib  # noqa: E402
 
 
 def main(argv=None):

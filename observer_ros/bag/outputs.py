@@ -121,6 +121,7 @@ def check_output(out, force, tool):
     out = Path(out)
     if out.is_symlink():
         raise BagToolError(f'{out} is a link; refusing to write through it')
+    _check_writable(out)
     if not out.exists():
         return []
     if not force:
@@ -129,6 +130,21 @@ def check_output(out, force, tool):
     if not out.is_dir():
         raise BagToolError(f'{out} exists and is not a folder')
     return _owned_files(out, tool)
+
+
+def _check_writable(out):
+    """Refuse, before any work, an output whose folder cannot be written (read-only, ...)."""
+    parent = Path(os.path.abspath(out)).parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if os.access(parent, os.W_OK | os.X_OK):
+        return
+    try:
+        readonly = os.statvfs(parent).f_flag & os.ST_RDONLY
+    except OSError:
+        readonly = False
+    why = 'Read-only file system' if readonly else 'Permission denied'
+    raise BagToolError(f'{out}: cannot write in {parent}: {why}')
 
 
 def prepare_output(out, force, tool):

@@ -13,9 +13,9 @@ import re
 import numpy as np
 
 from .metrics import WHITENESS_LAGS
-from .outputs import prepare_output, seal_output
 from .plots import decimate, write_plots
 from .reader import jazzy_typestore
+from .staging import StagedOutput
 from ..core.innovation import WINDOW as INNOVATION_WINDOW
 
 __all__ = ['BAG_MAX_MESSAGES', 'fmt', 'text_table', 'format_table',
@@ -159,7 +159,11 @@ def csv_cell(v):
 def write_results(result, out, force=False, plots=True, results_bag=True,
                   bag_max_messages=BAG_MAX_MESSAGES):
     """
-    Write the evaluation to a new folder.
+    Write the evaluation to a new folder, whole: the earlier output, or all of the new one.
+
+    The files are written beside ``out`` and put in its place at the end
+    (:class:`~observer_ros.bag.staging.StagedOutput`): an interrupted evaluation leaves
+    ``out`` as it was.
 
     Parameters
     ----------
@@ -189,26 +193,26 @@ def write_results(result, out, force=False, plots=True, results_bag=True,
         The folder exists (without ``force``), or exists and is not an earlier output.
 
     """
-    out = prepare_output(out, force, 'observer-eval')
-    files = []
-    table = format_table(result)
-    (out / 'results.txt').write_text(table + '\n')
-    files.append(out / 'results.txt')
-    with open(out / 'results.csv', 'w') as f:
-        f.write(','.join(_CSV_COLUMNS) + '\n')
-        for row in _csv_rows(result):
-            f.write(','.join(csv_cell(row.get(c)) for c in _CSV_COLUMNS) + '\n')
-    files.append(out / 'results.csv')
-    with open(out / 'results.json', 'w') as f:
-        json.dump(result.to_dict(), f, indent=2)
-        f.write('\n')
-    files.append(out / 'results.json')
-    if plots:
-        files += write_plots(result, out)
-    if results_bag:
-        files.append(write_results_bag(result, out / 'results_bag', bag_max_messages))
-    seal_output(out, 'observer-eval', files)
-    return files
+    with StagedOutput(out, force, 'observer-eval') as staged:
+        stage = staged.path         # written aside, put in place whole (bag/staging.py)
+        files = []
+        table = format_table(result)
+        (stage / 'results.txt').write_text(table + '\n')
+        files.append(stage / 'results.txt')
+        with open(stage / 'results.csv', 'w') as f:
+            f.write(','.join(_CSV_COLUMNS) + '\n')
+            for row in _csv_rows(result):
+                f.write(','.join(csv_cell(row.get(c)) for c in _CSV_COLUMNS) + '\n')
+        files.append(stage / 'results.csv')
+        with open(stage / 'results.json', 'w') as f:
+            json.dump(result.to_dict(), f, indent=2)
+            f.write('\n')
+        files.append(stage / 'results.json')
+        if plots:
+            files += write_plots(result, stage)
+        if results_bag:
+            files.append(write_results_bag(result, stage / 'results_bag', bag_max_messages))
+        return staged.commit(files)
 
 
 def _joint_state_bytes(names, stamp_ns, values):

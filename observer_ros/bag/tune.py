@@ -42,9 +42,10 @@ from .errors import BagToolError
 from .evaluate import _load_vehicle, _Progress, IN_MEMORY_HELP, tool_error
 from .gain_search import DEFAULT_SCALES, gain_search, search_overrides
 from .identify import Identification, identify
-from .outputs import check_output, prepare_output, seal_output
+from .outputs import check_output
 from .pole_search import DEFAULT_EVALUATIONS, pole_search, pole_set
 from .results import jsonable
+from .staging import StagedOutput
 from .tune_report import format_report, write_report
 from .tuned_vehicle import OBSERVER_KEYS, write_tuned_vehicle
 from ..core.als import DEFAULT_LAGS
@@ -119,8 +120,8 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
     out : str or Path
         The report folder (new, or an earlier observer-tune report with ``force``).
     output : str or Path, optional
-        The tuned vehicle file (default ``<out>/<vehicle>_tuned.yaml``); never
-        overwritten.
+        The tuned vehicle file (default ``<out>/<vehicle>_tuned.yaml``, part of the output:
+        replaced with ``force`` while unchanged); elsewhere, never overwritten.
     namespace, lags, full, states, burn, passes
         See :func:`identify`.
     als : bool
@@ -170,10 +171,12 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
         raise BagToolError(f'--no-als --search {search}: nothing to tune (use --search poles '
                            'or each-pole)')
     output = Path(output) if output else out / f'{Path(vehicle_path).stem}_tuned.yaml'
-    check_output(out, force, 'observer-tune')          # before the work, touching nothing
-    if output.exists() or output.is_symlink():
-        raise BagToolError(f'{output} exists; the tuned vehicle file is never overwritten '
-                           '(give another --output)')
+    owned = check_output(out, force, 'observer-tune')  # before the work, touching nothing
+    # in the folder, the tuned file is the tool's (replaced with --force while unchanged)
+    inside = output.parent == out
+    if (output.exists() or output.is_symlink()) and not (inside and output.name in owned):
+        raise BagToolError(f'{output} exists and was not written by this output of '
+                           'observer-tune; never overwritten (give another --output)')
     if search == 'poles':
         search_overrides(vehicle, 'poles', 1.0)           # refuse early
     if search == 'each-pole':
@@ -181,58 +184,62 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
     ident = identify(bags, vehicle, namespace, lags, full, states, burn, passes,
                      input_noise) \
         if als else None
-    out = prepare_output(out, force, 'observer-tune')
-    files = []
-    tmp = None
-    if ident is not None:
-        observer, sources = _tuned_observer(ident)
-        header = [f'{vehicle.name} with the observer tuned by observer-tune from '
-                  f'{", ".join(bags)}', f'original: {vehicle_path}']
-        if search == 'kalman':
-            # the search scales the identified Kalman filter: a scratch file for it
-            tmp = out / '.identified.yaml'
-            if tmp.exists():
-                tmp.unlink()
-            write_tuned_vehicle(vehicle_path, tmp, observer, sources, header)
-    sr = None
-    if search == 'each-pole':
-        sr = pole_search(bags, vehicle_path, scales, namespace, progress=progress,
-                         evaluations=evaluations, refine=refine, dask=dask, spill=spill)
-    elif search != 'none':
-        # kalman: scored on the identified model first, the scales around its best replayed
-        sr = gain_search(bags, tmp if search == 'kalman' else vehicle_path, search, scales,
-                         namespace, progress=progress, refine=refine, dask=dask,
-                         spill=spill, model=ident if search == 'kalman' else None)
-    replace = OBSERVER_KEYS
-    if ident is None:           # only the poles change: the rest of the design stays
-        replace = ('observer.poles', 'observer.poles_imag')
-        observer = {}
-        header = [f'{vehicle.name} with observer poles chosen by observer-tune from '
-                  f'{", ".join(bags)}', f'original: {vehicle_path}']
-        sources = {}
-    if ident is None and not math.isfinite(_best_metric(sr)):
-        raise BagToolError('the gain search found no finite metric: no poles to write')
-    if search == 'each-pole' and ident is None:
-        _write_poles(observer, sources, sr.best_poles, _pole_note(sr, bags))
-    elif sr is not None and (use_search or ident is None) and math.isfinite(sr.best):
-        best = _load_vehicle(tmp if search == 'kalman' else vehicle_path,
-                             sr.overrides[sr.best])
-        grid = ', '.join(f'{x:.4g}' for x in sr.scales)
-        note = (f'observer-tune gain search ({search} scale {sr.best:g} of [{grid}], '
-                f'metric {sr.metric}, on {", ".join(bags)})')
-        if search == 'kalman':
-            observer['observer.Qd'] = list(np.ravel(best.observer.Qd))
-            sources['observer.Qd'] += f'; times {sr.best:g} by the {note}'
-        else:
-            _write_poles(observer, sources, best.observer.poles, note)
-    vehicle_file = write_tuned_vehicle(vehicle_path, output, observer, sources, header,
-                                       replace)
-    if tmp is not None:
-        tmp.unlink()
-    result = TuneResult(ident, sr, vehicle_file)
-    files += write_report(result, out, plots)
-    seal_output(out, 'observer-tune', files)       # the tuned vehicle file is not ours
-    result.files = files + [vehicle_file]
+    with StagedOutput(out, force, 'observer-tune') as staged:
+        # written aside and put in place whole at the end (bag/staging.py): an interrupted
+        # tune leaves the earlier output, and a rerun with --force finds it unchanged
+        stage = staged.path
+        files = []
+        tmp = None
+        if ident is not None:
+            observer, sources = _tuned_observer(ident)
+            header = [f'{vehicle.name} with the observer tuned by observer-tune from '
+                      f'{", ".join(bags)}', f'original: {vehicle_path}']
+            if search == 'kalman':
+                # the search scales the identified Kalman filter: a scratch file for it
+                tmp = stage / '.identified.yaml'
+                if tmp.exists():
+                    tmp.unlink()
+                write_tuned_vehicle(vehicle_path, tmp, observer, sources, header)
+        sr = None
+        if search == 'each-pole':
+            sr = pole_search(bags, vehicle_path, scales, namespace, progress=progress,
+                             evaluations=evaluations, refine=refine, dask=dask, spill=spill)
+        elif search != 'none':
+            # kalman: scored on the identified model first, the scales around its best
+            # replayed
+            sr = gain_search(bags, tmp if search == 'kalman' else vehicle_path, search, scales,
+                             namespace, progress=progress, refine=refine, dask=dask,
+                             spill=spill, model=ident if search == 'kalman' else None)
+        replace = OBSERVER_KEYS
+        if ident is None:           # only the poles change: the rest of the design stays
+            replace = ('observer.poles', 'observer.poles_imag')
+            observer = {}
+            header = [f'{vehicle.name} with observer poles chosen by observer-tune from '
+                      f'{", ".join(bags)}', f'original: {vehicle_path}']
+            sources = {}
+        if ident is None and not math.isfinite(_best_metric(sr)):
+            raise BagToolError('the gain search found no finite metric: no poles to write')
+        if search == 'each-pole' and ident is None:
+            _write_poles(observer, sources, sr.best_poles, _pole_note(sr, bags))
+        elif sr is not None and (use_search or ident is None) and math.isfinite(sr.best):
+            best = _load_vehicle(tmp if search == 'kalman' else vehicle_path,
+                                 sr.overrides[sr.best])
+            grid = ', '.join(f'{x:.4g}' for x in sr.scales)
+            note = (f'observer-tune gain search ({search} scale {sr.best:g} of [{grid}], '
+                    f'metric {sr.metric}, on {", ".join(bags)})')
+            if search == 'kalman':
+                observer['observer.Qd'] = list(np.ravel(best.observer.Qd))
+                sources['observer.Qd'] += f'; times {sr.best:g} by the {note}'
+            else:
+                _write_poles(observer, sources, best.observer.poles, note)
+        written = write_tuned_vehicle(vehicle_path, stage / output.name if inside else output,
+                                      observer, sources, header, replace)
+        if tmp is not None:
+            tmp.unlink()
+        result = TuneResult(ident, sr, output)
+        files += write_report(result, stage, plots)
+        files = staged.commit(files + ([written] if inside else []))
+    result.files = files if inside else files + [output]
     result.seconds = time.perf_counter() - start
     return result
 
@@ -281,7 +288,9 @@ what it does:
 output (folder --out; default <first bag>_tune next to it; never overwritten without
 --force): tune.txt (also on stdout), tune.json, search.csv, autocovariance.png,
 search.png (and pole_search.csv, pole_search.png of --search each-pole), and the tuned
-vehicle file (default <out>/<vehicle>_tuned.yaml, --output; never overwritten).
+vehicle file (default <out>/<vehicle>_tuned.yaml, replaced by --force while unchanged;
+--output elsewhere, never overwritten). The folder is written aside and put in place
+whole: an interrupted tune leaves the earlier one.
 Compare it with the original:
   observer-eval BAG --vehicle V.yaml --compare <out>/V_tuned.yaml
 
@@ -300,7 +309,7 @@ def _parser():
     parser.add_argument('--vehicle', required=True, help='vehicle file (config/<name>.yaml)')
     parser.add_argument('--out', help='report folder (default: <first bag>_tune)')
     parser.add_argument('--output', help='the tuned vehicle file (default: '
-                        '<out>/<vehicle>_tuned.yaml; never overwritten)')
+                        '<out>/<vehicle>_tuned.yaml; elsewhere never overwritten)')
     parser.add_argument('--namespace', help="the vehicle's namespace in the bags")
     parser.add_argument('--lags', type=int, default=DEFAULT_LAGS,
                         help=f'autocovariance lags (default {DEFAULT_LAGS})')

@@ -9,12 +9,12 @@ numbers as a comment on the line before it. An existing file is never overwritte
 
 """
 
-import os
 from pathlib import Path
 
 import yaml
 
 from .errors import BagToolError
+from .staging import write_new_file
 from ..vehicle import load_parameters, load_vehicle, parameters_to_yaml
 
 __all__ = ['OBSERVER_KEYS', 'tuned_parameters', 'write_tuned_vehicle']
@@ -103,9 +103,11 @@ def write_tuned_vehicle(source, path, observer, sources, header=(), replace=OBSE
         lines.append(line)
     body = '\n'.join([f'# {h}' for h in header] + lines) + '\n'
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-    with os.fdopen(fd, 'w') as f:
-        f.write(body)
+    try:
+        write_new_file(path, body)      # whole or not at all, never over another file
+    except FileExistsError:
+        raise BagToolError(f'{path} exists; the tuned vehicle file is never overwritten '
+                           '(give another --output)') from None
     try:
         load_vehicle(path)
     except Exception as err:

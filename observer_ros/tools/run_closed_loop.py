@@ -25,7 +25,8 @@ import numpy as np
 
 from . import interrupt
 from ..bag.outputs import check_output, mark_output, MARKER, prepare_output, seal_output
-from ..core.errors import ObserverError
+from ..bag.staging import write_new_file
+from ..core.errors import error_text, ObserverError
 from ..core.health import Envelope, ENVELOPE_FACTOR
 from ..core.vehicle_design import design_vehicle
 from ..nodes import signals
@@ -526,8 +527,8 @@ def _run(args):
         problems = _print_summary(vehicle, summary)
         if args.evaluate:
             _evaluate(vehicle_path, vehicle, design, bag, summary, args)
-    except ObserverError as err:
-        print(f'error: {err}', file=sys.stderr)
+    except (ObserverError, OSError) as err:     # OSError: a read-only or full disk
+        print(f'error: {error_text(err)}', file=sys.stderr)
         return 2
     except interrupt.RunInterrupted as err:
         return _interrupted(err)
@@ -561,8 +562,7 @@ def _evaluate(vehicle_path, vehicle, design, bag, summary, args):
     slow_file = bag.parent / (bag.name + '_slow_poles.yaml')
     flat = apply_overrides(load_parameters(vehicle_path), variants['slow'])
     vehicle_from_parameters(flat, source=str(slow_file))     # the variant is valid
-    with open(slow_file, 'x') as f:        # checked up front: never overwritten
-        f.write(parameters_to_yaml(flat))
+    write_new_file(slow_file, parameters_to_yaml(flat))     # checked up front, written whole
     print(f'\nclosed loop again with the slow observer poles ({slow_file}) ...')
     run_closed_loop(slow_file, slow_bag, storage=args.storage, namespace=args.namespace,
                     overrides=args.param, quiet=True, container=args.container)
