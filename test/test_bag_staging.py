@@ -135,7 +135,7 @@ def test_write_new_file_never_replaces_and_leaves_no_partial_file(tmp_path):
 
 @pytest.fixture
 def read_only(tmp_path):
-    """A read-only file system (a tmpfs mounted ro), or skip when mounting is not allowed."""
+    """Mount a read-only file system (a tmpfs, ro); skip where mounting is not allowed."""
     path = tmp_path / 'ro'
     path.mkdir()
     done = subprocess.run(['mount', '-t', 'tmpfs', '-o', 'ro,size=1m', 'tmpfs', str(path)],
