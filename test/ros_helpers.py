@@ -345,3 +345,27 @@ def compensator_under_test(tmp_path, publish=(ESTIMATES,), **options):
 def python():
     """Return the interpreter the tests run with (the .venv one)."""
     return sys.executable
+
+
+@contextlib.contextmanager
+def tmpfs(path, options, what):
+    """
+    Mount a tmpfs at ``path`` with ``options`` (``size=2m``, ``ro``) for a test; unmount it.
+
+    The test is skipped, saying ``what`` it needed, where mounting is not allowed (not root,
+    no mount command).
+    """
+    import shutil
+
+    import pytest
+    if shutil.which('mount') is None:
+        pytest.skip(f'no mount command: cannot make {what}')
+    path.mkdir(exist_ok=True)
+    out = subprocess.run(['mount', '-t', 'tmpfs', '-o', options, 'tmpfs', str(path)],
+                         capture_output=True, text=True)
+    if out.returncode != 0:
+        pytest.skip(f'cannot mount {what} (needs root): {out.stderr.strip()}')
+    try:
+        yield path
+    finally:
+        subprocess.run(['umount', '-l', str(path)], check=False)

@@ -16,7 +16,7 @@ from observer_ros.bag.outputs import MARKER
 from observer_ros.bag.staging import StagedOutput, write_new_file
 from observer_ros.bag.tune import main as tune_main
 import pytest
-from ros_helpers import WAIT
+from ros_helpers import tmpfs, WAIT
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE = REPO / 'bags' / 'samples' / 'submarine'
@@ -136,16 +136,8 @@ def test_write_new_file_never_replaces_and_leaves_no_partial_file(tmp_path):
 @pytest.fixture
 def read_only(tmp_path):
     """Mount a read-only file system (a tmpfs, ro); skip where mounting is not allowed."""
-    path = tmp_path / 'ro'
-    path.mkdir()
-    done = subprocess.run(['mount', '-t', 'tmpfs', '-o', 'ro,size=1m', 'tmpfs', str(path)],
-                          capture_output=True, text=True)
-    if done.returncode != 0:
-        pytest.skip(f'cannot mount a read-only tmpfs here: {done.stderr.strip()}')
-    try:
+    with tmpfs(tmp_path / 'ro', 'ro,size=1m', 'a read-only tmpfs') as path:
         yield path
-    finally:
-        subprocess.run(['umount', str(path)], check=True)
 
 
 def test_a_read_only_output_is_one_line_before_the_work(read_only, capsys):

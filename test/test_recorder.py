@@ -3,7 +3,6 @@
 
 import os
 from pathlib import Path
-import shutil
 import signal
 import subprocess
 import sys
@@ -14,7 +13,7 @@ from observer_ros.bag.reader import BagReader
 from observer_ros.bag.recover import BagRecoveryError, recover_bag
 from observer_ros.nodes.common import STATE_PUB_QOS, STATE_QOS
 import pytest
-from ros_helpers import CONFIG, Probe, Proc, WAIT
+from ros_helpers import CONFIG, Probe, Proc, tmpfs, WAIT
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
 from sensor_msgs.msg import JointState
@@ -200,18 +199,8 @@ def test_an_existing_bag_is_never_overwritten(tmp_path):
 @pytest.fixture
 def small_disk(tmp_path):
     """Mount a 2 MiB tmpfs (root only); unmount it afterwards."""
-    if shutil.which('mount') is None:
-        pytest.skip('no mount command: cannot make a small disk')
-    disk = tmp_path / 'disk'
-    disk.mkdir()
-    out = subprocess.run(['mount', '-t', 'tmpfs', '-o', 'size=2m', 'tmpfs', str(disk)],
-                         capture_output=True, text=True)
-    if out.returncode != 0:
-        pytest.skip(f'cannot mount a 2 MiB tmpfs (needs root): {out.stderr.strip()}')
-    try:
+    with tmpfs(tmp_path / 'disk', 'size=2m', 'a 2 MiB tmpfs') as disk:
         yield disk
-    finally:
-        subprocess.run(['umount', '-l', str(disk)], check=False)
 
 
 @pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
