@@ -151,7 +151,7 @@ def test_bag_replay_in_blocks_equals_one_block(cases, name, monkeypatch):
 
 def _runs(rec, veh, block):
     sensors = list(veh.sensors)
-    counts = dict.fromkeys(('zero_stamps', 'bad_messages', 'bad_commands'), 0)
+    counts = dict.fromkeys(('bad_stamps', 'bad_messages', 'bad_commands'), 0)
     events = _Events(rec, sensors, veh.plant, counts,
                      lockstep=veh.simulator.mode == 'lockstep')
     est = make_estimator(veh.plant, veh.observer)
@@ -194,7 +194,7 @@ def test_bag_has_late_in_blocks_equals_the_whole_scan(cases, name):
 def _transient(rec, veh, block):
     """Return the peak memory of finding the runs above what it keeps, in bytes."""
     sensors = list(veh.sensors)
-    counts = dict.fromkeys(('zero_stamps', 'bad_messages', 'bad_commands'), 0)
+    counts = dict.fromkeys(('bad_stamps', 'bad_messages', 'bad_commands'), 0)
     events = _Events(rec, sensors, veh.plant, counts)
     est = make_estimator(veh.plant, veh.observer)
     tracemalloc.start()
@@ -360,7 +360,7 @@ def test_bag_events_merged_in_blocks_are_in_the_nodes_order(cases, name, monkeyp
     want = _reference_events(rec, veh)
     for block in (1, 7, 113, replay_events.EVENT_BLOCK):
         monkeypatch.setattr(replay_events, 'EVENT_BLOCK', block)
-        counts = dict.fromkeys(('zero_stamps', 'bad_messages', 'bad_commands'), 0)
+        counts = dict.fromkeys(('bad_stamps', 'bad_messages', 'bad_commands'), 0)
         events = _Events(rec, list(veh.sensors), veh.plant, counts,
                          lockstep=veh.simulator.mode == 'lockstep')
         for got, ref, field in zip((events.seq, events.kind, events.idx), want,

@@ -262,3 +262,17 @@ def test_vehicle_keys_of_the_history_and_the_publish_rate():
         load_vehicle(config / 'submarine.yaml', overrides=['observer.history_length:=-0.1'])
     with pytest.raises(VehicleFileError, match='observer.publish_rate_hz'):
         load_vehicle(config / 'submarine.yaml', overrides=['observer.publish_rate_hz:=0.0'])
+
+
+def test_two_alike_commands_held_at_one_stamp_do_not_stop_the_history():
+    """Two untagged commands of one value at one stamp, both with a saved state, dropped."""
+    h = History(make('full'), 0.23)
+    for k in range(10):
+        h.correct(10.0 + 0.05 * k, [0.01], GYRO)
+    h.correct(h.t - 0.02, [0.1], PITCH)         # late: the states kept densely from here
+    head = h.t
+    h.set_input(head, [0.1])
+    h.set_input(head, [0.1])
+    for k in range(1, 20):
+        h.correct(head + 0.05 * k, [0.01], GYRO)
+    assert h.t == head + 0.05 * 19 and len(h) < 10

@@ -102,12 +102,14 @@ def test_malformed_stamps_are_refused_counted_and_never_reset_the_estimate(tmp_p
             good()
         assert listener.counter('observer', 'estimator_resets') == 0
         assert listener.counter('observer', 'clock_jumps') == 0
-        # a real clock jump is still a reset, and it is logged and counted
+        # a real clock jump (three messages in a row agree) is still a reset, and it is
+        # logged and counted
         t -= 30.0
-        msg = _imu(round(t + 0.05, 6), 0.02)
-        pub.publish(msg)
+        for k in range(3):
+            pub.publish(_imu(round(t + 0.05 * (k + 1), 6), 0.02))
         listener.wait_counter('observer', 'estimator_resets', 1)
         assert listener.counter('observer', 'clock_jumps') == 1
+        assert listener.counter('observer', 'far_back_stamps') == 2
     assert 'estimator reset to its initial estimate' in procs[0].output()
 
 

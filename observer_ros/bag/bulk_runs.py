@@ -12,6 +12,8 @@ evaluates the pieces.
 
 """
 
+import math
+
 import numpy as np
 
 from .replay_events import _index_type
@@ -69,7 +71,8 @@ def _key_ids(key_of, steps):
     return ids, np.array(list(key_index), dtype=float)
 
 
-def _steps(events, streams, cmd, est, jump, future_tolerance, mev, s0, s1, keyed=True):
+def _steps(events, streams, cmd, est, jump, future_tolerance, mev, s0, s1, keyed=True,
+           max_gap=math.inf):
     """
     Return the steps s0..s1-1 between measurements s0..s1 (indices into ``mev``).
 
@@ -105,14 +108,17 @@ def _steps(events, streams, cmd, est, jump, future_tolerance, mev, s0, s1, keyed
         ids, keys = _key_ids(est.cache.key, uniq)
         if ids.size:
             key_id[pos] = ids[inv.reshape(-1)]
-    step_ok = (key_id >= 0) & ok[1:]
+    # a longer gap restarts the estimator (the admission's LONG_GAP): not a step
+    step_ok = (key_id >= 0) & ok[1:] & (h <= max_gap)
     gap_cmds = np.zeros(h.size, dtype=np.int64)
     e0 = int(ev[0])
     cev = np.flatnonzero(events.kind[e0:int(ev[-1])] == -1) + e0   # commands in between
     if cev.size:
         ct = cmd.stamp_ns[events.idx[cev]].astype(np.float64) * 1e-9
         g = np.searchsorted(ev, cev) - 1        # the measurement before each command
-        good = (ct <= tm[g]) & (tm[g] - ct <= jump)
+        # at the earlier measurement's stamp: the admission's COMMAND (one held from
+        # the estimate's time would be counted as such, call by call)
+        good = ct == tm[g]
         step_ok[g[~good]] = False
         np.add.at(gap_cmds, g, 1)
     return tm, key_id, keys, step_ok, gap_cmds
@@ -131,8 +137,10 @@ class _Runs:
 
     """
 
-    def __init__(self, events, streams, cmd, est, jump, future_tolerance, block=None):
+    def __init__(self, events, streams, cmd, est, jump, future_tolerance, block=None,
+                 max_gap=math.inf):
         self.args = (events, streams, cmd, est, jump, future_tolerance)
+        self.max_gap = max_gap
         self.pieces = {}
         block = block or RUN_BLOCK
         mev = self.mev = _measurement_events(events.kind, block)
@@ -164,7 +172,7 @@ class _Runs:
                 self.pieces[int(mev[p0])] = (p0, p1)
 
     def _steps(self, s0, s1, keyed=True):
-        return _steps(*self.args, self.mev, s0, s1, keyed)
+        return _steps(*self.args, self.mev, s0, s1, keyed, self.max_gap)
 
     def _t(self, i):
         events, streams = self.args[:2]
@@ -204,16 +212,17 @@ def _measurement_events(kind, block):
     return mev
 
 
-def _find_runs(events, streams, cmd, est, jump, future_tolerance, block=None):
+def _find_runs(events, streams, cmd, est, jump, future_tolerance, block=None,
+               max_gap=math.inf):
     """
     Stretches of measurements each of whose steps is an affine map of the previous x.
 
     A step goes from one accepted measurement to the next; it is one affine map
     ``x_k = F x_{k-1} + G y_k + H u`` of the current-form estimators when the stamp
-    increases (no fused correction at one stamp), every check of the node passes,
-    and every command in between is stamped at (or, within the jump tolerance,
-    before) the earlier measurement. Its class is (step key, sensor): F, G, H depend
-    only on those. "In between" is in the replay order (``events``), which in lockstep
+    increases (no fused correction at one stamp) by at most ``max_gap`` (a longer gap
+    restarts the estimator), every check of the node passes, and every command in
+    between is stamped at the earlier measurement. Its class is (step key, sensor): F,
+    G, H depend only on those. "In between" is in the replay order (``events``), which in lockstep
     is not the bag order: positions in ``events``, never ``seq``, place the commands.
 
     Returns a :class:`_Runs`: ``get(event index of measurement a)`` gives the run of
@@ -221,4 +230,4 @@ def _find_runs(events, streams, cmd, est, jump, future_tolerance, block=None):
     the piece (``a`` is 0).
 
     """
-    return _Runs(events, streams, cmd, est, jump, future_tolerance, block)
+    return _Runs(events, streams, cmd, est, jump, future_tolerance, block, max_gap)

@@ -17,6 +17,8 @@ from typing import Optional
 
 import numpy as np
 
+from ..core.estimators.admission import stamp_ns
+
 __all__ = ['IMU', 'JOINT_STATE', 'FLOAT64', 'CLOCK', 'Decoded', 'decode_messages',
            'decode_packed']
 
@@ -279,7 +281,7 @@ def _decode_imu(flat, starts, lengths, little, fields, stamps, values, done):
     rows, s, base = rows[fits], s[fits], base[fits]
     sec = _gather(flat, s + 4, '<i4').astype(np.int64)
     nsec = _gather(flat, s + 8, '<u4').astype(np.int64)
-    stamps[rows] = sec * 1_000_000_000 + nsec
+    stamps[rows] = stamp_ns(sec, nsec)     # malformed: below 1 s
     for j, f in enumerate(fields):
         if f in _IMU_OFFSETS:
             values[rows, j] = _gather(flat, s + base + _IMU_OFFSETS[f], '<f8')
@@ -328,7 +330,7 @@ def _decode_joint_state(raws, flat, starts, lengths, little, fields, mode, stamp
             s = starts[members]
             sec = _gather(flat, s + 4, '<i4').astype(np.int64)
             nsec = _gather(flat, s + 8, '<u4').astype(np.int64)
-            stamps[members] = sec * 1_000_000_000 + nsec
+            stamps[members] = stamp_ns(sec, nsec)
             offsets, error = _joint_field_offsets(names, arrays, fields, mode)
             for j, off in enumerate(offsets):
                 if off is not None:

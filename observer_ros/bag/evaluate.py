@@ -43,7 +43,7 @@ from .metrics import (DEFAULT_TOLERANCE, score_variant, STEADY_FRACTION, toleran
                       whiteness, WHITENESS_LAGS)
 from .outputs import check_output
 from .reader import read_recording
-from .replay import CLOCK_JUMP_TOLERANCE, epochs_of, live_replay, replay
+from .replay import CLOCK_JUMP_AGREEMENT, CLOCK_JUMP_TOLERANCE, epochs_of, live_replay, replay
 from .report import BAG_MAX_MESSAGES, format_table, write_results
 from .results import EvalResult, jsonable, ScoredReplay, VariantResult
 from ..core.errors import error_text, ObserverError
@@ -201,7 +201,7 @@ def _load_vehicle(vehicle, overrides=()):
 def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=None,
                  exact=False, progress=None, clock_jump_tolerance=CLOCK_JUMP_TOLERANCE,
                  include_live=True, include_design=True, compare=None, spill=None,
-                 keep_rows=True, health=True):
+                 keep_rows=True, health=True, clock_jump_agreement=CLOCK_JUMP_AGREEMENT):
     """
     Replay a bag through the vehicle's design and variants, and score them.
 
@@ -224,7 +224,8 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
     progress : callable, optional
         ``progress(stage, done, total)``.
     clock_jump_tolerance : float
-        A stamp this many seconds before the estimate's time is a clock jump (reset).
+        A stamp this many seconds before the newest is far back: a clock jump (reset)
+        when ``clock_jump_agreement`` of them come in a row (the observer node's rule).
     include_live : bool
         Score the recorded ``state/estimate`` as the variant ``live``.
     include_design : bool
@@ -246,6 +247,9 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
     health : bool
         Judge each sensor's innovation health (``VariantResult.sensors``); a gain
         search, whose metric does not use it, turns it off.
+    clock_jump_agreement : int
+        Far-back measurements in a row that make a clock jump (the observer node's
+        parameter).
 
     Returns
     -------
@@ -327,6 +331,7 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
         try:
             rep = replay(recording, v, name=name, overrides=overrides, exact=exact,
                          clock_jump_tolerance=clock_jump_tolerance,
+                         clock_jump_agreement=clock_jump_agreement,
                          progress=stage(f'replaying {name}'), spill=spill)
         except ObserverError as err:
             if isinstance(err, BagToolError):

@@ -22,7 +22,7 @@ from .bag_file import bag_info, BagInfo, BagReader, jazzy_typestore
 from .bag_topics import normalize_namespace, resolve_topics, TopicMap, VEHICLE_TOPICS
 from .cdr_decode import CLOCK, decode_messages, decode_packed, Decoded, FLOAT64, IMU, JOINT_STATE
 from .errors import BagToolError
-from ..timeutil import stamp_to_ns
+from ..core.estimators.admission import stamp_ns
 
 __all__ = ['IMU', 'JOINT_STATE', 'FLOAT64', 'CLOCK', 'VEHICLE_TOPICS', 'jazzy_typestore',
            'normalize_namespace', 'BagInfo', 'BagReader', 'bag_info', 'TopicMap',
@@ -188,7 +188,8 @@ def _sensor_fallback(bag, sensor):
     def decode(raw):
         msg = bag.deserialize(raw, sensor.msg_type)
         header = getattr(msg, 'header', None)
-        stamp = stamp_to_ns(header.stamp) if header is not None else None
+        stamp = stamp_ns(header.stamp.sec, header.stamp.nanosec) if header is not None \
+            else None
         return stamp, extract_measurement(msg, sensor)
     return decode
 
@@ -196,7 +197,7 @@ def _sensor_fallback(bag, sensor):
 def _vector_fallback(bag, names, mode):
     def decode(raw):
         msg = bag.deserialize(raw, JOINT_STATE)
-        stamp = stamp_to_ns(msg.header.stamp)
+        stamp = stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec)
         got = list(msg.name)
         position = np.asarray(msg.position, dtype=float)
         if mode == 'vector':

@@ -10,17 +10,18 @@ each epoch of the bag (a measurement before a command at one stamp), since the r
 may receive a command after the next measurement (:class:`_Events`). Each one is handled
 as ``observer_ros.nodes.observer_node`` handles it:
 
-- a measurement at stamp t (``stamp_to_sec``; the receive time for a message without a
-  header): a zero stamp or a message that does not give the outputs is skipped; a stamp
-  more than ``clock_jump_tolerance`` before the estimate's time is a clock jump (looping
-  bag): the estimator is reset; a smaller step back is skipped (out of order), as is a
-  repeated stamp of the same sensor and a stamp more than ``future_tolerance`` ahead of
-  the receive time. Otherwise ``x_hat = est.correct(t, y, plant.output_rows(outputs))``;
-  a non-finite estimate resets the estimator at t.
-- a command at stamp t: ``est.set_input(t, u)``; a stamp older than the history is held
-  from the estimate's time on, or resets the estimator if it is a clock jump. Inside the
-  history it applies from its stamp (below), and the rows of the measurements after it
-  are revised as for a late measurement.
+- every message is judged by the node's own
+  :class:`~observer_ros.core.estimators.admission.Admission` (the receive time as the
+  node's clock), after a malformed stamp (``bad_stamps``) or a message that does not
+  give the outputs (``bad_messages``, ``bad_commands``) is skipped: what it skips, the
+  replay skips, and counts under the same name; a clock jump (``clock_jump_agreement``
+  measurements in a row stamped more than ``clock_jump_tolerance`` before the newest)
+  resets the estimator and starts a new epoch, a long gap restarts it at the
+  measurement, as in the node. A measurement it takes gives
+  ``x_hat = est.correct(t, y, plant.output_rows(outputs))``; a non-finite estimate resets
+  the estimator at t. A command applies from its stamp (inside the history; the rows of
+  the measurements after it are revised as for a late measurement) or is held from the
+  estimate's time (older); it never resets the estimator.
 - a measurement or command stamped before the estimate's time but inside the vehicle's
   ``observer.history_length`` is used at its own stamp, through the same
   :class:`~observer_ros.core.estimators.History` as the node (``out_of_order`` counts
@@ -49,17 +50,29 @@ from . import bulk_runs
 from .bulk_replay import _bulk_run, affine_scan
 from .bulk_runs import _find_runs, _has_late
 from .errors import BagToolError
-from .replay_events import _Events, _index_type, _Rows, CLOCK_JUMP_TOLERANCE, epochs_of
+from .replay_events import _Events, _index_type, _Rows, epochs_of
 from .replay_health import innovation_health
 from .replay_outputs import ReplayOutputs
 from ..core.errors import ObserverError
 from ..core.estimators import History, make_estimator
+from ..core.estimators.admission import (Admission, CLOCK_JUMP, CLOCK_JUMP_AGREEMENT,
+                                         CLOCK_JUMP_TOLERANCE, DUPLICATE, FAR_BACK,
+                                         FUTURE_TOLERANCE, LATE, restart_state)
+from ..core.health import max_prediction_gap
 from ..core.innovation import whiten
 
 __all__ = ['Replay', 'replay', 'live_replay', 'epochs_of', 'affine_scan', 'innovation_health',
-           'CLOCK_JUMP_TOLERANCE', 'FUTURE_TOLERANCE']
+           'CLOCK_JUMP_TOLERANCE', 'FUTURE_TOLERANCE', 'CLOCK_JUMP_AGREEMENT', 'COUNTERS',
+           'SKIPPED']
 
-FUTURE_TOLERANCE = 10.0        # s, as the observer node's future_tolerance
+#: The counters of a replay (:attr:`Replay.counts`), named as the observer node's.
+COUNTERS = ('measurements', 'commands', 'bad_messages', 'bad_commands', 'bad_stamps',
+            'out_of_order', 'duplicates', 'future_stamps', 'far_back_stamps', 'clock_jumps',
+            'long_gap_resets', 'rejected_updates', 'numerical_resets', 'estimator_resets',
+            'late_measurements', 'late_commands', 'late_commands_held_from_now')
+#: Those of messages the replay skipped, as the node did.
+SKIPPED = ('bad_messages', 'bad_commands', 'bad_stamps', 'out_of_order', 'duplicates',
+           'future_stamps', 'far_back_stamps', 'rejected_updates')
 _PROGRESS_EVERY = 1 << 15
 
 
@@ -93,6 +106,11 @@ class Replay:
     whitened: Optional[np.ndarray] = None
     kalman: bool = False
     noise_std: Optional[np.ndarray] = None
+    # replay(answers=True): each estimate a free-running node publishes, in its order
+    # (a late measurement is answered with the revised estimate at the newest stamp, a
+    # repeated stamp with the estimate again); stamps in ns and the estimates
+    answer_ns: Optional[np.ndarray] = None
+    answer_x: Optional[np.ndarray] = None
 
     @property
     def t(self):
@@ -137,7 +155,8 @@ def _bulk_capable(est):
 
 def replay(recording, vehicle, name='design', overrides=(), exact=False,
            clock_jump_tolerance=CLOCK_JUMP_TOLERANCE, future_tolerance=FUTURE_TOLERANCE,
-           progress=None, spill=None):
+           progress=None, spill=None, clock_jump_agreement=CLOCK_JUMP_AGREEMENT,
+           answers=False):
     """
     Replay a recording through the estimator of a vehicle configuration.
 
@@ -155,7 +174,7 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
         The overrides that made this configuration (kept for the report).
     exact : bool
         Call the estimator for every event (no bulk replay).
-    clock_jump_tolerance, future_tolerance : float
+    clock_jump_tolerance, future_tolerance, clock_jump_agreement : float, float, int
         As the observer node's parameters; ``future_tolerance=None`` disables that check.
     progress : callable, optional
         ``progress(done, total)`` over the events.
@@ -164,6 +183,10 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
         temporary folder) a block at a time instead of in memory: the result's columns
         are then :class:`~observer_ros.bag.replay_outputs.SpilledColumn` objects, read
         on demand with the same values (:mod:`observer_ros.bag.replay_outputs`).
+    answers : bool
+        Also give the estimates a free-running node publishes, in its order
+        (:attr:`Replay.answer_ns`, :attr:`Replay.answer_x`); the events are then replayed
+        call by call.
 
     Returns
     -------
@@ -179,15 +202,16 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
     """
     plant = vehicle.plant
     sensors = _variant_sensors(vehicle, recording)
-    counts = dict.fromkeys(('measurements', 'commands', 'bad_messages', 'bad_commands',
-                            'zero_stamps', 'out_of_order', 'duplicates', 'future_stamps',
-                            'rejected_updates', 'numerical_resets', 'clock_jumps',
-                            'late_measurements'), 0)
+    counts = dict.fromkeys(COUNTERS, 0)
     events = _Events(recording, sensors, plant, counts,
                      lockstep=vehicle.simulator.mode == 'lockstep',
                      clock_jump_tolerance=clock_jump_tolerance)
     est = make_estimator(plant, vehicle.observer)
     history = History(est, vehicle.observer.history_length)
+    max_gap = max_prediction_gap(plant.A, vehicle.sample_time, plant.is_discrete)
+    # what each stamp means: the node's own decision (receive times as its clock)
+    admission = Admission(history, clock_jump_tolerance, future_tolerance,
+                          clock_jump_agreement, max_gap, counts=counts)
     rows = [tuple(plant.output_rows(s.outputs)) for s in sensors]
     rows_idx = [np.array(r, dtype=np.intp) for r in rows]
     streams = events.streams
@@ -200,6 +224,7 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
     if cmd is not None and plant.m:
         cmd_t = cmd.stamp_ns
         cmd_u = cmd.values
+        cmd_log = cmd.log_ns
     n_meas = int(sum(int((events.kind == k).sum()) for k in range(len(streams))))
     kalman = est.kind == 'kalman'
     # the narrowest exact types: epochs and bag positions fit the events' index type
@@ -209,11 +234,14 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
                         ahead=bulk_runs.MAX_RUN + bulk_runs.MIN_RUN)
     runs = {}
     warnings = []
-    if not exact and _bulk_capable(est) and not _has_late(events, streams, cmd, history.length):
-        runs = _find_runs(events, streams, cmd, est, clock_jump_tolerance, future_tolerance)
+    answered = _Answers(plant.n) if answers else None
+    if not exact and answered is None and _bulk_capable(est) and \
+            not _has_late(events, streams, cmd, history.length):
+        runs = _find_runs(events, streams, cmd, est, clock_jump_tolerance, future_tolerance,
+                          max_gap=max_gap)
     stamps = [s.stamp_ns for s in streams]
-    jump = clock_jump_tolerance
-    last_stamp = {}
+    lockstep = vehicle.simulator.mode == 'lockstep'
+    head_ns = None                  # the stamp (ns) of the estimate's time
     epoch = 0
     m = 0
     bulk_steps = 0
@@ -226,58 +254,55 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
             next_report = i + _PROGRESS_EVERY
             progress(i, total)
         k, j, sq = event(i)
+        i += 1
         if k < 0:
             t = float(cmd_t[j]) * 1e-9
-            u = cmd_u[j]
+            if not admission.command(t, now=float(cmd_log[j]) * 1e-9).use:
+                continue
             last = est.t
             try:
-                if last is not None and last - t > jump:
-                    history.reset(None, None)
-                    counts['clock_jumps'] += 1
-                    epoch += 1
-                history.set_input(t, u)     # inside the history: from its stamp
-                if history.revised:         # a late one: the estimates after its stamp
+                history.set_input(t, cmd_u[j])  # inside the history: from its stamp
+                if history.revised:             # a late one: the estimates after its stamp
                     _revise(out, history.revised, rows_idx, kalman)
                 counts['commands'] += 1
             except (ObserverError, ValueError):
                 counts['bad_commands'] += 1
-            i += 1
+            if est.t != last:
+                head_ns = int(cmd_t[j])
             continue
         t = float(times[k][j]) * 1e-9
         last = est.t
-        if last is not None and t < last:
-            if last - t > jump:
-                history.reset(None, None)
-                last_stamp.clear()
-                counts['clock_jumps'] += 1
+        verdict = admission.measurement(k, t, now=float(logs[k][j]) * 1e-9)
+        if not verdict.use:
+            if answered is not None and (verdict is DUPLICATE and last == t or
+                                         verdict is FAR_BACK and lockstep):
+                answered.add(stamps[k][j], est.x_hat)       # the node answers these
+            continue
+        if verdict.restart:
+            history.reset(None, None)
+            counts['estimator_resets'] += 1
+            if verdict is CLOCK_JUMP:
                 epoch += 1
-            elif not history.accepts(t):
-                counts['out_of_order'] += 1
-                i += 1
-                continue
-        if last_stamp.get(k) == t:
-            counts['duplicates'] += 1
-            i += 1
-            continue
-        if future_tolerance is not None and t - float(logs[k][j]) * 1e-9 > future_tolerance:
-            counts['future_stamps'] += 1
-            i += 1
-            continue
+            else:                           # a long gap: restart at the measurement
+                history.reset(restart_state(est, rows[k], values[k][j]), None)
+            last = None
         try:
             head = history.correct(t, values[k][j], rows[k], tag=m)
         except (ObserverError, ValueError):
             counts['rejected_updates'] += 1
-            i += 1
             continue
         if not np.all(np.isfinite(head)):
             history.reset(None, t)
             counts['numerical_resets'] += 1
-            i += 1
+            counts['estimator_resets'] += 1
+            head_ns = int(stamps[k][j])
             continue
-        if last is not None and t < last:
-            counts['late_measurements'] += 1
+        if verdict is LATE:
             _revise(out, history.revised, rows_idx, kalman)   # estimates the late one changed
-        last_stamp[k] = max(t, last_stamp.get(k, t))
+        else:
+            head_ns = int(stamps[k][j])
+        if answered is not None:
+            answered.add(head_ns, head)
         counts['measurements'] += 1
         b = out.local(m)
         out.ns[b] = stamps[k][j]
@@ -293,7 +318,7 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
         out.seq[b] = sq
         out.sensor[b] = k
         m += 1
-        run = runs.get(i)
+        run = runs.get(i - 1)
         while run is not None:
             b = out.local(m)
             done = _bulk_run(est, run, streams, cmd, rows, rows_idx,
@@ -302,16 +327,17 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
             if done is None:             # check failed: replay everything call by call
                 runs = {}
                 break
-            steps, i, last = done        # i: the event of the last measurement done
+            steps, i, newest = done      # i: the event of the last measurement done
             out.epoch[b:b + steps] = epoch
             m += steps
             bulk_steps += steps
             counts['measurements'] += steps
             counts['commands'] += run['commands']
-            last_stamp.update(last)
+            for key, t_key in newest.items():
+                admission.used(key, t_key)
             history.forget()             # the bulk stretch drove the estimator itself
             run = runs.get(i)
-        i += 1
+            i += 1
     if progress is not None:
         progress(total, total)
     # late measurements were used at their stamps: the rows in stamp order (per epoch)
@@ -325,7 +351,28 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
                   residual=cols['r'], epoch=cols['epoch'], seq=cols['seq'],
                   sensor=cols['sensor'], counts=counts, overrides=tuple(overrides),
                   bulk_steps=bulk_steps, warnings=warnings, whitened=cols['e'],
-                  kalman=kalman, noise_std=std)
+                  kalman=kalman, noise_std=std,
+                  answer_ns=None if answered is None else answered.stamps(),
+                  answer_x=None if answered is None else answered.estimates())
+
+
+class _Answers:
+    """The estimates a free-running node publishes, collected in its order."""
+
+    def __init__(self, n):
+        self.n = n
+        self.ns = []
+        self.x = []
+
+    def add(self, ns, x):
+        self.ns.append(int(ns))
+        self.x.extend(x.tolist())
+
+    def stamps(self):
+        return np.array(self.ns, dtype=np.int64)
+
+    def estimates(self):
+        return np.array(self.x, dtype=float).reshape(-1, self.n)
 
 
 def _revise(out, revised, rows_idx, kalman):

@@ -10,9 +10,10 @@ ints a block at a time for the replay's main loop.
 
 import numpy as np
 
+from ..core.estimators.admission import CLOCK_JUMP_TOLERANCE, malformed_ns
+
 __all__ = ['epochs_of', 'CLOCK_JUMP_TOLERANCE']
 
-CLOCK_JUMP_TOLERANCE = 0.5     # s, as the observer node's clock_jump_tolerance
 EVENT_BLOCK = 1 << 16          # messages: the events are merged this many at a time
 
 
@@ -118,19 +119,13 @@ class _Events:
         streams = [recording.sensors[s.name] for s in sensors]
         self.streams = streams
         sources = []                            # (kind, stream, messages used: bool)
+        # the admission's order: a malformed stamp first (bad_stamps), then the values
         for k, stream in enumerate(streams):
-            ok = stream.valid.copy()
-            if stream.has_header:
-                zero = stream.stamp_ns == 0
-                counts['zero_stamps'] += int((zero & ok).sum())
-                ok &= ~zero
-            counts['bad_messages'] += int((~stream.valid).sum())
-            sources.append((k, stream, ok))
+            sources.append((k, stream, _usable(stream, counts, 'bad_messages')))
         cmd = recording.command
         self.command = cmd
         if cmd is not None and plant.m:
-            counts['bad_commands'] += int((~cmd.valid).sum())
-            sources.append((-1, cmd, cmd.valid))
+            sources.append((-1, cmd, _usable(cmd, counts, 'bad_commands')))
         if lockstep:
             self._lockstep(sources, clock_jump_tolerance)
         else:
@@ -210,6 +205,19 @@ class _Events:
 
     def __len__(self):
         return int(self.kind.size)
+
+
+def _usable(stream, counts, bad_values):
+    """Return which messages of a stream reach the admission; count the others."""
+    ok = stream.valid.copy()
+    if stream.has_header:
+        bad = malformed_ns(stream.stamp_ns)
+        counts['bad_stamps'] = counts.get('bad_stamps', 0) + int(bad.sum())
+        ok &= ~bad
+        counts[bad_values] = counts.get(bad_values, 0) + int((~stream.valid & ~bad).sum())
+    else:
+        counts[bad_values] = counts.get(bad_values, 0) + int((~stream.valid).sum())
+    return ok
 
 
 class _Rows:

@@ -15,6 +15,7 @@ import numpy as np
 from .metrics import WHITENESS_LAGS
 from .plots import decimate, write_plots
 from .reader import jazzy_typestore
+from .replay import SKIPPED
 from .staging import StagedOutput
 from ..core.innovation import WINDOW as INNOVATION_WINDOW
 
@@ -74,10 +75,9 @@ def format_table(result):
     rows = []
     for name, vr in result.variants.items():
         c = vr.replay.counts
-        skipped = sum(v for k, v in c.items() if k not in ('measurements', 'commands',
-                                                           'clock_jumps'))
+        skipped = sum(c.get(k, 0) for k in SKIPPED)
         rows.append([name, vr.kind, len(vr.replay), c.get('commands', '-'),
-                     c.get('clock_jumps', 0), skipped,
+                     c.get('estimator_resets', c.get('clock_jumps', 0)), skipped,
                      ' '.join(vr.overrides) if vr.overrides else '-'])
     lines += ['', text_table(['variant', 'observer', 'estimates', 'commands', 'resets',
                               'skipped', 'overrides'], rows)]

@@ -20,7 +20,8 @@ from .callback_watch import CallbackWatch
 from .parameters import declare_parameters, set_undeclared
 from .topic_watch import level_rank, TopicWatch
 from ..core.errors import ObserverError
-from ..timeutil import ns_to_sec, sec_to_stamp_parts, stamp_to_sec
+from ..core.estimators.admission import check_stamp
+from ..timeutil import sec_to_stamp_parts, stamp_to_sec
 from ..vehicle import vehicle_from_parameters
 
 __all__ = ['VEHICLE_SECTIONS', 'SAFE_COMMAND_FRAME', 'SENSOR_QOS', 'SENSOR_SUB_QOS',
@@ -109,21 +110,14 @@ def checked_stamp(stamp, topic):
     """
     Return the seconds of a message's ``header.stamp``; refuse a malformed one.
 
-    A stamp is refused (ObserverError naming the topic) when ``nanosec`` is not below
+    The admission's rule (:func:`observer_ros.core.estimators.admission.check_stamp`): a
+    stamp is refused (ObserverError naming the topic) when ``nanosec`` is not below
     10^9, ``sec`` is negative, or it lies in the first second of its clock (``sec`` 0:
     an unset header, 0 s + 1 ns included; the simulator starts at 1 s). Called first by
     the callbacks, before a stamp reaches the estimator's time logic.
 
     """
-    sec, nanosec = int(stamp.sec), int(stamp.nanosec)
-    if not 0 <= nanosec < 1_000_000_000:
-        raise ObserverError(f'{topic}: header.stamp.nanosec {nanosec} is not below 10^9')
-    if sec < 0:
-        raise ObserverError(f'{topic}: header.stamp.sec {sec} is negative')
-    if sec == 0:
-        raise ObserverError(f'{topic}: header.stamp {sec} s {nanosec} ns is in the first '
-                            'second (an unset stamp)')
-    return ns_to_sec(sec * 1_000_000_000 + nanosec)     # stamp_to_sec without reading again
+    return check_stamp(stamp.sec, stamp.nanosec, topic)
 
 
 def max_components(names):

@@ -12,10 +12,10 @@ the measurement). The node calls these from its measurement path and its diagnos
 import math
 
 from diagnostic_msgs.msg import DiagnosticStatus
-import numpy as np
 
 from .checks import state_scale
 from .common import MESSAGE_CLASSES
+from ..core.estimators.admission import restart_state
 from ..core.health import Envelope, ENVELOPE_FACTOR, LoadMeter, max_prediction_gap
 
 __all__ = ['DIVERGENCE_HOLD', 'ObserverHealth']
@@ -86,13 +86,9 @@ class ObserverHealth:
             f'{self._max_gap:.2f} s over which the unstable model grows the error '
             f'{ENVELOPE_FACTOR:g} x; estimator restarted at the measurement',
             throttle_duration_sec=1.0)
-        self.count('long_gap_resets')
-        self.count('estimator_resets')
+        self.count('estimator_resets')     # long_gap_resets: the admission's
         self.history.reset(None, None)      # the estimator, and its history forgotten
-        x0 = self.estimator.x_hat
-        C = self.vehicle.plant.C[list(rows)]
-        x0 = x0 + np.linalg.pinv(C) @ (np.asarray(y, dtype=float) - C @ x0)
-        self.history.reset(x0, None)
+        self.history.reset(restart_state(self.estimator, rows, y), None)
         self._health.restart()              # a new initial transient
         self._envelope.reset()
 

@@ -14,13 +14,15 @@ latencies all count. Per sensor, /diagnostics carries the innovation health
 ``observer.publish_rate_hz`` (free running) the estimate predicted to now is also
 published at that rate.
 
-A malformed stamp (``nanosec`` >= 10^9, negative ``sec``, the first second) is refused and
-counted (``bad_stamps``) before it reaches the estimator; a command stamped far in the
-future of the clock, or more than ``clock_jump_tolerance`` ahead of the estimate, is
-refused (``future_stamps``), one older than the estimate is held from the estimate's time
-(``late_commands`` past ``clock_jump_tolerance``): a command never resets the estimator.
-A reset is always logged and counted (``estimator_resets``). A second publisher
-of ``state/estimate`` or ``control/u`` is reported as an ERROR naming the topic.
+What each stamp means is :class:`~observer_ros.core.estimators.admission.Admission`'s
+decision, the same the bag replay asks for: a malformed stamp is refused
+(``bad_stamps``); a duplicate, a stamp older than the history or far in the future of the
+clock is skipped and counted; a measurement stamped more than ``clock_jump_tolerance``
+before the newest is skipped (``far_back_stamps``) unless ``clock_jump_agreement`` of them
+come in a row, a clock jump (``clock_jumps``): the estimator restarts. A command never
+resets the estimator. A reset is always logged and counted (``estimator_resets``). A
+second publisher of ``state/estimate`` or ``control/u`` is reported as an ERROR naming the
+topic.
 
 """
 
@@ -40,11 +42,17 @@ from .observer_health import ObserverHealth
 from .runner import run_node
 from ..core.errors import ObserverError
 from ..core.estimators import History, make_estimator
+from ..core.estimators.admission import (Admission, AHEAD_COMMAND, BAD_STAMP, CLOCK_JUMP,
+                                         DUPLICATE, FAR_BACK, LATE, OUT_OF_ORDER,
+                                         STALE_COMMAND)
 from ..core.innovation import InnovationMonitor, transient_time
 from ..core.vehicle_design import design_vehicle
 from ..sensors import extract_measurement
 
 __all__ = ['ObserverNode', 'covariance_names', 'main', 'silence_watch_period']
+
+# the node's parameters the admission reads (and takes again when they change)
+ADMISSION_PARAMETERS = ('clock_jump_tolerance', 'future_tolerance', 'clock_jump_agreement')
 
 
 class ObserverNode(ObserverHealth, VehicleNode):
@@ -52,7 +60,8 @@ class ObserverNode(ObserverHealth, VehicleNode):
 
     def __init__(self):
         super().__init__('observer', own_parameters=(
-            'clock_jump_tolerance', 'future_tolerance', 'diagnostics_period'))
+            'clock_jump_tolerance', 'clock_jump_agreement', 'future_tolerance',
+            'diagnostics_period'))
         self._design_and_build(self.vehicle)
         v = self.vehicle
         if v.observer.history_length > self.param('clock_jump_tolerance'):
@@ -66,12 +75,7 @@ class ObserverNode(ObserverHealth, VehicleNode):
         self._queue = []                    # lockstep: measurements waiting for that command
         self._last_estimate = None
         self._pending_stamp = None
-        self._last_stamp = {}               # sensor name -> last stamp (s)
         self._last_seen = {}                # sensor name -> wall time of last message
-        # stamps up to this time are not "far in the future" (the ROS clock is read once a
-        # second, or when a stamp passes it, rather than per message): see _check_time
-        self._future_bound = None
-        self._future_bound_until = 0.0
         self._init_health()
         self._est_pub = self.create_publisher(JointState, TOPICS['estimate'], STATE_PUB_QOS)
         # Kalman: P of each estimate answering a measurement (covariance_names)
@@ -133,12 +137,26 @@ class ObserverNode(ObserverHealth, VehicleNode):
         self._stamped = {s.name: hasattr(MESSAGE_CLASSES[s.msg_type], 'header')
                          for s in vehicle.sensors}
         self._build_health(vehicle)
+        # what each stamp means (core: the bag replay asks the same); the ROS clock is
+        # read once a second, or when a stamp passes the last reading, not per message
+        try:
+            self._admission = Admission(
+                self.history, *(self.param(name) for name in ADMISSION_PARAMETERS),
+                max_gap=self._max_gap, clock=self._clock_seconds, counts=self._counters)
+        except ValueError as err:       # a tolerance out of its range: refused at start
+            raise ObserverError(f'parameters: {err}') from None
+
+    def _clock_seconds(self):
+        return self.get_clock().now().nanoseconds * 1e-9
 
     def _on_set_parameters(self, params):
         problem = own_parameter_problem(params)
         if problem is not None:
             self.count('parameter_changes_refused')
             return SetParametersResult(successful=False, reason=problem)
+        for p in params:                    # checked above
+            if p.name in ADMISSION_PARAMETERS:
+                setattr(self._admission, p.name, p.value)
         observer_params = [p for p in params if p.name.startswith('observer.')]
         if not observer_params:
             return SetParametersResult(successful=True)
@@ -160,6 +178,7 @@ class ObserverNode(ObserverHealth, VehicleNode):
             estimator.reset(self.estimator.x_hat, self.estimator.t)
         self.vehicle, self.design, self.estimator = vehicle, design, estimator
         self.history = History(estimator, vehicle.observer.history_length)
+        self._admission.history = self.history
         self._health = _innovation_monitor(vehicle, design)
         self.get_logger().info(f'observer redesigned: poles {_poles(design.observer_poles)}')
         self.count('parameter_changes_applied')
@@ -185,7 +204,7 @@ class ObserverNode(ObserverHealth, VehicleNode):
             try:
                 t = checked_stamp(stamp, sensor.topic)
             except ObserverError as err:    # no usable time: not even a prediction
-                self._reject('bad_stamps', str(err))
+                self._reject(BAD_STAMP.counter, str(err))
                 return
         try:
             if stamp is None:   # std_msgs/Float64 carries no stamp: the time it was received
@@ -195,14 +214,18 @@ class ObserverNode(ObserverHealth, VehicleNode):
             self._reject('bad_messages', str(err))
             self._answer_without_correction(sensor, t, stamp)
             return
-        if not self._check_time(sensor, t, stamp):
-            return
-        rows = self._rows[sensor.name]
         history = self.history
         head = history.t
-        late = head is not None and t < head
-        if not late and head is not None and t - head > self._max_gap:
-            self._long_gap(sensor, t, y, rows)
+        verdict = self._admission.measurement(sensor.name, t, self._last_seen[sensor.name])
+        if not verdict.use:
+            self._refused(sensor, verdict, t, head, stamp)
+            return
+        rows = self._rows[sensor.name]
+        if verdict.restart:
+            if verdict is CLOCK_JUMP:
+                self._clock_jump(sensor, t)
+            else:
+                self._long_gap(sensor, t, y, rows)
         estimator = self.estimator
         skipped = estimator.unverified_corrections
         try:
@@ -227,16 +250,13 @@ class ObserverNode(ObserverHealth, VehicleNode):
         problem = self._envelope.check(t, x_hat)
         if problem is not None:
             self._on_divergence(t, problem)
-        newest = self._last_stamp.get(sensor.name)
-        if newest is None or t > newest:
-            self._last_stamp[sensor.name] = t
-            if newest is not None and t - newest > self._gap_missed[sensor.name]:
-                self._count_missed(sensor, t - newest)      # the load meter's
+        newest = self._admission.previous
+        if newest is not None and t - newest > self._gap_missed[sensor.name]:
+            self._count_missed(sensor, t - newest)      # the load meter's
         self.count('measurements')
         # the estimate first: it is what the compensator waits for (benchmarks P1). A late
         # measurement is answered with the estimate at the newest stamp, now revised.
-        if late:
-            self.count('late_measurements')
+        if verdict is LATE:
             self._publish_estimate(history.t, sensor.frame_id, history.head_tag, x_hat)
         else:
             self._publish_estimate(t, sensor.frame_id, stamp, x_hat)
@@ -294,56 +314,44 @@ class ObserverNode(ObserverHealth, VehicleNode):
             at = t if at is None else at
             self._publish_estimate(at, sensor.frame_id, stamp if at == t else None, x_hat)
 
-    def _check_time(self, sensor, t, stamp=None):
-        """Handle stamps that go backwards, repeat, or lie far in the future."""
-        last = self.history.t
-        if last is not None and t < last:
-            # a jump is judged against the sensors' own stamps (a command never moves the
-            # estimate's time: one stamped ahead is held until the estimate reaches it)
-            newest = max(self._last_stamp.values(), default=last)
-            if newest - t > self.param('clock_jump_tolerance'):
-                self._reset_estimator('clock_jumps', f'{sensor.topic}: clock jumped back '
-                                      f'{newest - t:.3f} s')
-                self._last_stamp.clear()
-                self._future_bound = None
-                self._envelope.reset()
-                return True
-            if not self.history.accepts(t):
-                self._reject('out_of_order', f'{sensor.topic}: stamp {t:.6f} older than the '
-                             f'history ({self.history.length:g} s before the estimate, '
-                             f'{last:.6f}); skipped')
-                return False
-        if self._last_stamp.get(sensor.name) == t:
+    def _refused(self, sensor, verdict, t, head, stamp):
+        """Log a measurement the admission refused (it counted it); answer a repeat."""
+        topic = sensor.topic
+        if verdict is DUPLICATE:
             # a repeat (a simulator re-sending a message whose answer was lost): answer it
             # again with the current estimate, without correcting twice
-            self._reject('duplicates', f'{sensor.topic}: duplicate stamp {t:.6f}; '
-                         'estimate re-published')
-            if last == t:
+            text = f'{topic}: duplicate stamp {t:.6f}; estimate re-published'
+            if head == t:
                 self._publish_estimate(t, sensor.frame_id, stamp)
-            return False
-        if self._future_bound is not None and t <= self._future_bound and \
-                self._last_seen[sensor.name] < self._future_bound_until:
-            return True
-        now = self.get_clock().now().nanoseconds * 1e-9
-        if now <= 0.0:          # no clock yet (simulated time before the first /clock)
-            self._future_bound = None
-            return True
-        tolerance = self.param('future_tolerance')
-        if t - now > tolerance:
-            self._reject('future_stamps', f'{sensor.topic}: stamp {t:.3f} is '
-                         f'{t - now:.1f} s ahead of the clock; skipped')
-            return False
-        # the clock only moves forward between two reads a second apart (a jump back
-        # resets the estimator, which clears this bound)
-        self._future_bound = now + tolerance
-        self._future_bound_until = self._last_seen[sensor.name] + 1.0
-        return True
+        elif verdict is FAR_BACK:
+            adm = self._admission
+            newest = adm.newest if adm.newest is not None else head
+            text = (f'{topic}: stamp {t:.6f} is {newest - t:.3f} s before the newest '
+                    f'({newest:.6f}); skipped (a clock jump needs '
+                    f'{adm.clock_jump_agreement} such messages in a row)')
+            if self._lockstep:      # the simulator waits for an answer at this stamp
+                self._publish_estimate(t, sensor.frame_id, stamp, self.estimator.x_hat)
+        elif verdict is OUT_OF_ORDER:
+            text = (f'{topic}: stamp {t:.6f} older than the history '
+                    f'({self.history.length:g} s before the estimate, {head:.6f}); skipped')
+        else:   # FUTURE
+            now = self.get_clock().now().nanoseconds * 1e-9
+            text = f'{topic}: stamp {t:.3f} is {t - now:.1f} s ahead of the clock; skipped'
+        self.get_logger().warning(text, throttle_duration_sec=1.0)
+
+    def _clock_jump(self, sensor, t):
+        """Messages in a row agree that the clock jumped back: start again at them."""
+        jump = self._admission.clock_jump_agreement
+        self._reset_estimator(None, f'{sensor.topic}: clock jumped back to {t:.3f} s '
+                              f'({jump} message{"s" if jump > 1 else ""} in a row)')
+        self._envelope.reset()
 
     def _reset_estimator(self, counter, reason, t=None):
         """Reset the estimator to its initial estimate: always logged and counted."""
         self.history.reset(None, t)         # the estimator, and its history forgotten
         self._health.restart()              # a new initial transient
-        self.count(counter)
+        if counter is not None:
+            self.count(counter)
         self.count('estimator_resets')
         self.get_logger().warning(f'{reason}; estimator reset to its initial estimate',
                                   throttle_duration_sec=1.0)
@@ -354,36 +362,32 @@ class ObserverNode(ObserverHealth, VehicleNode):
         try:
             t = checked_stamp(msg.header.stamp, topic)
         except ObserverError as err:
-            self._reject('bad_stamps', str(err))
+            self._reject(BAD_STAMP.counter, str(err))
             return
         try:
             u = vector_from_joint_state(msg, self.vehicle.plant.input_names, topic)
-            last = self.history.t
-            # the clock and the parameters are read only for a stamp that may be ahead: in
-            # the closed loop every command is at or before the estimate's stamp, and a
-            # stamp not after the measurements' bound (the clock once read + tolerance)
-            # is not ahead of the clock
-            bound = self._future_bound
-            now = 0.0 if bound is not None and t <= bound else \
-                self.get_clock().now().nanoseconds * 1e-9
             # a command is not a time source: it never moves the estimator's time (one
-            # stamped ahead is held until the estimate reaches it) nor resets it; only the
-            # sensors' stamps can
-            if now > 0.0 and t - now > self.param('future_tolerance'):
-                self._reject('future_stamps', f'{topic}: stamp {t:.3f} is {t - now:.1f} s '
-                             'ahead of the clock; skipped')
-            elif last is not None and t > last and \
-                    t - last > self.param('clock_jump_tolerance'):
-                self._reject('future_stamps', f'{topic}: stamp {t:.6f} is {t - last:.3f} s '
-                             'ahead of the estimate; skipped')
-            # ahead: pending; inside the history: from its stamp on; older: held from the
-            # estimate's time
-            elif self.history.set_input(t, u, tag=msg.header.stamp):
-                if last - t > self.param('clock_jump_tolerance'):
-                    self._reject('late_commands', f'{topic}: stamp {t:.6f} is {last - t:.3f} '
-                                 's older than the estimate; held from now on')
-                else:
-                    self.count('late_commands_held_from_now')
+            # stamped ahead is held until the estimate reaches it) nor resets it
+            head = self.history.t
+            verdict = self._admission.command(t, self.wall_now())
+            if verdict.use:
+                # ahead: pending; inside the history: from its stamp on; older: held from
+                # the estimate's time
+                self.history.set_input(t, u, tag=msg.header.stamp)
+                self.count('commands')
+                if verdict is STALE_COMMAND:
+                    self.get_logger().warning(
+                        f'{topic}: stamp {t:.6f} is {head - t:.3f} s older than the '
+                        'estimate; held from now on', throttle_duration_sec=1.0)
+            elif verdict is AHEAD_COMMAND:
+                self.get_logger().warning(
+                    f'{topic}: stamp {t:.6f} is {t - head:.3f} s ahead of the estimate; '
+                    'skipped', throttle_duration_sec=1.0)
+            else:
+                now = self.get_clock().now().nanoseconds * 1e-9
+                self.get_logger().warning(
+                    f'{topic}: stamp {t:.3f} is {t - now:.1f} s ahead of the clock; '
+                    'skipped', throttle_duration_sec=1.0)
         except (ObserverError, ValueError) as err:
             self._reject('bad_commands', f'{topic}: {err}')
         if self._lockstep and self._pending_commands > 0 and t == self._pending_stamp:

@@ -21,6 +21,8 @@ from dataclasses import dataclass, replace
 import math
 from typing import NamedTuple, Optional, Tuple
 
+from ..core.estimators.admission import (CLOCK_JUMP_AGREEMENT, CLOCK_JUMP_TOLERANCE,
+                                         FUTURE_TOLERANCE)
 from ..core.spec import HISTORY_LENGTH, OBSERVER_TYPES, SENSOR_TYPES
 
 __all__ = ['KeySpec', 'ParameterInfo', 'KNOWN_KEYS', 'SENSOR_KEYS', 'NODE_KEYS',
@@ -304,11 +306,18 @@ SENSOR_KEYS = _keys(
 
 # The nodes' own parameters (not in a vehicle file; given with -p or a node section).
 NODE_KEYS = _keys(
-    KeySpec('clock_jump_tolerance', DOUBLE, 'a stamp this far behind the newest is a clock '
-            'jump (the clock restarted)', default=0.5, unit='s', low=0.0, low_open=True,
-            high=MAX_TIMEOUT, details='nodes: observer, compensator'),
+    KeySpec('clock_jump_tolerance', DOUBLE, 'a stamp this far behind the newest is far back: '
+            'the observer skips it unless clock_jump_agreement such measurements come in a '
+            'row (a clock jump: it resets); the compensator takes an estimate this far back '
+            'for a restarted clock', default=CLOCK_JUMP_TOLERANCE, unit='s', low=0.0,
+            low_open=True, high=MAX_TIMEOUT, details='nodes: observer, compensator'),
+    KeySpec('clock_jump_agreement', INTEGER, 'measurements in a row stamped more than '
+            'clock_jump_tolerance behind the newest that make a clock jump (the estimator '
+            'resets); fewer are outliers, skipped (far_back_stamps)',
+            default=CLOCK_JUMP_AGREEMENT, low=1, high=1000, details='nodes: observer'),
     KeySpec('future_tolerance', DOUBLE, 'a stamp this far ahead of the clock is refused',
-            default=10.0, unit='s', low=0.0, low_open=True, high=1e9, details='nodes: observer'),
+            default=FUTURE_TOLERANCE, unit='s', low=0.0, low_open=True, high=1e9,
+            details='nodes: observer'),
     KeySpec('diagnostics_period', DOUBLE, 'wall time between /diagnostics reports',
             default=1.0, unit='s', low=0.01, high=MAX_TIMEOUT,
             details='nodes: observer, compensator, plant_simulator'),
