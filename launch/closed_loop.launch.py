@@ -18,7 +18,7 @@ from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
-from observer_ros.launch_support import as_bool, vehicle_file
+from observer_ros.launch_support import as_bool, namespace_argument, vehicle_file
 from observer_ros.vehicle import load_vehicle
 
 ARGUMENTS = (
@@ -45,7 +45,7 @@ def _nodes(context):
         raise ValueError(f'mode: {mode!r} is not lockstep or realtime')
     record = as_bool(arg('record'), 'record')
     sim_time = as_bool(arg('use_sim_time'), 'use_sim_time')
-    namespace = arg('namespace')
+    namespace = namespace_argument(arg('namespace'))
     common = {'simulator.mode': mode}
     peers = dict(common, use_sim_time=sim_time)
     simulator = dict(common, **{

@@ -15,7 +15,7 @@ from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
-from observer_ros.launch_support import as_bool, parse_remaps, vehicle_file
+from observer_ros.launch_support import as_bool, namespace_argument, parse_remaps, vehicle_file
 
 ARGUMENTS = (
     ('vehicle', 'submarine', "a vehicle of the package's config/ or the robot's vehicle file"),
@@ -31,7 +31,8 @@ def _nodes(context):
 
     parameters = {'simulator.mode': 'realtime',
                   'use_sim_time': as_bool(arg('use_sim_time'), 'use_sim_time')}
-    return [Node(package='observer_ros', executable='observer', namespace=arg('namespace'),
+    return [Node(package='observer_ros', executable='observer',
+                 namespace=namespace_argument(arg('namespace')),
                  parameters=[vehicle_file(arg('vehicle')), parameters],
                  remappings=parse_remaps(arg('remaps')), output='screen')]
 

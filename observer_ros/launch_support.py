@@ -11,8 +11,9 @@ import os
 from pathlib import Path
 
 from .core.errors import ObserverError
+from .ros_names import check_namespace, check_topic_name
 
-__all__ = ['vehicle_file', 'parse_remaps', 'as_bool']
+__all__ = ['namespace_argument', 'vehicle_file', 'parse_remaps', 'as_bool']
 
 PACKAGE = 'observer_ros'
 
@@ -81,8 +82,20 @@ def parse_remaps(text):
         source, sep, target = item.partition(':=')
         if not sep or not source or not target:
             raise ObserverError(f'remaps: {item!r} is not FROM:=TO')
+        for name in (source, target):
+            check_topic_name(name, 'remaps:')
         remaps.append((source, target))
     return remaps
+
+
+def namespace_argument(text):
+    """
+    Return a launch file's ``namespace`` argument checked by ROS's rules ('' for none).
+
+    ``sub2`` becomes ``/sub2``; a namespace rcl would refuse (``/véhicule_1``) is refused
+    here, before any node starts, in one line naming the character.
+    """
+    return check_namespace(text, 'namespace:=') if text else ''
 
 
 def as_bool(text, name):

@@ -10,7 +10,7 @@ rclpy's own validators, and name the offending character and its position.
 
 from .core.errors import ObserverError
 
-__all__ = ['check_namespace']
+__all__ = ['check_namespace', 'check_topic_name']
 
 
 def _one_line(err, what, name):
@@ -46,3 +46,22 @@ def check_namespace(namespace, what='--namespace'):
     except NameValidationException as err:
         raise ObserverError(_one_line(err, what, full)) from None
     return full
+
+
+def check_topic_name(name, what='topic'):
+    """
+    Return ``name`` if ROS accepts it as a topic name (relative, absolute or private).
+
+    Raises
+    ------
+    ObserverError
+        One line naming ``what``, the name, the rule and the offending character.
+
+    """
+    from rclpy.exceptions import NameValidationException
+    from rclpy.validate_topic_name import validate_topic_name
+    try:
+        validate_topic_name(name)
+    except NameValidationException as err:
+        raise ObserverError(_one_line(err, what, name)) from None
+    return name

@@ -18,7 +18,8 @@ from observer_ros.vehicle import load_vehicle
 import pytest
 import yaml
 
-CONFIG = Path(__file__).resolve().parents[1] / 'config'
+REPO = Path(__file__).resolve().parents[1]
+CONFIG = REPO / 'config'
 
 
 @pytest.fixture(scope='module')
@@ -192,3 +193,22 @@ def test_a_half_written_bag_points_to_the_projects_recovery(tmp_path, vehicle, c
     assert f'observer-bag-recover {bag}' in err and 'reindex' not in err, err
     assert 'mcap recover' not in err
     shutil.rmtree(tmp_path / 'eval', ignore_errors=True)
+
+
+def test_recovery_cuts_before_a_chunk_whose_crc_fails(tmp_path):
+    """A byte changed in an unclosed bag's 5th chunk: recovery keeps chunks 1-4, and opens."""
+    from observer_ros.bag.mcap_repair import scan_mcap
+    bag = shutil.copytree(REPO / 'bags' / 'samples' / 'submarine', tmp_path / 'bag')
+    file = bag_file(bag)
+    chunks = scan_mcap(file)['chunks']
+    assert len(chunks) >= 6
+    (bag / 'metadata.yaml').unlink()
+    data = bytearray(file.read_bytes()[:chunks[-1]['offset']])     # the end not written
+    flip = chunks[4]['offset'] + chunks[4]['length'] - 40
+    data[flip] ^= 0xFF
+    file.write_bytes(bytes(data))
+    report = recover_bag(bag)
+    assert report['chunks'] == 4 and report['repaired']
+    with BagReader(bag) as opened:
+        kept = opened.info.message_count
+    assert 0 < kept == report['total'] < 3637

@@ -11,6 +11,7 @@ import sys
 import time
 
 from observer_ros.bag import report as eval_report, tune_report
+from observer_ros.bag.errors import BagToolError
 from observer_ros.bag.evaluate import main as eval_main
 from observer_ros.bag.outputs import MARKER
 from observer_ros.bag.staging import StagedOutput, write_new_file
@@ -119,7 +120,7 @@ def test_a_stage_left_by_a_killed_run_is_removed_and_an_old_folder_restored(tmp_
         staged.commit([staged.path / 'results.txt'])
     # killed between the two renames of the fallback (no renameat2): the old output set
     # aside and no folder; the next run puts it back before anything else
-    out.rename(tmp_path / f'.eval.observer-eval-{killed.pid}.old')
+    out.rename(tmp_path / f'.eval.observer-eval-{killed.pid}-0.old')
     with StagedOutput(out, True, 'observer-eval') as staged:
         assert (out / 'results.txt').read_text() == 'the earlier output'
     assert not _stages(out) and (out / 'results.txt').exists()
@@ -149,3 +150,26 @@ def test_a_read_only_output_is_one_line_before_the_work(read_only, capsys):
     assert tune_main(TUNE + ['--out', str(read_only / 'tune')]) == 2
     assert 'Read-only file system' in capsys.readouterr().err
     assert time.monotonic() - start < WAIT
+
+
+def test_two_runs_into_one_new_folder_the_second_refused_unless_forced(tmp_path):
+    out = tmp_path / 'eval'
+    first = StagedOutput(out, False, 'observer-eval')
+    second = StagedOutput(out, False, 'observer-eval')
+    with first, pytest.raises(BagToolError, match='exists; refusing to overwrite it'):
+        (first.path / 'results.txt').write_text('one')
+        with second:
+            (second.path / 'results.txt').write_text('two')
+            first.commit([first.path / 'results.txt'])     # the first one finished first
+            second.commit([second.path / 'results.txt'])
+    assert (out / 'results.txt').read_text() == 'one' and not _stages(out)
+
+
+def test_the_current_folder_as_output(tmp_path, monkeypatch):
+    out = tmp_path / 'eval'
+    for text in ('first', 'here'):          # new, then again from inside it with --force
+        with StagedOutput('.' if out.exists() else out, out.exists(), 'observer-eval') as s:
+            (s.path / 'results.txt').write_text(text)
+            s.commit([s.path / 'results.txt'])
+        monkeypatch.chdir(out)
+    assert (out / 'results.txt').read_text() == 'here' and not _stages(out)

@@ -2,7 +2,7 @@
 """observer_ros.launch_support: vehicle names or files, remaps, true/false."""
 
 from observer_ros.core.errors import ObserverError
-from observer_ros.launch_support import as_bool, parse_remaps, vehicle_file
+from observer_ros.launch_support import as_bool, namespace_argument, parse_remaps, vehicle_file
 import pytest
 from ros_helpers import CONFIG, REPO
 
@@ -29,3 +29,15 @@ def test_booleans():
     assert as_bool('True', 'record') is True and as_bool('false', 'record') is False
     with pytest.raises(ObserverError, match="record: 'maybe'"):
         as_bool('maybe', 'record')
+
+
+def test_names_checked_by_ros_rules_before_any_node_starts():
+    assert namespace_argument('') == '' and namespace_argument('sub2') == '/sub2'
+    with pytest.raises(ObserverError, match=r"namespace:= '/véhicule_1': namespace must not "
+                       r".* \(character 3, 'é'\)"):
+        namespace_argument('/véhicule_1')
+    with pytest.raises(ObserverError, match=r"remaps: 'imu/da-ta': .* \(character 7, '-'\)"):
+        parse_remaps('imu/data:=/robot/imu,control/u:=/robot/cmd imu/da-ta:=x')
+    with pytest.raises(ObserverError, match=r"remaps: '/x/2b': topic name token must not "
+                       r"start with a number \(character 4, '2'\)"):
+        parse_remaps('imu/data:=/x/2b')

@@ -186,6 +186,8 @@ def test_recover_leaves_an_intact_bag_alone(tmp_path, storage):
     (['flush_period:=-1.0'], 'flush_period must be > 0 s'),
     (["extra_topics:=['/foo:nope_msgs/msg/Nope']"], 'unknown message type nope_msgs/msg/Nope'),
     (["extra_topics:=['no_type_here']"], 'is not "name:pkg/msg/Type"'),
+    (["extra_topics:=['/bad topic:std_msgs/msg/Bool']"],
+     "topic '/bad topic': topic name must not contain characters other than"),
     (['queue_depth:=0'], 'queue_depth must be >= 1'),
 ])
 def test_recorder_refusals_leave_no_bag_folder(tmp_path, params, message):

@@ -3,15 +3,17 @@
 Scan the records of an mcap file whose writer died, and complete it after its last chunk.
 
 :func:`scan_mcap` reads the records from the start and stops at the first one cut short
-or damaged: it returns the schemas, channels and complete chunks (with their messages'
-times and offsets) and where to cut. :func:`repair_mcap` cuts the file there, rebuilds the
-last chunk's message indexes when they are missing, and appends a summary (schemas,
-channels, chunk indexes, metadata, statistics, summary offsets) and the footer; earlier
-bytes are not rewritten. Used by :mod:`observer_ros.bag.recover`
+or damaged (a length beyond :data:`MAX_CHUNK_BYTES`, records that do not parse, a CRC32
+that does not match): it returns the schemas, channels and complete chunks (with their
+messages' times and offsets) and where to cut. :func:`repair_mcap` cuts the file there,
+rebuilds the last chunk's message indexes when they are missing, and appends a summary
+(schemas, channels, chunk indexes, metadata, statistics, summary offsets) and the footer;
+earlier bytes are not rewritten. Used by :mod:`observer_ros.bag.recover`
 (``observer-bag-recover``). https://mcap.dev/spec
 
 """
 
+from binascii import crc32
 import io
 import os
 import struct
@@ -19,7 +21,12 @@ import sys
 
 from .errors import BagRecoveryError
 
-__all__ = ['MAGIC', 'scan_mcap', 'repair_mcap', 'channel_counts', 'time_range']
+__all__ = ['MAGIC', 'MAX_CHUNK_BYTES', 'scan_mcap', 'repair_mcap', 'channel_counts',
+           'time_range']
+
+# a chunk's records, uncompressed: rosbags and rosbag2 write chunks of about 1 MiB; a length
+# beyond this is damage, and is not allocated
+MAX_CHUNK_BYTES = 1 << 30
 
 MAGIC = b'\x89MCAP0\r\n'
 # mcap opcodes (https://mcap.dev/spec)
@@ -145,10 +152,14 @@ def _parse_chunk(body, schemas, channels):
     """
     cur = _Cursor(body)
     start, end, usize = cur.u64(), cur.u64(), cur.u64()
-    cur.u32()                                   # crc (0: not computed by rosbags)
+    crc = cur.u32()                             # 0: not computed (rosbags' own Writer)
     compression = cur.string()
     csize = cur.u64()
+    if usize > MAX_CHUNK_BYTES:     # a damaged length must not ask for terabytes
+        raise ValueError(f'a chunk of {usize} bytes, more than {MAX_CHUNK_BYTES}')
     records = _decompress(cur.take(csize), compression, usize)
+    if crc and crc32(records) != crc:
+        raise ValueError('the chunk does not match its CRC32')
     # parse into copies, so that a damaged chunk adds nothing
     new_schemas, new_channels = dict(schemas), dict(channels)
     messages = _parse_records(records, new_schemas, new_channels)

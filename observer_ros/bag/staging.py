@@ -2,7 +2,7 @@
 """
 Outputs that are either the previous ones or a complete new set, whatever interrupts a tool.
 
-A tool writes its folder of results into a stage beside it (``.<name>.<tool>-<pid>.new``,
+A tool writes its folder of results into a stage beside it (``.<name>.<tool>-<pid>-<n>.new``,
 same file system), seals it (the ownership marker of :mod:`.outputs`), then puts it in
 place with the signals that end a tool (SIGINT, SIGTERM, SIGHUP) held back:
 
@@ -11,7 +11,7 @@ place with the signals that end a tool (SIGINT, SIGTERM, SIGHUP) held back:
   hard-linked into the stage (their bytes are not copied; a folder of the user's is moved
   after), the stage and the folder are exchanged in one ``renameat2(RENAME_EXCHANGE)``
   (where the file system lacks it: two renames, the old folder first set aside as
-  ``.<name>.<tool>-<pid>.old``), and the old files are deleted.
+  ``.<name>.<tool>-<pid>-<n>.old``), and the old files are deleted.
 
 An interrupted tool (Ctrl-C, SIGTERM, a crash) leaves the folder as it was; its stage is
 removed on the way out, or, after a SIGKILL, by the next run of the tool for the same
@@ -30,6 +30,7 @@ import ctypes
 import json
 import os
 from pathlib import Path
+import secrets
 import signal
 
 from .errors import BagToolError
@@ -144,7 +145,7 @@ def _clean_stale(out, tool):
     """Remove the stages a killed run of ``tool`` left for ``out``; restore a set-aside old."""
     for stage in _stages(out, tool):
         try:
-            pid = int(stage.name.rsplit('-', 1)[1].split('.')[0])
+            pid = int(stage.name[len(f'.{out.name}.{tool}-'):].split('-')[0])
         except ValueError:
             continue
         if pid == os.getpid() or _alive(pid):
@@ -179,7 +180,7 @@ class StagedOutput:
     """
 
     def __init__(self, out, force, tool):
-        self.out = Path(out)
+        self.out = Path(os.path.abspath(out))     # '.' has no name to stage beside
         self.force = force
         self.tool = tool
         self.path = None
@@ -190,7 +191,8 @@ class StagedOutput:
             _clean_stale(self.out, self.tool)       # first: it may restore the old output
         check_output(self.out, self.force, self.tool)
         self.out.parent.mkdir(parents=True, exist_ok=True)
-        self.path = self.out.parent / f'.{self.out.name}.{self.tool}-{os.getpid()}.new'
+        self._name = f'.{self.out.name}.{self.tool}-{os.getpid()}-{secrets.token_hex(4)}'
+        self.path = self.out.parent / f'{self._name}.new'
         if self.path.exists():
             _remove_tree(self.path)
         self.path.mkdir()
@@ -221,7 +223,8 @@ class StagedOutput:
                 stage.rename(out)
                 self.path = None
                 return moved
-            owned = set(check_output(out, True, self.tool))    # again: it may have changed
+            # again, as the user asked: another run may have written it meanwhile
+            owned = set(check_output(out, self.force, self.tool))
             files, folders = _users_entries(out, owned)
             self._write_stage_marker(files)
             for rel in files + folders:
@@ -233,7 +236,7 @@ class StagedOutput:
                     raise BagToolError(f'{out / rel} was not written by {self.tool} and '
                                        'would be replaced; nothing changed (move it away '
                                        'or choose --out)') from None
-            old = out.parent / f'.{out.name}.{self.tool}-{os.getpid()}.old'
+            old = out.parent / f'{self._name}.old'
             if _exchange(stage, out):
                 old = stage
             else:

@@ -53,6 +53,7 @@ from ..bag.bag_checks import hold_recording_lock, LOCK_NAME
 from ..bag.integrity import CrcWriter
 from ..bag.play import message_class
 from ..core.errors import error_text, ObserverError
+from ..ros_names import check_topic_name
 
 __all__ = ['RecorderNode', 'RecordingError', 'main', 'recorded_topics']
 
@@ -268,6 +269,7 @@ class RecorderNode(VehicleNode):
             if msgtype not in self.typestore.types:
                 raise ObserverError(f'recorder: extra_topics entry {entry!r}: unknown message '
                                     f'type {msgtype}')
+            check_topic_name(name, f'recorder: extra_topics entry {entry!r}: topic')
             topics.append((name, msgtype, STATE_QOS))
         return topics
 
