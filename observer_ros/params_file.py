@@ -247,6 +247,11 @@ _Loader.yaml_implicit_resolvers = {
     for key, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()}
 _Loader.add_implicit_resolver('tag:yaml.org,2002:float', _FLOAT_RE,
                               list('-+0123456789.'))
+# ROS's parser (rcl_yaml_param_parser) also reads a bare y, Y, n or N as a boolean
+# (PyYAML keeps them strings): `input_units: [N]` is [false] to a node.
+ROS_BOOL_RE = re.compile(r'^(?:y|Y|n|N)$')
+_Loader.add_implicit_resolver('tag:yaml.org,2002:bool', ROS_BOOL_RE, list('yYnN'))
+_Loader.bool_values = dict(yaml.constructor.SafeConstructor.bool_values, y=True, n=False)
 
 
 def _construct_mapping(loader, node, deep=False):

@@ -161,3 +161,35 @@ def test_schema_keys_all_have_descriptions():
     for spec in list(KNOWN_KEYS.values()) + list(SENSOR_KEYS.values()) + \
             list(NODE_KEYS.values()):
         assert spec.description and not spec.description.endswith('.'), spec.name
+
+
+READ_AS_ROS = """
+import json, sys, warnings
+warnings.filterwarnings('ignore')
+import rclpy
+out = {}
+for path in sys.argv[1:]:
+    rclpy.init(args=['--ros-args', '--params-file', path])
+    node = rclpy.create_node('reader', automatically_declare_parameters_from_overrides=True)
+    out[path] = {name: (list(p.value) if isinstance(p.value, (list, tuple)) or
+                        type(p.value).__name__ == 'array' else p.value)
+                 for name, p in node._parameters.items() if name != 'use_sim_time'}
+    node.destroy_node()
+    rclpy.shutdown()
+print(json.dumps(out))
+"""
+
+
+def test_ros_reads_every_shipped_file_as_the_loader_does():
+    """Read every shipped file with ROS's own parser (rcl): the loader's values (bare N: false)."""
+    env = dict(__import__('os').environ, ROS_DOMAIN_ID=str(DOMAIN_ID))
+    paths = [str(p) for p in sorted(CONFIG.glob('*.yaml'))]
+    result = subprocess.run([sys.executable, '-c', READ_AS_ROS, *paths], env=env,
+                            capture_output=True, text=True, timeout=WAIT, cwd=REPO)
+    assert result.returncode == 0, result.stderr[-3000:]
+    by_ros = json.loads(result.stdout.splitlines()[-1])
+    for path in paths:
+        ours = {k: list(v) if isinstance(v, tuple) else v
+                for k, v in load_parameters(path).items()}
+        theirs = {k: v for k, v in by_ros[path].items() if k != 'start_type_description_service'}
+        assert theirs == ours, path

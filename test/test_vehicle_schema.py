@@ -255,3 +255,17 @@ def test_the_evaluation_report_shows_the_units(tmp_path):
         ['variant', 'state'])][:3]
     assert any(r[1:3] == ['w', 'ft/s'] for r in rows if len(r) > 2), table
     assert result.to_dict()['units']['state'] == {'theta': 'rad', 'w': 'ft/s', 'q': 'rad/s'}
+
+
+def test_a_bare_n_is_false_as_ros_reads_it_and_written_files_quote_it(tmp_path):
+    text = (ROOT / 'config' / 'cart_pendulum.yaml').read_text()
+    bare = tmp_path / 'bare.yaml'
+    bare.write_text(text.replace("input_units: ['N']", 'input_units: [N]'))
+    with pytest.raises(VehicleFileError, match=r'model\.input_units: expected strings; got '
+                       r'boolean False \(quote it\)'):
+        load_vehicle(bare)
+    flat = vehicle_to_parameters(load_vehicle(ROOT / 'config' / 'cart_pendulum.yaml'))
+    out = tmp_path / 'written.yaml'
+    out.write_text(parameters_to_yaml(flat))
+    assert "input_units: ['N']" in out.read_text()
+    assert load_vehicle(out).input_units == ('N',)

@@ -5,6 +5,14 @@ import numpy as np
 import yaml
 
 from ..core.errors import VehicleFileError
+from ..params_file import ROS_BOOL_RE
+
+
+class _Dumper(yaml.SafeDumper):
+    """A safe dumper that quotes a string ROS's parser would read as a boolean (``N``)."""
+
+
+_Dumper.add_implicit_resolver('tag:yaml.org,2002:bool', ROS_BOOL_RE, list('yYnN'))
 
 __all__ = ['parameters_to_yaml', 'vehicle_to_parameters']
 
@@ -37,8 +45,8 @@ def parameters_to_yaml(flat, node_key='/**'):
         if parts[-1] in node and isinstance(node[parts[-1]], dict):
             raise VehicleFileError(f'{name}: is also a prefix of other parameters')
         node[parts[-1]] = value
-    return yaml.safe_dump({node_key: {'ros__parameters': tree}}, sort_keys=False,
-                          default_flow_style=None, width=99)
+    return yaml.dump({node_key: {'ros__parameters': tree}}, Dumper=_Dumper, sort_keys=False,
+                     default_flow_style=None, width=99)
 
 
 def _floats(values):
