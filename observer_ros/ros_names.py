@@ -8,9 +8,16 @@ rclpy's own validators, and name the offending character and its position.
 
 """
 
+import os
+
 from .core.errors import ObserverError
 
-__all__ = ['check_namespace', 'check_topic_name']
+# the largest ROS_DOMAIN_ID whose DDS ports (7400 + 250 x id + ...) fit below 65536: Fast DDS
+# refuses more ("Calculated port number is too high") and the node then exits 1 with no
+# word of ours
+MAX_DOMAIN_ID = 232
+
+__all__ = ['check_namespace', 'check_topic_name', 'check_domain_id', 'MAX_DOMAIN_ID']
 
 
 def _one_line(err, what, name):
@@ -65,3 +72,24 @@ def check_topic_name(name, what='topic'):
     except NameValidationException as err:
         raise ObserverError(_one_line(err, what, name)) from None
     return name
+
+
+def check_domain_id(environ=None):
+    """
+    Refuse a ``ROS_DOMAIN_ID`` the middleware cannot use, before anything starts.
+
+    Unset or empty: the default domain. Otherwise a whole number from 0 to
+    :data:`MAX_DOMAIN_ID`.
+
+    Raises
+    ------
+    ObserverError
+        One line naming the variable, its value and the range.
+
+    """
+    value = (os.environ if environ is None else environ).get('ROS_DOMAIN_ID', '').strip()
+    if not value:
+        return
+    if not value.isdigit() or int(value) > MAX_DOMAIN_ID:
+        raise ObserverError(f'ROS_DOMAIN_ID={value!r}: a DDS domain is a whole number from 0 '
+                            f'to {MAX_DOMAIN_ID} (its ports must fit below 65536)')

@@ -212,3 +212,19 @@ def test_recovery_cuts_before_a_chunk_whose_crc_fails(tmp_path):
     with BagReader(bag) as opened:
         kept = opened.info.message_count
     assert 0 < kept == report['total'] < 3637
+
+
+def test_a_second_recovery_of_the_same_bag_is_refused(tmp_path, vehicle):
+    import fcntl
+    bag = _bag(tmp_path / 'bag', vehicle)
+    _cut(bag)
+    saved = _tree(bag)
+    fd = os.open(bag, os.O_RDONLY | os.O_DIRECTORY)    # what the first recovery holds
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        with pytest.raises(BagRecoveryError, match='is being recovered by another process'):
+            recover_bag(bag)
+        assert _tree(bag) == saved
+    finally:
+        os.close(fd)
+    assert recover_bag(bag)['repaired']

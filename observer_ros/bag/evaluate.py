@@ -31,7 +31,9 @@ from dataclasses import dataclass, field
 import os
 from pathlib import Path
 import re
+import signal
 import sys
+import threading
 import time
 from typing import Dict, Tuple
 import warnings
@@ -482,14 +484,33 @@ class _Progress:
             self.label = None
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the tool is, so that its clean-up runs (an unfinished stage)."""
+
+
+def stop_on_sigterm():
+    """
+    Make SIGTERM end a tool as Ctrl-C does: its ``finally`` blocks run, exit status 143.
+
+    Python's default (die at once) left a tool's unfinished output stage behind.
+    """
+    def on_sigterm(signum, frame):
+        raise Terminated()
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, on_sigterm)
+
+
 def tool_error(progress, err):
     """
     End a command-line tool on ``err``: one ``error:`` line; return the exit status.
 
-    2 for an ObserverError or OSError (its first line), 130 for Ctrl-C.
+    2 for an ObserverError or OSError (its first line), 130 for Ctrl-C, 143 for SIGTERM.
 
     """
     progress.finish()
+    if isinstance(err, Terminated):
+        print('error: terminated (SIGTERM)', file=sys.stderr)
+        return 143
     if isinstance(err, KeyboardInterrupt):
         print('error: interrupted', file=sys.stderr)
         return 130
@@ -584,6 +605,7 @@ def _default_out(bag):
 def main(argv=None):
     """Entry point of ``observer-eval``; returns the exit status."""
     args = _parser().parse_args(argv)
+    stop_on_sigterm()
     started = time.perf_counter()
     progress = _Progress(args.progress or sys.stderr.isatty())
     try:

@@ -25,6 +25,8 @@ import warnings
 
 from .errors import BagToolError
 from .reader import BagReader
+from ..core.errors import ObserverError
+from ..ros_names import check_domain_id, check_topic_name
 
 __all__ = ['main', 'message_class', 'parse_remap', 'PlayOptions', 'Player']
 
@@ -54,6 +56,10 @@ def parse_remap(text):
     old, sep, new = text.partition(':=')
     if not sep or not old.strip() or not new.strip():
         raise BagToolError(f'--remap {text!r}: expected OLD:=NEW')
+    try:
+        check_topic_name(new.strip(), '--remap')
+    except ObserverError as err:
+        raise BagToolError(str(err)) from None
     return _absolute(old.strip()), _absolute(new.strip())
 
 
@@ -151,6 +157,11 @@ class Player:
                 self.log(f'warning: {topic} skipped: {err}')
                 continue
             name = options.remap.get(topic, topic)
+            try:
+                check_topic_name(name)
+            except ObserverError as err:    # a bag from elsewhere: a name rcl refuses
+                self.log(f'warning: {topic} skipped: {err} (give it a name with --remap)')
+                continue
             self.publishers[topic] = node.create_publisher(cls, name, _qos(conn, topic))
         if not self.publishers and options.clock_hz is None:
             raise BagToolError(f'{info.path}: nothing to play')
@@ -296,7 +307,8 @@ def main(argv=None):
                               remap, args.wait_subscribers, args.wait_timeout,
                               args.wait_settle)
         bag = BagReader(args.bag).load()
-    except BagToolError as err:
+        check_domain_id()
+    except ObserverError as err:
         print(f'error: {err}', file=sys.stderr)
         return 2
     import rclpy

@@ -32,6 +32,8 @@ disagrees with the storage (message counts 0 on a full mcap) is rewritten from i
 """
 
 import argparse
+import contextlib
+import fcntl
 import os
 from pathlib import Path
 import shutil
@@ -300,6 +302,29 @@ def recover_bag(path):
     _check_inside(bag, [file, bag / 'metadata.yaml', bag / 'metadata.yaml.tmp',
                         bag / '.disk_reserve', bag / LOCK_NAME] +
                   [file.with_name(file.name + tail) for tail in _SIDE_FILES])
+    with _recovery_lock(bag):       # one recovery of a bag at a time
+        return _recover(bag, file)
+
+
+@contextlib.contextmanager
+def _recovery_lock(bag):
+    """Hold an exclusive lock on the bag folder while it is recovered; refuse a second one."""
+    fd = os.open(bag, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise BagRecoveryError(f'{bag} is being recovered by another process; nothing '
+                                   'changed') from None
+        except OSError:         # a file system without locks: recover all the same
+            pass
+        yield
+    finally:
+        os.close(fd)
+
+
+def _recover(bag, file):
+    """Recover a bag whose files were checked (recover_bag), under the recovery lock."""
     holder = recording_holder(bag)
     if holder:
         raise BagRecoveryError(f'{bag} is being recorded ({holder} holds {bag / LOCK_NAME}); '

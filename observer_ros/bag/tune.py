@@ -39,7 +39,7 @@ import warnings
 import numpy as np
 
 from .errors import BagToolError
-from .evaluate import _load_vehicle, _Progress, IN_MEMORY_HELP, tool_error
+from .evaluate import _load_vehicle, _Progress, IN_MEMORY_HELP, stop_on_sigterm, tool_error
 from .gain_search import DEFAULT_SCALES, gain_search, search_overrides
 from .identify import Identification, identify
 from .outputs import check_output
@@ -393,6 +393,7 @@ def _dask(args):
 def main(argv=None):
     """Entry point of ``observer-tune``; returns the exit status."""
     args = _parser().parse_args(argv)
+    stop_on_sigterm()
     progress = _Progress(args.progress or sys.stderr.isatty())
     try:
         scales, states = _check_args(args)

@@ -24,7 +24,8 @@ from rclpy.signals import SignalHandlerOptions
 
 from . import signals
 from .command_line import check_command_line, program_name, regular_params_files
-from ..core.errors import ObserverError
+from ..core.errors import error_text, ObserverError
+from ..ros_names import check_domain_id
 
 __all__ = ['EXECUTOR_ENV', 'EXECUTORS', 'make_executor', 'spin_until', 'exit_status',
            'init_ros', 'run_node', 'run_nodes']
@@ -135,7 +136,12 @@ def init_ros(node_class, args=None, **init_options):
         signals.ignore()        # the process only exits now
         return 0
     init_options.setdefault('signal_handler_options', SignalHandlerOptions.NO)
-    ros_argv = regular_params_files(argv)       # a pipe was read once: rclpy reads a copy
+    try:
+        check_domain_id()       # Fast DDS would exit 1 with only its own log line
+        ros_argv = regular_params_files(argv)       # a pipe was read once: rclpy reads a copy
+    except (ObserverError, OSError) as err:
+        print(f'error: {error_text(err)}', file=sys.stderr)
+        return 2
     try:
         rclpy.init(args=args if ros_argv == argv else ros_argv, **init_options)
     except RCLError as err:     # e.g. a params file ROS's parser refuses: one line

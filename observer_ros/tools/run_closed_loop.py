@@ -32,7 +32,7 @@ from ..core.vehicle_design import design_vehicle
 from ..nodes import signals
 from ..nodes.checks import state_scale
 from ..params_file import regular_file
-from ..ros_names import check_namespace
+from ..ros_names import check_domain_id, check_namespace
 from ..vehicle import (apply_overrides, load_parameters, load_vehicle, parameters_to_yaml,
                        vehicle_from_parameters)
 
@@ -508,6 +508,7 @@ def _run(args):
     try:
         # names ROS would refuse only once a node is made, after others started
         args.namespace = check_namespace(args.namespace)
+        check_domain_id()
         # a pipe (<(cat v.yaml)) is read once: the nodes read a copy of it
         vehicle_path = Path(regular_file(vehicle_path))
         # the file with every -p override, and every output, checked before anything starts

@@ -1,0 +1,59 @@
+# Names, namespaces and the DDS domain, checked by ROS's rules before anything starts.
+"""One error line naming the offending character or value, never a middleware's log."""
+
+import os
+import subprocess
+import sys
+
+from observer_ros.core.errors import ObserverError
+from observer_ros.ros_names import (check_domain_id, check_namespace, check_topic_name,
+                                    MAX_DOMAIN_ID)
+import pytest
+from ros_helpers import CONFIG, ros_env
+
+SAMPLE = CONFIG.parent / 'bags' / 'samples' / 'submarine'
+
+
+def test_namespaces_and_topics():
+    assert check_namespace('sub1') == '/sub1' and check_namespace(None) is None
+    with pytest.raises(ObserverError, match=r"--namespace '/a b': .* \(character 3, ' '\)"):
+        check_namespace('/a b')
+    assert check_topic_name('~/x') == '~/x' and check_topic_name('/a/b') == '/a/b'
+    with pytest.raises(ObserverError, match=r"topic '1x': .*must not start with a number"):
+        check_topic_name('1x')
+
+
+@pytest.mark.parametrize('value, ok', [('', True), ('0', True), (str(MAX_DOMAIN_ID), True),
+                                       ('233', False), ('300', False), ('-1', False),
+                                       ('abc', False), (' 7 ', True)])
+def test_domain_ids(value, ok):
+    if ok:
+        check_domain_id({'ROS_DOMAIN_ID': value})
+    else:
+        with pytest.raises(ObserverError, match=f"ROS_DOMAIN_ID='{value.strip()}': a DDS "
+                           'domain is a whole number from 0 to 232'):
+            check_domain_id({'ROS_DOMAIN_ID': value})
+
+
+@pytest.mark.parametrize('argv', [
+    ['observer_ros.nodes.observer_node', '--ros-args', '--params-file',
+     str(CONFIG / 'submarine.yaml')],
+    ['observer_ros.tools.run_closed_loop', str(CONFIG / 'submarine.yaml'), '--out', '{tmp}'],
+    ['observer_ros.bag.play', str(SAMPLE)],
+])
+def test_a_domain_id_fast_dds_refuses_is_one_line_in_each_entry_point(tmp_path, argv):
+    env = dict(ros_env(), ROS_DOMAIN_ID='300')    # before: Fast DDS's log line, exit 1
+    argv = [a.format(tmp=tmp_path / 'run') for a in argv]
+    done = subprocess.run([sys.executable, '-W', 'ignore', '-m', *argv], env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.strip().splitlines() == [
+        "error: ROS_DOMAIN_ID='300': a DDS domain is a whole number from 0 to 232 (its ports "
+        'must fit below 65536)'], done.stderr
+    assert not os.path.exists(tmp_path / 'run')
+
+
+def test_observer_play_refuses_a_remap_to_a_name_rcl_refuses(capsys):
+    from observer_ros.bag.play import main as play_main
+    assert play_main([str(SAMPLE), '--remap', '/imu/data:=/imu data']) == 2
+    assert "--remap '/imu data': topic name must not contain" in capsys.readouterr().err
