@@ -341,8 +341,10 @@ def main(argv=None):
         client = cluster = None
         workers = 1
         if not args.serial and todo:
-            client, cluster = connect(args.workers, args.scheduler, len(todo),
-                                      dashboard=args.dashboard)
+            with warnings.catch_warnings():
+                warnings.simplefilter('ignore')
+                client, cluster = connect(args.workers, args.scheduler, len(todo),
+                                          dashboard=args.dashboard)
             workers = len(workers_of(client)) or 1
             if cluster is not None:
                 cores, load, free = _free_cores()

@@ -223,7 +223,14 @@ def _held_inputs(run, cmd, u0, a, b):
 
 
 def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
-    """Replay measurements a+1..b of a run in bulk; hand the state back to est."""
+    """
+    Replay measurements a+1..b of a run in bulk; hand the state back to est.
+
+    Returns (steps, event of the last measurement, last stamp per sensor); None when a
+    check fails (the caller replays the rest call by call); False when the run cannot
+    start here (a Kalman filter whose P is not known at its first step).
+
+    """
     a, b = run['a'], run['b']
     tm = run['tm']
     K = b - a
@@ -245,8 +252,8 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
     cov = setup = None
     if getattr(est, 'kind', '') == 'kalman':     # maps from its covariance recursion
         built = kalman_maps(est, run, first, cls, sens, rows)
-        if built is None:
-            return None
+        if built is None:                        # not from here: call by call to the next
+            return False
         maps, cls, first, cov = built
         setup = cov.set_on                       # a check starts from the step's P
     else:

@@ -24,6 +24,7 @@ across bags.
 """
 
 from dataclasses import asdict, dataclass
+import logging
 import math
 import os
 import time
@@ -201,6 +202,9 @@ def connect(workers=None, scheduler=None, jobs=1, host=LOCAL_HOST, dashboard=Non
     except ImportError:
         raise BagToolError('Dask is not installed (`pip install dask distributed`); or run '
                            'the jobs serially (--serial)') from None
+    # Dask's own log lines (a local cluster's workers killed at its close under load,
+    # ...) are not the user's business: the caller says what concerns the run
+    logging.getLogger('distributed').setLevel(logging.ERROR)
     scheduler = scheduler or os.environ.get(SCHEDULER_ENV) or None
     if scheduler is not None:
         try:
@@ -215,8 +219,10 @@ def connect(workers=None, scheduler=None, jobs=1, host=LOCAL_HOST, dashboard=Non
             raise BagToolError('--dashboard needs bokeh: pip install "observer_ros[dashboard]" '
                                '(or pip install "bokeh>=3.1")') from None
     n = workers or min(os.cpu_count() or 1, max(1, jobs))
+    # without a dashboard the scheduler's HTTP server (health, metrics) still runs: on
+    # the same host and a free port (Dask's default takes 8787, and says so when taken)
     cluster = LocalCluster(n_workers=int(n), threads_per_worker=1, processes=True,
-                           host=host, dashboard_address=dashboard)
+                           host=host, dashboard_address=dashboard or f'{host}:0')
     return Client(cluster), cluster
 
 

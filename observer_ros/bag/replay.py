@@ -327,6 +327,8 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
             if done is None:             # check failed: replay everything call by call
                 runs = {}
                 break
+            if done is False:            # this piece cannot start here (Kalman: P unknown)
+                break
             steps, i, newest = done      # i: the event of the last measurement done
             out.epoch[b:b + steps] = epoch
             m += steps
