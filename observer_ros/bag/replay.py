@@ -278,13 +278,12 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
                                          verdict is FAR_BACK and lockstep):
                 answered.add(stamps[k][j], est.x_hat)       # the node answers these
             continue
-        if verdict.restart:
+        if verdict.restart:                 # a clock jump, a long gap: at the measurement
             history.reset(None, None)
+            history.reset(restart_state(est, rows[k], values[k][j]), None)
             counts['estimator_resets'] += 1
             if verdict is CLOCK_JUMP:
                 epoch += 1
-            else:                           # a long gap: restart at the measurement
-                history.reset(restart_state(est, rows[k], values[k][j]), None)
             last = None
         try:
             head = history.correct(t, values[k][j], rows[k], tag=m)

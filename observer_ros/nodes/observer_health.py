@@ -15,7 +15,6 @@ from diagnostic_msgs.msg import DiagnosticStatus
 
 from .checks import state_scale
 from .common import MESSAGE_CLASSES
-from ..core.estimators.admission import restart_state
 from ..core.health import Envelope, ENVELOPE_FACTOR, LoadMeter, max_prediction_gap
 
 __all__ = ['DIVERGENCE_HOLD', 'ObserverHealth']
@@ -71,14 +70,12 @@ class ObserverHealth:
         self.count('divergence_reports')
         self._on_diagnostics()
 
-    def _long_gap(self, sensor, t, y, rows):
+    def _long_gap(self, sensor, t):
         """
-        Start over at the measurement: predicting across this gap would amplify the error.
+        Start over: predicting across this gap would amplify the error.
 
-        The new estimate is the one nearest x_hat(0) that agrees with y (least squares on
-        C's rows, u taken as zero): restarting from x_hat(0) itself would leave the whole
-        distance to the plant as an estimation error, which the cart's fast observer turns
-        into a theta_dot transient of 1e4 rad/s.
+        The caller restarts the estimator at the measurement
+        (:func:`~observer_ros.core.estimators.admission.restart_state`).
         """
         gap = t - self.history.t
         self.get_logger().warning(
@@ -87,8 +84,6 @@ class ObserverHealth:
             f'{ENVELOPE_FACTOR:g} x; estimator restarted at the measurement',
             throttle_duration_sec=1.0)
         self.count('estimator_resets')     # long_gap_resets: the admission's
-        self.history.reset(None, None)      # the estimator, and its history forgotten
-        self.history.reset(restart_state(self.estimator, rows, y), None)
         self._health.restart()              # a new initial transient
         self._envelope.reset()
 

@@ -44,7 +44,7 @@ from ..core.errors import ObserverError
 from ..core.estimators import History, make_estimator
 from ..core.estimators.admission import (Admission, AHEAD_COMMAND, BAD_STAMP, CLOCK_JUMP,
                                          DUPLICATE, FAR_BACK, LATE, OUT_OF_ORDER,
-                                         STALE_COMMAND)
+                                         restart_state, STALE_COMMAND)
 from ..core.innovation import InnovationMonitor, transient_time
 from ..core.vehicle_design import design_vehicle
 from ..sensors import extract_measurement
@@ -225,7 +225,10 @@ class ObserverNode(ObserverHealth, VehicleNode):
             if verdict is CLOCK_JUMP:
                 self._clock_jump(sensor, t)
             else:
-                self._long_gap(sensor, t, y, rows)
+                self._long_gap(sensor, t)
+            # start over at the measurement: the initial estimate made to agree with it
+            history.reset(None, None)
+            history.reset(restart_state(self.estimator, rows, y), None)
         estimator = self.estimator
         skipped = estimator.unverified_corrections
         try:
@@ -343,18 +346,18 @@ class ObserverNode(ObserverHealth, VehicleNode):
         """Messages in a row agree that the clock jumped back: start again at them."""
         jump = self._admission.clock_jump_agreement
         self._reset_estimator(None, f'{sensor.topic}: clock jumped back to {t:.3f} s '
-                              f'({jump} message{"s" if jump > 1 else ""} in a row)')
+                              f'({jump} message{"s" if jump > 1 else ""} in a row)',
+                              how='restarted at the measurement')
         self._envelope.reset()
 
-    def _reset_estimator(self, counter, reason, t=None):
+    def _reset_estimator(self, counter, reason, t=None, how='reset to its initial estimate'):
         """Reset the estimator to its initial estimate: always logged and counted."""
         self.history.reset(None, t)         # the estimator, and its history forgotten
         self._health.restart()              # a new initial transient
         if counter is not None:
             self.count(counter)
         self.count('estimator_resets')
-        self.get_logger().warning(f'{reason}; estimator reset to its initial estimate',
-                                  throttle_duration_sec=1.0)
+        self.get_logger().warning(f'{reason}; estimator {how}', throttle_duration_sec=1.0)
 
     def _on_command(self, msg):
         t = None
