@@ -24,6 +24,19 @@ start). Measurement noise comes from ``simulator.seed``. Two modes:
 
 Simulated time starts at ``start_time`` (1.0 s: ROS reads a zero stamp as unset).
 
+One time base per ROS graph: a simulator with ``simulator.publish_clock: false`` (a second
+vehicle, the first one owns /clock) follows /clock once one is published
+(:mod:`.clock_follower`). It waits for the first /clock (at most ``READY_WAIT`` x
+``simulator.command_timeout``, then runs on its own time), starts its step 0 there, and
+takes a step only when /clock has reached it, so its stamps are /clock's time (behind it by
+at most the owner's period, a step a tick). Realtime and more than ``CLOCK_RESYNC`` behind,
+it integrates the steps in between without sending their measurements
+(``catch_up_steps``). When /clock goes back (the owner restarted) or runs more than
+``CLOCK_CATCH_UP`` ahead, it starts again from /clock's time: its stamps jump as the
+graph's clock did, which its observer and compensator handle as a clock jump
+(``clock_resyncs``, logged). While /clock is silent (the owner stopped) it waits, as
+simulated time does.
+
 """
 
 import time
@@ -36,6 +49,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool
 
 from .checks import own_parameter_problem
+from .clock_follower import CLOCK_RESYNC, ClockFollower
 from .common import (joint_state, LATCHED_QOS, MESSAGE_CLASSES, SAFE_COMMAND_FRAME,
                      SENSOR_QOS, stamp_to_sec, STATE_PUB_QOS, STATE_QOS, to_stamp, TOPICS,
                      vector_from_joint_state, VehicleNode)
@@ -49,6 +63,7 @@ __all__ = ['PlantSimulatorNode', 'main']
 # s: a realtime command stamped further ahead of the simulated time is not for this run
 FUTURE_COMMAND = 2.0
 # realtime: how many command_timeouts to wait for a matched command publisher at start
+# (and a /clock follower for the first /clock)
 READY_WAIT = 10.0
 
 
@@ -87,6 +102,13 @@ class PlantSimulatorNode(VehicleNode):
         self._clock_pub = None
         if v.simulator.publish_clock:
             self._clock_pub = self.create_publisher(Clock, '/clock', 10)
+        # following another vehicle's /clock (one time base per ROS graph)
+        self._follower = None
+        self._clock_wait = False            # lockstep: the next step waits for /clock
+        if not v.simulator.publish_clock:
+            self._follower = ClockFollower(self.dt, READY_WAIT * v.simulator.command_timeout)
+            self._clock_sub = self.create_subscription(Clock, '/clock', self._on_clock,
+                                                       SENSOR_QOS)
         self._cmd_sub = self.watched_subscription(
             JointState, TOPICS['command'], self._on_command, STATE_QOS)
         self._recorder_ready = False
@@ -129,6 +151,45 @@ class PlantSimulatorNode(VehicleNode):
 
     def _on_recorder_ready(self, msg):
         self._recorder_ready = bool(msg.data)
+
+    # -- following /clock ---------------------------------------------------------------------
+    def _on_clock(self, msg):
+        self._follower.heard(msg.clock.sec, msg.clock.nanosec)
+        if self._clock_wait and self._steps_due() > 0:
+            self._clock_wait = False        # lockstep: /clock reached the next step
+            self._publish_next()
+
+    def _clock_ready(self, waited):
+        """Tell whether step 0 may go out: own time, or on /clock's time once one came."""
+        follower = self._follower
+        if follower is None or follower.synced:
+            return True
+        t0 = follower.start(self.k, waited)
+        if t0 is False:
+            return False
+        if t0 is None:
+            self.get_logger().warning(f'no /clock after {waited:.1f} s; running on own time '
+                                      '(follows /clock once one is published)')
+        else:
+            self.t0 = t0
+            self.get_logger().info(f'following /clock: step {self.k} at t={self.t:.3f} s')
+        return True
+
+    def _steps_due(self):
+        """Return how many steps /clock has reached since the current one (1 without one)."""
+        if self._follower is None:
+            return 1
+        due, t0 = self._follower.steps_due(self.t, self.k)
+        if t0 is not None:
+            self.get_logger().warning(
+                f'/clock at {self._follower.clock:.3f} s, this vehicle at {self.t:.3f} s: its '
+                'time restarts from /clock (a clock jump for its observer and compensator)')
+            self.t0 = t0                    # the next step at /clock's time
+            self._latest_cmd_stamp = None   # the old run's commands forgotten
+            self._ahead = []
+            self._step_wall = None
+            self.count('clock_resyncs')
+        return due
 
     # -- time and measurement ---------------------------------------------------------------
     @property
@@ -191,6 +252,10 @@ class PlantSimulatorNode(VehicleNode):
                 self.count_publishers(TOPICS['estimate']) < 1 or \
                 self.count_subscribers(TOPICS['estimate']) < 1:
             return
+        if self._ready_since is None:
+            self._ready_since = time.monotonic()
+        if not self._clock_ready(time.monotonic() - self._ready_since):
+            return
         self._start_timer.cancel()
         self._started = True
         self.get_logger().info(f'{self.vehicle.name}: lockstep run of '
@@ -214,6 +279,9 @@ class PlantSimulatorNode(VehicleNode):
             # every sensor of step k answered (or none due): next step
             if self.steps is not None and self.k >= self.steps:
                 self._finish()
+                return
+            if self._steps_due() == 0:
+                self._clock_wait = True     # /clock has not reached it: _on_clock goes on
                 return
             self._advance()
             self._begin_step()
@@ -324,9 +392,23 @@ class PlantSimulatorNode(VehicleNode):
             if not self._realtime_ready():
                 return
             self._started = True    # step 0 went out (and was answered): step on
+            if self._follower is not None and self._follower.t0_at(self.k) is not None:
+                # a follower: the plant waited at step 0 while /clock went on
+                self.t0 = self._follower.t0_at(self.k)
             self.get_logger().info(f'{self.vehicle.name}: realtime run of {self.steps} '
                                    f'steps of {self.dt} s')
         if self._started:
+            due = self._steps_due()
+            if due == 0:
+                return                      # /clock has not reached the next step
+            if self.steps is not None:
+                due = min(due, self.steps - self.k)
+            # one step a tick; more than CLOCK_RESYNC behind /clock (this simulator is
+            # slower than the clock's owner), the steps but one are integrated, not measured
+            for _ in range(due - 1 if due * self.dt > CLOCK_RESYNC else 0):
+                self._advance()
+                self._apply_due()
+                self.count('catch_up_steps')
             # the command answering the previous step should be here by now; before the
             # first command the loop is not closed yet (peers starting, DDS matching):
             # those steps are open_loop_steps, not late commands (benchmarks P2)
@@ -369,6 +451,8 @@ class PlantSimulatorNode(VehicleNode):
         now = time.monotonic()
         if self._ready_since is None:
             self._ready_since = now
+        if not self._clock_ready(now - self._ready_since):
+            return False
         # the answer to step 0: stamped at t_0, or ahead of it (a latency predicted over)
         if self._newest_command() >= self.t - 0.25 * self.dt:
             return True
