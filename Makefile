@@ -11,20 +11,29 @@ ARGS ?=
 TOOLS := observer_design observer_eval observer_eval_batch observer_tune observer_play observer_run \
 	observer_bag_recover
 ROS2CLI := ../shared/ros2cli
+# the kit's files: a changed wheel or install script makes `make setup` install it again
+KIT_FILES := $(wildcard $(ROS2CLI)/install.sh $(ROS2CLI)/wheels/*.whl)
+KIT_SUM := .venv/.ros2cli-kit.sha256
 
 .PHONY: setup demo test bench clean-venv
 
 setup: $(STAMP)
 
-$(STAMP): requirements.txt setup.py setup.cfg package.xml
+$(STAMP): requirements.txt setup.py setup.cfg package.xml $(KIT_FILES)
 	test -x $(PY) || python3 -m venv .venv
 	$(PY) -m pip install --disable-pip-version-check -q -r requirements.txt
 	$(PY) -m pip install --disable-pip-version-check -q --no-deps --use-pep517 -e . --config-settings editable_mode=compat
 	# the tools' dash names (observer-run, ...): aliases in the venv only; lib/observer_ros
 	# of a colcon install has the underscore names alone (`ros2 pkg executables`)
 	for exe in $(TOOLS); do ln -sf $$exe .venv/bin/$$(echo $$exe | tr _ -); done
-	# the real ros2 client and ros2 launch (test/test_ros2cli.py), when the kit is there
-	if [ -d $(ROS2CLI) ]; then $(ROS2CLI)/install.sh .venv; fi
+	# the real ros2 client and ros2 launch (test/test_ros2cli.py), when the kit is there;
+	# installed again when its wheels or script differ from those last installed (their
+	# checksum; install.sh alone only compares its own date)
+	if [ -d $(ROS2CLI) ]; then \
+	  sum=$$(cat $(KIT_FILES) | sha256sum | cut -d' ' -f1); \
+	  if [ "$$sum" != "$$(cat $(KIT_SUM) 2>/dev/null)" ]; then \
+	    rm -f .venv/.ros2cli-kit-installed; fi; \
+	  $(ROS2CLI)/install.sh .venv && echo "$$sum" > $(KIT_SUM); fi
 	touch $(STAMP)
 
 demo: $(STAMP)

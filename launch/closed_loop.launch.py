@@ -9,7 +9,14 @@ ros2 launch observer_ros closed_loop.launch.py vehicle:=submarine namespace:=sub
 Arguments: vehicle (a name from the package's config/ or a file), mode (lockstep or
 realtime), namespace, record (true: the recorder writes a bag to `bag`), publish_clock (this
 vehicle's simulator publishes /clock; one per ROS graph), use_sim_time, duration (0: the
-simulator runs until stopped). Ctrl-C stops every node (each exits 0).
+simulator runs until stopped), autostart (false: the observer and the compensator wait
+unconfigured for `ros2 lifecycle set`).
+
+The vehicle file is loaded and designed before anything starts. The observer, then the
+compensator, are configured and activated in order (managed nodes); the simulator starts
+once both are active. When the simulator completes its run the launch shuts down; a node
+that exits with a status other than 0 stops the launch with an error (exit status 1).
+Ctrl-C stops every node (each exits 0).
 """
 
 from datetime import datetime
@@ -18,8 +25,9 @@ from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
-from observer_ros.launch_support import as_bool, namespace_argument, vehicle_file
-from observer_ros.vehicle import load_vehicle
+from observer_ros.launch_lifecycle import BringUp, exit_handlers, node_path
+from observer_ros.launch_support import (as_bool, check_vehicle, namespace_argument,
+                                        vehicle_file)
 
 ARGUMENTS = (
     ('vehicle', 'submarine', "a vehicle of the package's config/ (submarine, pitch_imu, ...) "
@@ -32,6 +40,9 @@ ARGUMENTS = (
      'vehicle of a ROS graph'),
     ('use_sim_time', 'true', 'the observer, compensator and recorder follow /clock'),
     ('duration', '', "s of simulated time (default: the vehicle file's); 0: until Ctrl-C"),
+    ('autostart', 'true', 'configure and activate the observer and the compensator in order '
+     '(false: they wait unconfigured for `ros2 lifecycle set`; the simulator starts once '
+     'both are active)'),
 )
 
 
@@ -45,27 +56,30 @@ def _nodes(context):
         raise ValueError(f'mode: {mode!r} is not lockstep or realtime')
     record = as_bool(arg('record'), 'record')
     sim_time = as_bool(arg('use_sim_time'), 'use_sim_time')
+    autostart = as_bool(arg('autostart'), 'autostart')
     namespace = namespace_argument(arg('namespace'))
     common = {'simulator.mode': mode}
-    peers = dict(common, use_sim_time=sim_time)
     simulator = dict(common, **{
         'simulator.publish_clock': as_bool(arg('publish_clock'), 'publish_clock')})
     if arg('duration'):
         simulator['simulator.duration'] = float(arg('duration'))
-    nodes = [Node(package='observer_ros', executable='observer', namespace=namespace,
-                  parameters=[path, peers], output='screen'),
-             Node(package='observer_ros', executable='compensator', namespace=namespace,
-                  parameters=[path, peers], output='screen')]
+    vehicle = check_vehicle(path, [f'{k}:={v}' for k, v in simulator.items()])
+    peers = dict(common, use_sim_time=sim_time)
+    managed = dict(peers, autostart=False)      # brought up here, in order
+    nodes = [Node(package='observer_ros', executable=name, name=name, namespace=namespace,
+                  parameters=[path, managed], output='screen')
+             for name in ('observer', 'compensator')]
     if record:
-        bag = arg('bag') or datetime.now().strftime(
-            f'bags/runs/{load_vehicle(path).name}_%Y%m%d_%H%M%S')
+        bag = arg('bag') or datetime.now().strftime(f'bags/runs/{vehicle.name}_%Y%m%d_%H%M%S')
         nodes.append(Node(package='observer_ros', executable='recorder', namespace=namespace,
                           parameters=[path, dict(peers, output=bag)], output='screen'))
         if mode == 'lockstep':      # start once the recorder reads every sensor too
             simulator.update(wait_for_subscribers=2, wait_for_recorder=True)
-    nodes.append(Node(package='observer_ros', executable='plant_simulator',
-                      namespace=namespace, parameters=[path, simulator], output='screen'))
-    return nodes
+    sim = Node(package='observer_ros', executable='plant_simulator', namespace=namespace,
+               parameters=[path, simulator], output='screen')
+    bring_up = BringUp([node_path(namespace, 'observer'), node_path(namespace, 'compensator')],
+                       autostart=autostart, then=[sim])
+    return nodes + [bring_up] + exit_handlers(nodes + [sim], simulator=sim)
 
 
 def generate_launch_description():

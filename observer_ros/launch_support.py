@@ -13,7 +13,7 @@ from pathlib import Path
 from .core.errors import ObserverError
 from .ros_names import check_namespace, check_topic_name
 
-__all__ = ['namespace_argument', 'vehicle_file', 'parse_remaps', 'as_bool']
+__all__ = ['namespace_argument', 'vehicle_file', 'check_vehicle', 'parse_remaps', 'as_bool']
 
 PACKAGE = 'observer_ros'
 
@@ -60,6 +60,33 @@ def vehicle_file(vehicle, share=None):
         raise ObserverError(f"vehicle: {vehicle!r} is not one of the package's vehicles "
                             f'{known} nor a file')
     return str(path)
+
+
+def check_vehicle(path, overrides=()):
+    """
+    Load and design the vehicle of a launch before any node starts; return it.
+
+    A file the nodes could not use stops the launch with one error naming the field
+    (``ros2 launch`` exits 1), rather than each node exiting with the same error.
+
+    Parameters
+    ----------
+    path : str
+        The vehicle file (:func:`vehicle_file`).
+    overrides : sequence of str
+        ``name:=value`` parameters the launch gives the nodes (``simulator.mode:=lockstep``).
+
+    Raises
+    ------
+    ObserverError
+        The file, an override or the design refused, naming the field.
+
+    """
+    from .core.vehicle_design import design_vehicle
+    from .vehicle import load_vehicle
+    vehicle = load_vehicle(path, overrides=list(overrides))
+    design_vehicle(vehicle)
+    return vehicle
 
 
 def parse_remaps(text):

@@ -25,7 +25,8 @@ DEPENDENCY_KEYS = {
     'ament_index_python': 'ament_index_python', 'numpy': 'python3-numpy',
     'scipy': 'python3-scipy', 'yaml': 'python3-yaml', 'matplotlib': 'python3-matplotlib',
     'control': 'python-control-pip', 'rosbags': 'python3-rosbags-pip',
-    'launch': 'launch', 'launch_ros': 'launch_ros',
+    'launch': 'launch', 'launch_ros': 'launch_ros', 'std_srvs': 'std_srvs',
+    'lifecycle_msgs': 'lifecycle_msgs',
 }
 # Keys rosdep resolves, as read from ros/rosdistro (master, 2026-11; see
 # ../shared/ros2cli/README.md): ROS packages of the Jazzy distribution (jazzy/distribution.yaml)
@@ -35,7 +36,7 @@ KNOWN_ROSDEP_KEYS = {
     # jazzy/distribution.yaml (ROS packages)
     'rclpy', 'std_msgs', 'sensor_msgs', 'diagnostic_msgs', 'rosgraph_msgs',
     'builtin_interfaces', 'rcl_interfaces', 'ament_index_python', 'launch', 'launch_ros',
-    'ament_flake8', 'ament_pep257',
+    'ament_flake8', 'ament_pep257', 'std_srvs', 'lifecycle_msgs',
     # rosdep/python.yaml
     'python3-numpy', 'python3-scipy', 'python3-yaml', 'python3-matplotlib', 'python3-pytest',
     'python3-hypothesis', 'python-control-pip', 'python3-rosbags-pip',

@@ -25,6 +25,12 @@ BUILD = 'colcon build --packages-select observer_ros'
 LAUNCH = ('ros2 launch observer_ros closed_loop.launch.py vehicle:=submarine mode:=realtime '
           'duration:=0')
 SECOND = LAUNCH + ' namespace:=sub2 publish_clock:=false'
+MANAGED = LAUNCH + ' autostart:=false'
+LIFECYCLE = ('ros2 lifecycle get /observer', 'ros2 lifecycle set /observer configure',
+             'ros2 lifecycle set /observer activate')
+RESET = 'ros2 service call /observer/reset std_srvs/srv/Trigger'
+SET_STATE = ('ros2 topic pub --once -w 1 /observer/set_state sensor_msgs/msg/JointState '
+             '"{name: [theta, w, q], position: [0.1, 0.0, 0.0]}"')
 ROBOT = ('ros2 launch observer_ros observer.launch.py vehicle:=submarine '
          'remaps:="imu/data:=/robot/imu control/u:=/robot/cmd"')
 RECORD = ('ros2 launch observer_ros closed_loop.launch.py vehicle:=pitch_imu mode:=lockstep '
@@ -279,17 +285,15 @@ def test_observer_launch_follows_the_remaps(ros2env, tmp_path):
 
 
 def test_recorded_lockstep_launch(ros2env, tmp_path):
-    """The lock-step loop with the recorder: the run ends by itself, Ctrl-C closes the bag."""
+    """The lock-step loop with the recorder: the run ends, and the launch with it."""
     launch = Launch(ros2env, RECORD, tmp_path / 'record.log')
     try:
-        deadline = time.monotonic() + WAIT
-        while 'run complete at t=' not in launch.output():
-            assert launch.proc.poll() is None and time.monotonic() < deadline, \
-                launch.output()[-3000:]
-            time.sleep(0.5)     # polling a log file, not timing anything
+        code = launch.proc.wait(timeout=WAIT)      # the simulator's run ends the launch
     finally:
         _assert_stopped_cleanly(launch, 4)
     out = launch.output()
+    assert code == 0 and 'run complete at t=' in out, out[-3000:]
+    assert 'process has finished cleanly' in out.split('run complete at t=')[1], out[-3000:]
     assert re.search(r'bag closed: bags/runs/pitch_launch \((\d+) messages\)', out), out
     bag = Path(ros2env['OBSERVER_ROS_WS']) / 'bags' / 'runs' / 'pitch_launch'
     meta = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
@@ -356,3 +360,61 @@ def test_ctrl_c_at_a_random_moment_stops_every_node_cleanly(ros2env, tmp_path, p
         _assert_stopped_cleanly(launch, CLEAN_LAUNCH_NODES)
     out = launch.output()
     assert 'FATAL' not in out and 'Exception in' not in out, out[-3000:]
+
+
+def test_managed_nodes_with_the_real_lifecycle_client(ros2env, tmp_path):
+    """autostart:=false: the user brings the nodes up with `ros2 lifecycle set`."""
+    launch = Launch(ros2env, MANAGED, tmp_path / 'managed.log')
+    try:
+        _wait_nodes(ros2env, '/observer', '/compensator')
+        for node in ('/observer', '/compensator'):
+            got = _ros2_until(ros2env, f'ros2 lifecycle get {node}',
+                              lambda r: 'unconfigured' in r.stdout)
+            assert got.stdout.strip() == 'unconfigured [1]', got.stdout + got.stderr
+        # the simulator waits for both to be active
+        assert '/plant_simulator' not in _ros2(ros2env, 'ros2 node list').stdout.split()
+        refused = _ros2(ros2env, RESET)
+        assert "success=False, message='not active (lifecycle state unconfigured)" in \
+            refused.stdout, refused.stdout + refused.stderr
+        for transition, state in (('configure', 'inactive [2]'), ('activate', 'active [3]')):
+            for node in ('/observer', '/compensator'):
+                done = _ros2(ros2env, f'ros2 lifecycle set {node} {transition}')
+                assert done.stdout.strip() == 'Transitioning successful', \
+                    done.stdout + done.stderr + launch.output()[-2000:]
+                got = _ros2(ros2env, f'ros2 lifecycle get {node}')
+                assert got.stdout.strip() == state, got.stdout + got.stderr
+        echo = _ros2(ros2env, 'ros2 topic echo --once /state/estimate sensor_msgs/msg/JointState')
+        assert echo.returncode == 0 and 'position:' in echo.stdout, launch.output()[-3000:]
+        # the reset service and the set_state topic, as robot_localization's set_pose
+        done = _ros2(ros2env, RESET)
+        said = "success=True, message='estimate reset to observer.initial_estimate [0.0, 0.0, 0.0]"
+        assert said in done.stdout, done.stdout + done.stderr
+        assert 'estimator reset on request (reset service)' in launch.output()
+        done = _ros2(ros2env, SET_STATE)
+        assert done.returncode == 0, done.stdout + done.stderr
+        deadline = time.monotonic() + WAIT
+        while 'set_state: state [0.1, 0.0, 0.0] at the next measurement' not in \
+                launch.output():      # polling a log file, not timing anything
+            assert time.monotonic() < deadline, launch.output()[-3000:]
+            time.sleep(0.2)
+        # deactivated, the compensator sends its safe command and stops commanding
+        done = _ros2(ros2env, 'ros2 lifecycle set /compensator deactivate')
+        assert done.stdout.strip() == 'Transitioning successful', done.stdout + done.stderr
+        assert 'inactive: safe command sent (zero)' in launch.output(), launch.output()[-3000:]
+        assert _ros2(ros2env, 'ros2 lifecycle get /compensator').stdout.strip() == \
+            'inactive [2]'
+        nodes = _ros2(ros2env, 'ros2 lifecycle nodes')
+        assert {'/observer', '/compensator'} <= set(nodes.stdout.split()), nodes.stdout
+    finally:
+        _assert_stopped_cleanly(launch, 3)
+
+
+def test_a_vehicle_file_no_node_can_use_stops_the_launch(ros2env, tmp_path):
+    """Checked before any node starts: one error naming the field, exit status 1."""
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text((REPO / 'config' / 'submarine.yaml').read_text().replace(
+        'C: [0.0, 0.0, 1.0]', 'C: [0.0, 1.0]'))
+    result = _ros2(ros2env, f'ros2 launch observer_ros closed_loop.launch.py vehicle:={bad}')
+    said = result.stdout + result.stderr
+    assert result.returncode != 0 and 'model.C' in said, said[-3000:]
+    assert 'process started' not in said, said[-3000:]

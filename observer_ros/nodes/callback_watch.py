@@ -124,6 +124,10 @@ class CallbackWatch:
             callback(msg)
         return entry, on_message
 
+    def forget(self, subscription):
+        """Stop guarding a subscription (destroyed: a managed node deactivated)."""
+        self._guarded = [e for e in self._guarded if e.subscription is not subscription]
+
     def _beat(self):
         self._beat_at = time.monotonic()
         self._taken_at_beat = self._taken()

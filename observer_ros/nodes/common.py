@@ -174,7 +174,8 @@ class VehicleNode(Node):
 
     """
 
-    def __init__(self, node_name, own_parameters=()):
+    def __init__(self, node_name, own_parameters=(), load=True):
+        # load: False for a managed node, which reads its vehicle when it is configured
         try:
             super().__init__(node_name, automatically_declare_parameters_from_overrides=False)
         except ValueError as err:   # rclpy refuses some parameter values before we see them
@@ -186,7 +187,7 @@ class VehicleNode(Node):
         if not any(name.split('.', 1)[0] in VEHICLE_SECTIONS for name in self._parameters):
             raise ObserverError('no vehicle parameters: start the node with --ros-args '
                                 '--params-file config/<vehicle>.yaml (see --help)')
-        self.vehicle = self.load_vehicle()
+        self.vehicle = self.load_vehicle() if load else None
         self.add_on_set_parameters_callback(self._check_vehicle_change)
         # set to an exit status by a node whose work is done (the simulator at the end of
         # its run): run_nodes stops spinning and the process exits with it
@@ -278,7 +279,7 @@ class VehicleNode(Node):
         """Refuse a run-time change that makes the vehicle invalid, as a whole, with why."""
         changed = {p.name: p.value for p in params
                    if p.name.split('.', 1)[0] in VEHICLE_SECTIONS}
-        if not changed:
+        if not changed or self.vehicle is None:     # unconfigured: checked at configure
             return SetParametersResult(successful=True)
         flat = self.vehicle_parameters()
         flat.update(changed)

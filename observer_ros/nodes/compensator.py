@@ -27,13 +27,15 @@ import math
 from diagnostic_msgs.msg import DiagnosticStatus
 import numpy as np
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.duration import Duration
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from .checks import changed_pole_problem, divergence_envelopes, own_parameter_problem
 from .common import (checked_stamp, joint_state, LATCHED_QOS, MESSAGE_CLASSES,
                      SAFE_COMMAND_FRAME, SENSOR_QOS, stamp_to_sec, STATE_PUB_QOS, STATE_QOS,
-                     TOPICS, vector_from_joint_state, VehicleNode)
+                     TOPICS, vector_from_joint_state)
+from .managed import ManagedVehicleNode
 from .runner import run_node
 from ..core.control_law import command_problem, control_law, ControlLaw
 from ..core.delay_compensation import DelayCompensation
@@ -46,16 +48,31 @@ __all__ = ['CompensatorNode', 'command_problem', 'control_law', 'main']
 
 # After an outage, wait at most this many observer settling times for it to settle again.
 RESYNC_SETTLINGS = 10.0
+# s: how long the safe command sent on deactivation may take to be acknowledged
+SAFE_COMMAND_ACK_WAIT = 0.5
 
 
-class CompensatorNode(VehicleNode):
-    """Close the loop on the estimate."""
+class CompensatorNode(ManagedVehicleNode):
+    """Close the loop on the estimate (a managed node)."""
 
     def __init__(self):
         super().__init__('compensator', own_parameters=(
             'publish_array', 'diagnostics_period', 'clock_jump_tolerance',
             'command_lead_steps'))
+
+    def configure_vehicle(self):
+        """Design, create the publishers (nodes/managed.py)."""
         self._apply(self.vehicle, design_vehicle(self.vehicle))
+        self._cmd_pub = self.create_publisher(JointState, TOPICS['command'], STATE_PUB_QOS)
+        self._array_pub = None
+        if self.param('publish_array'):
+            self._array_pub = self.create_publisher(
+                Float64MultiArray, TOPICS['command_array'], STATE_QOS)
+        self._ref_pub = self.create_publisher(JointState, TOPICS['reference'], LATCHED_QOS)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+    def activate_vehicle(self):
+        """Publish the reference, subscribe to the estimate, start the watchdog."""
         self._last_estimate_time = None      # node clock when the last good x_hat came
         self._last_stamp = None              # its stamp (s): the estimates' time base
         self._stale = False
@@ -70,12 +87,6 @@ class CompensatorNode(VehicleNode):
         self._max_steps_late = 0             # since the last report (delay compensation)
         self._too_late = 0                   # estimates too late to predict, since then
         self._jump_tolerance = self.param('clock_jump_tolerance')   # read once per change
-        self._cmd_pub = self.create_publisher(JointState, TOPICS['command'], STATE_PUB_QOS)
-        self._array_pub = None
-        if self.param('publish_array'):
-            self._array_pub = self.create_publisher(
-                Float64MultiArray, TOPICS['command_array'], STATE_QOS)
-        self._ref_pub = self.create_publisher(JointState, TOPICS['reference'], LATCHED_QOS)
         self._publish_reference()
         # realtime: the newest sensor stamp is the plant's time (how late an estimate is);
         # subscribed first, so that an executor takes a waiting sensor message first
@@ -88,11 +99,23 @@ class CompensatorNode(VehicleNode):
             if self.delay is not None and hasattr(MESSAGE_CLASSES[s.msg_type], 'header')]
         self._sub = self.watched_subscription(
             JointState, TOPICS['estimate'], self._on_estimate, STATE_QOS)
-        self.add_on_set_parameters_callback(self._on_set_parameters)
         period = min(self.vehicle.controller.stale_timeout / 2.0, 0.1)
         self._watchdog = self.wall_timer(period, self._on_watchdog)
         self._diag_timer = self.wall_timer(self.param('diagnostics_period'),
                                            self._on_diagnostics)
+
+    def deactivate_vehicle(self):
+        """Send the safe command, as the controller stops (deactivate, shutdown, Ctrl-C)."""
+        self._stop_safe_timer()
+        fallback = self.vehicle.controller.safe_command     # zero, or hold the last one
+        u = self.safe.last_command if fallback == 'hold' else np.zeros(self.vehicle.plant.m)
+        if self.u_min is not None or self.u_max is not None:
+            u = np.clip(u, self.u_min, self.u_max)
+        self._send(u, self._estimate_clock(), frame_id=SAFE_COMMAND_FRAME)
+        # delivered before the publisher goes (a process that ends destroys it next)
+        self._cmd_pub.wait_for_all_acked(Duration(seconds=SAFE_COMMAND_ACK_WAIT))
+        self.get_logger().info(f'inactive: safe command sent ({fallback}); no commands '
+                               'until activated again')
 
     def _apply(self, vehicle, design):
         n, m = vehicle.plant.n, vehicle.plant.m

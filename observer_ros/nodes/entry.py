@@ -10,6 +10,8 @@ machine), so that a Ctrl-C at any moment of the start-up ends the process cleanl
 """
 
 import importlib
+import logging
+import os
 import sys
 
 from . import signals
@@ -33,11 +35,29 @@ def run(name, args=None):
     signals.install()
     try:
         module = importlib.import_module(MODULES[name])
-        return module.main(args)
+        code = module.main(args)
     finally:
         # the process only exits now: a signal must not kill it while the interpreter
         # finalises (which puts SIGINT and SIGTERM back to their defaults)
         signals.ignore()
+    _exit_now(code)
+
+
+def _exit_now(code):
+    """
+    End the process now: the nodes are destroyed, ROS shut down, every file closed.
+
+    The interpreter's own teardown of numpy's, scipy's and python-control's modules is
+    skipped: it took 1.5 to 2 s on a loaded 2-core host (0.07 s without them), and
+    ``ros2 launch`` sends SIGTERM 5 s after SIGINT.
+    """
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):   # a closed pipe: nothing more to say
+            pass
+    os._exit(code if isinstance(code, int) else int(code is not None))
 
 
 def plant_simulator():

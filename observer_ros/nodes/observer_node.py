@@ -37,8 +37,10 @@ from sensor_msgs.msg import JointState
 
 from .checks import changed_pole_problem, own_parameter_problem
 from .common import (checked_stamp, joint_state, MESSAGE_CLASSES, SENSOR_SUB_QOS,
-                     STATE_PUB_QOS, STATE_QOS, TOPICS, vector_from_joint_state, VehicleNode)
+                     STATE_PUB_QOS, STATE_QOS, TOPICS, vector_from_joint_state)
+from .managed import ManagedVehicleNode
 from .observer_health import ObserverHealth
+from .observer_reset import ObserverReset
 from .runner import run_node
 from ..core.errors import ObserverError
 from ..core.estimators import History, make_estimator
@@ -55,13 +57,17 @@ __all__ = ['ObserverNode', 'covariance_names', 'main', 'silence_watch_period']
 ADMISSION_PARAMETERS = ('clock_jump_tolerance', 'future_tolerance', 'clock_jump_agreement')
 
 
-class ObserverNode(ObserverHealth, VehicleNode):
-    """Estimate the state from the vehicle's sensors and commands."""
+class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
+    """Estimate the state from the vehicle's sensors and commands (a managed node)."""
 
     def __init__(self):
         super().__init__('observer', own_parameters=(
             'clock_jump_tolerance', 'clock_jump_agreement', 'future_tolerance',
             'diagnostics_period'))
+        self._init_reset()
+
+    def configure_vehicle(self):
+        """Design, build the estimator, create the publishers (nodes/managed.py)."""
         self._design_and_build(self.vehicle)
         v = self.vehicle
         if v.observer.history_length > self.param('clock_jump_tolerance'):
@@ -70,6 +76,18 @@ class ObserverNode(ObserverHealth, VehicleNode):
                 f'clock_jump_tolerance ({self.param("clock_jump_tolerance"):g} s): a message '
                 'that late resets the estimator as a clock jump instead')
         self._lockstep = v.simulator.mode == 'lockstep'
+        self._est_pub = self.create_publisher(JointState, TOPICS['estimate'], STATE_PUB_QOS)
+        # Kalman: P of each estimate answering a measurement (covariance_names)
+        self._cov_pub = _CountedPublisher(self, TOPICS['covariance']) \
+            if v.observer.kind == 'kalman' else None
+        self._res_pub = _CountedPublisher(self, TOPICS['residual'])
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+    def activate_vehicle(self):
+        """Subscribe to the sensors and the command, start the timers (a fresh start)."""
+        v = self.vehicle
+        if self.history.t is not None:      # activated again: the estimate starts over
+            self._design_and_build(v)
         self._pending_commands = 0          # lockstep: estimates whose command is not back
         self._pending_since = None
         self._queue = []                    # lockstep: measurements waiting for that command
@@ -77,11 +95,6 @@ class ObserverNode(ObserverHealth, VehicleNode):
         self._pending_stamp = None
         self._last_seen = {}                # sensor name -> wall time of last message
         self._init_health()
-        self._est_pub = self.create_publisher(JointState, TOPICS['estimate'], STATE_PUB_QOS)
-        # Kalman: P of each estimate answering a measurement (covariance_names)
-        self._cov_pub = _CountedPublisher(self, TOPICS['covariance']) \
-            if v.observer.kind == 'kalman' else None
-        self._res_pub = _CountedPublisher(self, TOPICS['residual'])
         self._subs = []
         # diagnostics name the topics as remapped and namespaced (/sub1/imu/data)
         self._resolved = {s.name: self.resolve_topic_name(s.topic) for s in v.sensors}
@@ -92,7 +105,7 @@ class ObserverNode(ObserverHealth, VehicleNode):
                 SENSOR_SUB_QOS))
         self._cmd_sub = self.watched_subscription(
             JointState, TOPICS['command'], self._on_command, STATE_QOS)
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self._subscribe_set_state()
         self._diag_timer = self.wall_timer(self.param('diagnostics_period'),
                                            self._on_diagnostics)
         if self._lockstep:

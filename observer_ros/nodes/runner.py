@@ -231,6 +231,8 @@ def run_nodes(node_factories, args=None, names=None):
     finally:
         if executor is not None:
             executor.shutdown()
+        for node in reversed(nodes):    # managed nodes: the shutdown transition
+            _finish(node)
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown()
@@ -238,6 +240,17 @@ def run_nodes(node_factories, args=None, names=None):
         # puts SIGINT and SIGTERM back to their defaults while it finalises)
         signals.ignore()
     return code
+
+
+def _finish(node):
+    """Take a managed node through its shutdown transition (the compensator's safe command)."""
+    finish = getattr(node, 'finish', None)
+    if finish is None:
+        return
+    try:
+        finish()
+    except Exception:   # noqa: BLE001 - the process ends either way; the node says why
+        node.get_logger().error(f'shutdown transition failed:\n{traceback.format_exc()}')
 
 
 def _leave_events_executor(executor, nodes, watches):

@@ -100,6 +100,11 @@ class TopicWatch:
         self._watched.append((subscription, subscription.topic_name, type_name(msg_class),
                               qos))
 
+    def forget(self, subscription):
+        """Stop watching a subscription (destroyed: a managed node deactivated)."""
+        self._watched = [w for w in self._watched if w[0] is not subscription]
+        self._checked_at = None
+
     def problems(self, now=None):
         """
         Return ``(level, text)`` for each publisher that cannot be heard, worst first.

@@ -335,6 +335,9 @@ NODE_KEYS = _keys(
     KeySpec('command_lead_steps', INTEGER, 'controller.delay_compensation: steps a command '
             "is stamped ahead of the plant's time (its way to the plant)", default=3, low=0,
             high=100, details='nodes: compensator'),
+    KeySpec('autostart', BOOL, 'configure and activate at start (false: the node waits '
+            'unconfigured for `ros2 lifecycle set` or a launch file)', default=True,
+            details='nodes: observer, compensator'),
 )
 
 # Parameters every ROS 2 node has; never vehicle keys, never warned about.
