@@ -372,7 +372,7 @@ def test_managed_nodes_with_the_real_lifecycle_client(ros2env, tmp_path):
                               lambda r: 'unconfigured' in r.stdout)
             assert got.stdout.strip() == 'unconfigured [1]', got.stdout + got.stderr
         # the simulator waits for both to be active
-        assert '/plant_simulator' not in _ros2(ros2env, 'ros2 node list').stdout.split()
+        assert 'plant_simulator' not in launch.output(), launch.output()[-3000:]
         refused = _ros2(ros2env, RESET)
         assert "success=False, message='not active (lifecycle state unconfigured)" in \
             refused.stdout, refused.stdout + refused.stderr
@@ -385,6 +385,7 @@ def test_managed_nodes_with_the_real_lifecycle_client(ros2env, tmp_path):
                 assert got.stdout.strip() == state, got.stdout + got.stderr
         echo = _ros2(ros2env, 'ros2 topic echo --once /state/estimate sensor_msgs/msg/JointState')
         assert echo.returncode == 0 and 'position:' in echo.stdout, launch.output()[-3000:]
+        assert re.search(r'\[plant_simulator-\d+\]: process started', launch.output())
         # the reset service and the set_state topic, as robot_localization's set_pose
         done = _ros2(ros2env, RESET)
         said = "success=True, message='estimate reset to observer.initial_estimate [0.0, 0.0, 0.0]"
