@@ -10,7 +10,7 @@ from diagnostic_msgs.msg import DiagnosticStatus
 import numpy as np
 from observer_ros.core.errors import ObserverError
 from observer_ros.core.estimators import make_estimator
-from observer_ros.nodes.common import joint_state, vector_from_joint_state
+from observer_ros.nodes.common import about, joint_state, vector_from_joint_state
 from observer_ros.nodes.compensator import command_problem
 from observer_ros.sensors import extract_measurement
 from observer_ros.timeutil import stamp_to_sec
@@ -146,7 +146,8 @@ def test_a_huge_command_is_refused_by_its_size_first(tmp_path):
               'three 10^6-element commands')
         assert rss_after - rss_before < 100 * 1024, (rss_before, rss_after)
     out = procs[0].output()
-    assert '1000000 components, more than the 64 accepted' in out, out[-2000:]
+    assert 'control/u: 1000000 components, more than the 64 accepted' in out, out[-2000:]
+    assert 'control/u: control/u:' not in out           # the topic said once
     assert max(len(line) for line in out.splitlines()) < 1000
 
 
@@ -247,3 +248,12 @@ def test_bad_input_messages_are_bounded_in_length():
     with pytest.raises(ObserverError, match='is not in JointState.name') as err:
         extract_measurement(js, sensor)
     assert len(str(err.value)) < 300 and '100000 names' in str(err.value)
+
+
+def test_error_texts_name_the_topic_once():
+    few = joint_state(['x'], [1.0], 1.0)
+    with pytest.raises(ObserverError) as err:
+        vector_from_joint_state(few, ['delta'], 'control/u')
+    assert about('control/u', err.value) == str(err.value)
+    assert str(err.value).startswith('control/u: ') and str(err.value).count('control/u') == 1
+    assert about('control/u', ValueError('not finite')) == 'control/u: not finite'

@@ -26,7 +26,7 @@ from ..vehicle import vehicle_from_parameters
 
 __all__ = ['VEHICLE_SECTIONS', 'SAFE_COMMAND_FRAME', 'SENSOR_QOS', 'SENSOR_SUB_QOS',
            'STATE_QOS', 'STATE_PUB_QOS', 'LATCHED_QOS', 'MESSAGE_CLASSES', 'TOPICS',
-           'VehicleNode', 'joint_state', 'checked_stamp', 'vector_from_joint_state',
+           'VehicleNode', 'about', 'joint_state', 'checked_stamp', 'vector_from_joint_state',
            'stamp_to_sec', 'to_stamp']
 
 # The parameter namespaces that belong to the vehicle file; anything else is a node's own.
@@ -118,6 +118,17 @@ def checked_stamp(stamp, topic):
 
     """
     return check_stamp(stamp.sec, stamp.nanosec, topic)
+
+
+def about(topic, err):
+    """
+    Return an error's text about a topic, said once: ``control/u: missing component(s) ...``.
+
+    The message checks (:func:`vector_from_joint_state`, :func:`checked_stamp`) already
+    name the topic; other errors get it in front (before, ``control/u: control/u: ...``).
+    """
+    text = str(err)
+    return text if text.startswith(f'{topic}:') else f'{topic}: {text}'
 
 
 def max_components(names):

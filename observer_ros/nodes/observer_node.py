@@ -36,7 +36,7 @@ from rclpy.event_handler import PublisherEventCallbacks, UnsupportedEventTypeErr
 from sensor_msgs.msg import JointState
 
 from .checks import changed_pole_problem, own_parameter_problem
-from .common import (checked_stamp, joint_state, MESSAGE_CLASSES, SENSOR_SUB_QOS,
+from .common import (about, checked_stamp, joint_state, MESSAGE_CLASSES, SENSOR_SUB_QOS,
                      STATE_PUB_QOS, STATE_QOS, TOPICS, vector_from_joint_state)
 from .managed import ManagedVehicleNode
 from .observer_health import ObserverHealth
@@ -247,7 +247,7 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
         try:
             x_hat = history.correct(t, y, rows, tag=stamp)
         except (ObserverError, ValueError) as err:
-            self._reject('rejected_updates', f'{sensor.topic}: {err}')
+            self._reject('rejected_updates', about(sensor.topic, err))
             self._answer_without_correction(sensor, t, stamp)
             return
         if skipped != estimator.unverified_corrections:
@@ -405,7 +405,7 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
                     f'{topic}: stamp {t:.3f} is {t - now:.1f} s ahead of the clock; '
                     'skipped', throttle_duration_sec=1.0)
         except (ObserverError, ValueError) as err:
-            self._reject('bad_commands', f'{topic}: {err}')
+            self._reject('bad_commands', about(topic, err))
         if self._lockstep and self._pending_commands > 0 and t == self._pending_stamp:
             self._pending_commands -= 1
             if self._pending_commands == 0:

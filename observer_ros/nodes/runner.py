@@ -262,8 +262,9 @@ def _leave_events_executor(executor, nodes, watches):
     memory is bounded by their depth (nodes/callback_watch.py).
     """
     from rclpy.executors import SingleThreadedExecutor
+    context = executor.context
     executor.shutdown(5.0)
-    executor = SingleThreadedExecutor()
+    executor = SingleThreadedExecutor(context=context)
     for node in nodes:
         executor.add_node(node)
     for watch in watches:
