@@ -4,12 +4,13 @@ import control
 import numpy as np
 from numpy.testing import assert_allclose
 from observer_ros.core.analysis import (
-    controllability_gramian, controllability_report, controllable_decomposition, ctrb,
+    controllability_report, controllable_decomposition, ctrb,
     is_controllable, is_detectable, is_observable, is_stabilizable, numerical_rank,
-    observability_gramian, observability_report, observable_decomposition, obsv, pbh_test,
+    observability_report, observable_decomposition, obsv, pbh_test,
     pbh_test_controllability, rank_tolerance, uncontrollable_eigenvalues,
     unobservable_eigenvalues)
 from observer_ros.core.errors import DimensionError, ObserverError
+from observer_ros.core.gramians import controllability_gramian, observability_gramian
 import pytest
 import scipy.integrate
 import scipy.linalg

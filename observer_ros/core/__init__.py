@@ -16,6 +16,8 @@ from .errors import *       # noqa: F401,F403
 from .errors import __all__ as _errors_all
 from .estimators import *   # noqa: F401,F403
 from .estimators import __all__ as _estimators_all
+from .gramians import *     # noqa: F401,F403
+from .gramians import __all__ as _gramians_all
 from .innovation import *   # noqa: F401,F403
 from .innovation import __all__ as _innovation_all
 from .model import *        # noqa: F401,F403
@@ -30,6 +32,7 @@ from .vehicle_report import *  # noqa: F401,F403
 from .vehicle_report import __all__ as _vehicle_report_all
 
 __all__ = (list(_errors_all) + list(_model_all) + list(_spec_all) + list(_analysis_all)
+           + list(_gramians_all)
            + list(_design_all) + list(_closed_loop_all) + list(_vehicle_design_all)
            + list(_vehicle_report_all) + list(_estimators_all)
            + list(_simulate_all) + list(_innovation_all))

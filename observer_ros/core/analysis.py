@@ -1,12 +1,29 @@
 # observer_ros.core.analysis: observability, detectability and their duals.
 """
-Observability and controllability analysis: ranks, PBH test, Gramians, decompositions.
+Observability and controllability analysis: ranks, PBH test, decompositions, reports.
 
-Every function takes plain matrices (no ROS, no Plant required). The structural
-decisions (rank, observable, detectable) come from an orthogonal staircase
-reduction, which is far better conditioned than the rank of the observability
-matrix ``[C; CA; ...; CA^(n-1)]``; that matrix is still available as :func:`obsv`
-and :func:`numerical_rank` for the textbook test.
+Every function takes plain matrices (no ROS, no Plant required).
+
+**The decision** (stated here once; the reports, the PBH lines, the decompositions, the
+pole count of a design and the sensor advisor all read it). A mode of A is unobservable
+through C when the PBH matrix ``[A - lambda I; C]`` loses rank at its eigenvalue. The test
+is made on the plant *scaled to itself*: A balanced by a diagonal similarity (states in
+any units), divided by its norm, and each row of C divided by its own norm (sensors in any
+units); then ``sigma_min([A_s - lambda I; C_s]) <= PBH_TOL_FACTOR (n + p) eps kappa``,
+``kappa`` being the eigenvalue's condition number (at most ``1 / sqrt(eps)``): the mode is
+unobservable to within the rounding with which its eigenvalue is known. Eigenvalues whose
+rounding disks overlap form one (numerically multiple) eigenvalue. For a multiple
+eigenvalue the unobservable part of its generalized eigenspace is followed along its
+Jordan chains (``v`` with ``C v = 0`` and ``(A - lambda I) v`` in the part found so far),
+each step the same scaled test. The unobservable subspace is the span of those parts; the
+observable decomposition is an orthogonal basis split along it. A staircase (Krylov)
+reduction is not used: its steps mix the time scales of a stiff plant (eigenvalues from
+1e-3 to 1e5), where a coupling of 1e-5 it cannot drop says nothing about observability.
+The textbook rank of ``obsv(A, C)`` is still available as :func:`obsv` and
+:func:`numerical_rank`.
+
+An unobservable mode's stability is its eigenvalue's verdict by the stability rule of
+:mod:`observer_ros.core.verify`; detectable means every unobservable mode is stable.
 
 """
 
@@ -18,28 +35,33 @@ import numpy as np
 import scipy.linalg
 
 from ._lazy import control
-from .errors import DimensionError, ObserverError
+from .errors import DimensionError
 from .model import as_matrix
-from .verify import EIG_BOUND_FACTOR, eigenvalue_bounds, stability_status, unstable_eigenvalues
+from .verify import EIG_BOUND_FACTOR, eigenvalue_bounds, stability_status
 
 __all__ = ['obsv', 'ctrb', 'numerical_rank', 'rank_tolerance', 'PBHResult', 'pbh_test',
-           'pbh_test_controllability', 'observability_gramian', 'controllability_gramian',
-           'observable_decomposition', 'controllable_decomposition',
+           'pbh_test_controllability', 'observable_decomposition', 'controllable_decomposition',
            'unobservable_eigenvalues', 'uncontrollable_eigenvalues', 'Mode',
            'ObservabilityReport', 'observability_report', 'ControllabilityReport',
            'controllability_report', 'is_observable', 'is_detectable', 'is_controllable',
-           'is_stabilizable', 'is_stable_eigenvalue', 'stability_margin', 'format_complex']
+           'is_stabilizable', 'is_stable_eigenvalue', 'stability_margin', 'format_complex',
+           'PBH_TOL_FACTOR']
 
 _EPS = np.finfo(float).eps
 
-#: Widening of the LAPACK/MATLAB rank tolerance n*eps*||M|| used for structural
-#: decisions, to absorb the rounding already present in model data (matrices
-#: typed with 4 digits, or built by a similarity transformation).
-STRUCTURAL_TOL_FACTOR = 1e3
+#: Constant of the decision's threshold ``PBH_TOL_FACTOR (n + p) eps kappa`` on the scaled
+#: PBH matrix (the rounding error of an eigenvalue, as in ``core/verify.py``).
+PBH_TOL_FACTOR = 10.0
+
+#: Eigenvalues closer than this fraction of ``||A||`` are never told apart when their
+#: rounding disks overlap (a defective eigenvalue splits by ``eps^(1/k) ||A||``).
+CLUSTER_LIMIT = 1e-3
 
 #: A state is named in a mode description when its weight in the mode's
 #: eigenvector(s) is at least this fraction of the largest weight.
 MODE_WEIGHT_THRESHOLD = 0.1
+
+_KAPPA_CAP = 1.0 / math.sqrt(_EPS)
 
 
 # ---------------------------------------------------------------- ranks
@@ -189,19 +211,6 @@ def is_stable_eigenvalue(lam, discrete=False, margin=1e-9):
     return lam.real < -margin
 
 
-def _block_eigenvalues(Au, A):
-    """
-    Eigenvalues of a trailing staircase block Au of A and their stability bounds.
-
-    The staircase drops couplings below its structural tolerance (about
-    ``STRUCTURAL_TOL_FACTOR n eps ||A||``), so the block's eigenvalues are known to that
-    perturbation times their condition number: the bound is the stability rule's with
-    ``||A||`` widened by that factor. It scales with ||A|| only through eps.
-
-    """
-    return eigenvalue_bounds(Au, STRUCTURAL_TOL_FACTOR * float(np.linalg.norm(A, 1)))
-
-
 def format_complex(z, digits=6):
     """
     Format a number for messages: ``5``, ``-0.6``, ``-1+2j``.
@@ -235,43 +244,171 @@ def _format_pair(z, digits=6):
         return format_complex(z.real, digits)
     return f'{format_complex(z.real, digits)}±{abs(z.imag):.{digits}g}j'
 
+# ---------------------------------------------------------------- the decision
+
+
+@dataclass(frozen=True)
+class PBHResult:
+    """
+    One distinct eigenvalue of A and its PBH (Popov-Belevitch-Hautus) rank test.
+
+    ``rank`` is the numerical rank of ``[A - lambda I; C]`` (observability) or
+    ``[A - lambda I, B]`` (controllability) on the scaled plant (see the module's
+    decision); the mode passes when it equals n. ``min_singular_value`` and ``tol`` are
+    relative (on the scaled matrix). ``unobserved`` is the dimension of the mode's
+    unobservable (uncontrollable) part, its Jordan chains included; ``stable`` its
+    eigenvalue's verdict by the stability rule.
+
+    """
+
+    eigenvalue: complex
+    multiplicity: int
+    rank: int
+    n: int
+    passed: bool
+    stable: bool
+    min_singular_value: float
+    tol: float
+    unobserved: int = 0
+    status: str = 'stable'
+
+
+@dataclass(frozen=True)
+class _Structure:
+    """The decision for (A, C): per distinct eigenvalue, and the unobservable subspace."""
+
+    pbh: Tuple[PBHResult, ...]
+    bases: Tuple[np.ndarray, ...]       # per failing eigenvalue: its unobservable part
+    failing: Tuple[int, ...]            # indices into pbh of the failing eigenvalues
+    V: np.ndarray                       # orthonormal basis of the unobservable subspace
+    Q: np.ndarray                       # orthogonal: [complement, V]
+
+
+def _scaled(A, C):
+    """Return A balanced and normalised, C in its coordinates with unit rows, the scaling."""
+    n = A.shape[0]
+    if n and np.any(A):
+        _, (d, _) = scipy.linalg.matrix_balance(A, permute=False, separate=True)
+    else:
+        d = np.ones(n)
+    As = A * (1.0 / d)[:, None] * d[None, :]
+    a = float(np.linalg.norm(As, 2)) if n else 0.0
+    a = a if a > 0.0 else 1.0
+    Cs = C * d[None, :]
+    rows = np.linalg.norm(Cs, axis=1) if Cs.size else np.zeros(C.shape[0])
+    Cs = Cs[rows > 0.0] / rows[rows > 0.0, None]
+    return As / a, Cs, d, a
+
+
+def _clusters(lam, radius):
+    """Group eigenvalues whose rounding disks overlap (at most CLUSTER_LIMIT apart)."""
+    N = lam.size
+    parent = list(range(N))
+
+    def root(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i in range(N):
+        for j in range(i + 1, N):
+            gap = abs(lam[i] - lam[j])
+            if gap == 0.0 or gap <= min(radius[i] + radius[j], CLUSTER_LIMIT):
+                parent[root(i)] = root(j)
+    groups = {}
+    for i in range(N):
+        groups.setdefault(root(i), []).append(i)
+    return sorted(groups.values(), key=lambda g: g[0])
+
+
+def _null(M, tol, limit):
+    """Smallest right singular vectors of M with singular value <= tol (at most limit)."""
+    _, s, vh = scipy.linalg.svd(M)
+    s = np.concatenate([s, np.zeros(max(0, M.shape[1] - s.size))])
+    rank = int(np.sum(s > tol))
+    keep = min(M.shape[1] - rank, limit)
+    return rank, float(s[M.shape[1] - 1]), vh[M.shape[1] - keep:].conj().T
+
+
+def _orth(V):
+    """Orthonormal basis of the columns of V (real)."""
+    if V.shape[1] == 0:
+        return V
+    U, s, _ = scipy.linalg.svd(V, full_matrices=False)
+    return U[:, :int(np.sum(s > 1e-8 * s[0]))]
+
+
+def _structure(A, C, discrete, tol=None):
+    """Return the decision of this module for (A, C); see its docstring."""
+    n = A.shape[0]
+    if n == 0:
+        return _Structure((), (), (), np.zeros((0, 0)), np.eye(0))
+    As, Cs, d, a = _scaled(A, C)
+    p = Cs.shape[0]
+    lam, vl, vr = scipy.linalg.eig(As, left=True, right=True)
+    dots = np.abs(np.sum(vl.conj() * vr, axis=0))
+    kappa = 1.0 / np.maximum(dots, _EPS)
+    radius = EIG_BOUND_FACTOR * n * _EPS * kappa
+    _, bound = eigenvalue_bounds(A)
+    results, bases, failing = [], [], []
+    eye = np.eye(n)
+    for g in _clusters(lam, radius):
+        centre = complex(np.mean(lam[g]))
+        if abs(centre.imag) <= max(float(np.max(radius[g])), 1e-14 * abs(centre)):
+            centre = complex(centre.real, 0.0)
+        elif centre.imag < 0:
+            continue   # each conjugate pair once, by its member with Im > 0
+        k = len(g)
+        t = tol if tol is not None else \
+            PBH_TOL_FACTOR * (n + p) * _EPS * min(float(np.max(kappa[g])), _KAPPA_CAP)
+        M = As - centre * eye if centre.imag else As - centre.real * eye
+        rank, smin, basis = _null(np.vstack([M, Cs]), t, k)
+        while 0 < basis.shape[1] < k:
+            P = eye - basis @ basis.conj().T
+            _, _, wider = _null(np.vstack([P @ M, Cs]), t, k)
+            if wider.shape[1] <= basis.shape[1]:
+                break
+            basis = wider
+        value = centre * a
+        status = stability_status(value, float(np.max(bound[g])), discrete)
+        if basis.shape[1]:
+            failing.append(len(results))
+            bases.append(_orth_complex(basis * d[:, None]))
+        results.append(PBHResult(value, k, rank, n, basis.shape[1] == 0, status == 'stable',
+                                 smin, float(t), basis.shape[1], status))
+    parts = [np.hstack([b.real, b.imag]) if np.any(b.imag) else b.real for b in bases]
+    V = _orth(np.hstack(parts)) if parts else np.zeros((n, 0))
+    Qfull, _ = scipy.linalg.qr(V, mode='full') if V.shape[1] else (eye, None)
+    k = V.shape[1]
+    Q = np.hstack([Qfull[:, k:], Qfull[:, :k]])
+    return _Structure(tuple(results), tuple(bases), tuple(failing), Q[:, n - k:], Q)
+
+
+def _orth_complex(B):
+    """Orthonormal (complex) basis of the columns of B, in the original coordinates."""
+    U, s, _ = scipy.linalg.svd(B, full_matrices=False)
+    return U[:, :max(1, int(np.sum(s > 1e-8 * s[0])))]
+
 
 # ---------------------------------------------------------------- decompositions
 
 
-def _structural_tol(A, B):
-    n = A.shape[0]
-    scale = max(np.linalg.norm(A, 1), np.linalg.norm(B, 1)) if B.size else np.linalg.norm(A, 1)
-    return STRUCTURAL_TOL_FACTOR * max(n, B.shape[1], 1) * _EPS * float(scale)
-
-
-def _staircase(A, B, tol):
-    """Orthogonal controllability staircase: Q^T A Q = [[Ac, *], [0, Au]], Q^T B = [Bc; 0]."""
-    n = A.shape[0]
-    Q = np.eye(n)
-    At = A.copy()
-    k = 0
-    Bk = B.copy()
-    while k < n and Bk.size:
-        U, s, _ = scipy.linalg.svd(Bk, full_matrices=True)
-        r = int(np.sum(s > tol))
-        if r == 0:
-            break
-        W = np.eye(n)
-        W[k:, k:] = U
-        At = W.T @ At @ W
-        Q = Q @ W
-        if k + r >= n:
-            k = n
-            break
-        Bk = At[k + r:, k:k + r]
-        k += r
-    return Q, k
+def _decompose(A, C, tol, discrete=False):
+    """Q^T A Q = [[Ao, 0], [A21, Aobar]], C Q = [Co, 0]; the rank; the decision."""
+    s = _structure(A, C, discrete, tol)
+    Q = s.Q
+    m = A.shape[0] - s.V.shape[1]
+    Abar = Q.T @ A @ Q
+    Cbar = C @ Q
+    Abar[:m, m:] = 0.0
+    Cbar[:, m:] = 0.0
+    return Abar, Cbar, Q, m, s
 
 
 def controllable_decomposition(A, B, C=None, tol=None):
     """
-    Kalman controllable decomposition by an orthogonal staircase (MATLAB ``ctrbf``-like).
+    Kalman controllable decomposition by an orthogonal transformation (MATLAB ``ctrbf``-like).
 
     Parameters
     ----------
@@ -282,16 +419,14 @@ def controllable_decomposition(A, B, C=None, tol=None):
     C : (p, n) array_like, optional
         Output matrix, transformed too (default: an empty 0 x n matrix).
     tol : float, optional
-        Rank tolerance of each staircase step; default
-        ``1e3 * max(n, m) * eps * max(||A||_1, ||B||_1)``: the LAPACK/MATLAB
-        ``ctrbf`` tolerance widened by ``STRUCTURAL_TOL_FACTOR`` for rounding in
-        the model data.
+        Threshold of the decision on the scaled PBH matrix (see the module's docstring);
+        default ``PBH_TOL_FACTOR (n + m) eps kappa``.
 
     Returns
     -------
     Abar, Bbar, Cbar : ndarray
         ``Abar = T^-1 A T = [[Ac, A12], [0, Auc]]``, ``Bbar = T^-1 B = [Bc; 0]``,
-        ``Cbar = C T``; blocks that are zero within the tolerance are set to zero.
+        ``Cbar = C T``; blocks that are zero by the decision are set to zero.
     T : (n, n) ndarray
         Orthogonal (``T^-1 = T^T``); its first r columns span the controllable subspace.
     r : int
@@ -302,19 +437,13 @@ def controllable_decomposition(A, B, C=None, tol=None):
     n = A.shape[0]
     B = as_matrix(B, 'B', rows=n)
     C = np.zeros((0, n)) if C is None else as_matrix(C, 'C', cols=n)
-    if tol is None:
-        tol = _structural_tol(A, B)
-    T, r = _staircase(A, B, tol)
-    Abar = T.T @ A @ T
-    Bbar = T.T @ B
-    Abar[r:, :r] = 0.0
-    Bbar[r:, :] = 0.0
-    return Abar, Bbar, C @ T, T, r
+    AbarT, BbarT, T, r, _ = _decompose(A.T, B.T, tol)
+    return AbarT.T, BbarT.T, C @ T, T, r
 
 
 def observable_decomposition(A, B=None, C=None, tol=None):
     """
-    Observable decomposition in the form of seed 003 (by duality with the staircase).
+    Observable decomposition in the form of seed 003, along the module's decision.
 
     Parameters
     ----------
@@ -325,9 +454,7 @@ def observable_decomposition(A, B=None, C=None, tol=None):
     C : (p, n) array_like
         Output matrix (required).
     tol : float, optional
-        Rank tolerance of each staircase step; default
-        ``1e3 * max(n, p) * eps * max(||A||_inf, ||C||_inf)``: the LAPACK rank
-        tolerance widened by ``STRUCTURAL_TOL_FACTOR`` (the staircase of the dual).
+        Threshold of the decision on the scaled PBH matrix (see the module's docstring).
 
     Returns
     -------
@@ -347,13 +474,7 @@ def observable_decomposition(A, B=None, C=None, tol=None):
         raise DimensionError('C is required for the observable decomposition')
     C = as_matrix(C, 'C', cols=n)
     B = np.zeros((n, 0)) if B is None else as_matrix(B, 'B', rows=n)
-    if tol is None:
-        tol = _structural_tol(A.T, C.T)
-    T, m = _staircase(A.T, C.T, tol)
-    Abar = T.T @ A @ T
-    Cbar = C @ T
-    Abar[:m, m:] = 0.0
-    Cbar[:, m:] = 0.0
+    Abar, Cbar, T, m, _ = _decompose(A, C, tol)
     return Abar, T.T @ B, Cbar, T, m
 
 
@@ -368,16 +489,19 @@ def unobservable_eigenvalues(A, C, tol=None):
     C : (p, n) array_like
         Output matrix.
     tol : float, optional
-        Staircase tolerance.
+        Threshold of the decision (see :func:`observable_decomposition`).
 
     Returns
     -------
     ndarray of complex
-        Empty when (A, C) is observable.
+        Each unobservable eigenvalue of A once per dimension of its unobservable part
+        (the eigenvalues of Aobar, computed from A itself); empty when (A, C) is
+        observable.
 
     """
-    Abar, _, _, _, m = observable_decomposition(A, None, C, tol)
-    return np.linalg.eigvals(Abar[m:, m:]) if m < Abar.shape[0] else np.zeros(0, complex)
+    A = as_matrix(A, 'A', square=True)
+    C = as_matrix(C, 'C', cols=A.shape[0])
+    return _hidden_eigenvalues(_structure(A, C, False, tol))
 
 
 def uncontrollable_eigenvalues(A, B, tol=None):
@@ -391,7 +515,7 @@ def uncontrollable_eigenvalues(A, B, tol=None):
     B : (n, m) array_like
         Input matrix.
     tol : float, optional
-        Staircase tolerance.
+        Threshold of the decision.
 
     Returns
     -------
@@ -399,73 +523,24 @@ def uncontrollable_eigenvalues(A, B, tol=None):
         Empty when (A, B) is controllable.
 
     """
-    Abar, _, _, _, r = controllable_decomposition(A, B, None, tol)
-    return np.linalg.eigvals(Abar[r:, r:]) if r < Abar.shape[0] else np.zeros(0, complex)
+    A = as_matrix(A, 'A', square=True)
+    B = as_matrix(B, 'B', rows=A.shape[0])
+    return _hidden_eigenvalues(_structure(A.T, B.T, False, tol))
+
+
+def _hidden_eigenvalues(structure):
+    """Each failing eigenvalue once per dimension of its hidden part (pairs both ways)."""
+    out = []
+    for i in structure.failing:
+        res = structure.pbh[i]
+        z = complex(res.eigenvalue)
+        out += [z] * res.unobserved
+        if z.imag:
+            out += [z.conjugate()] * res.unobserved
+    return np.array(out, dtype=complex)
 
 
 # ---------------------------------------------------------------- PBH
-
-
-@dataclass(frozen=True)
-class PBHResult:
-    """
-    One distinct eigenvalue of A and its PBH (Popov-Belevitch-Hautus) rank test.
-
-    ``rank`` is the numerical rank of ``[A - lambda I; C]`` (observability) or
-    ``[A - lambda I, B]`` (controllability); the mode passes when it equals n.
-
-    """
-
-    eigenvalue: complex
-    multiplicity: int
-    rank: int
-    n: int
-    passed: bool
-    stable: bool
-    min_singular_value: float
-    tol: float
-
-
-def _clusters(eigs, tol_rel=1e-5):
-    """Group eigenvalues closer than tol_rel * max(1, |lambda|) (numerical multiplicity)."""
-    groups = []
-    for i, lam in enumerate(eigs):
-        for g in groups:
-            centre = np.mean(eigs[g])
-            if abs(lam - centre) <= tol_rel * max(1.0, abs(centre)):
-                g.append(i)
-                break
-        else:
-            groups.append([i])
-    return groups
-
-
-def _pbh(A, X, stack, discrete, tol):
-    n = A.shape[0]
-    if n == 0:
-        return []
-    lam, vl, vr = scipy.linalg.eig(A, left=True, right=True)
-    scale = max(float(np.linalg.norm(A, 2)), float(np.linalg.norm(X, 2)) if X.size else 0.0,
-                _EPS)
-    results = []
-    for g in _clusters(lam):
-        centre = complex(np.mean(lam[g]))   # the mean of a cluster is well conditioned
-        if abs(centre.imag) <= 1e-12 * max(1.0, abs(centre)):
-            centre = complex(centre.real, 0.0)
-        elif centre.imag < 0:
-            continue   # report each conjugate pair once, by its member with Im > 0
-        kappa = max(1.0 / max(abs(np.vdot(vl[:, i], vr[:, i])), _EPS) for i in g)
-        kappa = min(kappa, 1.0 / np.sqrt(_EPS))
-        M = A - centre * np.eye(n)
-        M = np.vstack([M, X]) if stack == 'rows' else np.hstack([M, X])
-        s = scipy.linalg.svd(M, compute_uv=False)
-        t = tol if tol is not None else 10.0 * max(M.shape) * _EPS * scale * kappa
-        rank = int(np.sum(s > t))
-        bound = EIG_BOUND_FACTOR * n * _EPS * float(np.linalg.norm(A, 2)) * kappa
-        results.append(PBHResult(centre, len(g), rank, n, rank == n,
-                                 stability_status(centre, bound, discrete) == 'stable',
-                                 float(s[min(n, len(s)) - 1]), float(t)))
-    return results
 
 
 def pbh_test(A, C, discrete=False, tol=None):
@@ -481,21 +556,20 @@ def pbh_test(A, C, discrete=False, tol=None):
     discrete : bool
         Classify stability in the z-plane.
     tol : float, optional
-        Rank threshold; default ``10 (n + p) eps max(||A||, ||C||) kappa(lambda)``,
-        the rounding error of the eigenvalue (kappa is its condition number,
-        from the left and right eigenvectors; at most 1/sqrt(eps)).
+        Threshold on the scaled matrix; default the module's decision,
+        ``PBH_TOL_FACTOR (n + p) eps kappa(lambda)``.
 
     Returns
     -------
     list of PBHResult
         One per distinct eigenvalue (a complex pair appears once, with Im > 0);
-        eigenvalues closer than 1e-5 relative are one eigenvalue of higher
+        eigenvalues within each other's rounding are one eigenvalue of higher
         multiplicity, tested at their mean.
 
     """
     A = as_matrix(A, 'A', square=True)
     C = as_matrix(C, 'C', cols=A.shape[0])
-    return _pbh(A, C, 'rows', discrete, tol)
+    return list(_structure(A, C, discrete, tol).pbh)
 
 
 def pbh_test_controllability(A, B, discrete=False, tol=None):
@@ -511,7 +585,7 @@ def pbh_test_controllability(A, B, discrete=False, tol=None):
     discrete : bool
         Classify stability in the z-plane.
     tol : float, optional
-        Rank threshold (see :func:`pbh_test`).
+        Threshold (see :func:`pbh_test`).
 
     Returns
     -------
@@ -520,111 +594,7 @@ def pbh_test_controllability(A, B, discrete=False, tol=None):
     """
     A = as_matrix(A, 'A', square=True)
     B = as_matrix(B, 'B', rows=A.shape[0])
-    return _pbh(A, B, 'cols', discrete, tol)
-
-
-# ---------------------------------------------------------------- Gramians
-
-
-def observability_gramian(A, C, horizon=None, discrete=False):
-    """
-    Return the observability Gramian of (A, C), finite or infinite horizon.
-
-    Parameters
-    ----------
-    A : (n, n) array_like
-        State matrix.
-    C : (p, n) array_like
-        Output matrix.
-    horizon : float or int, optional
-        Continuous time: the length t > 0 of ``W(t) = int_0^t e^{A^T s} C^T C e^{A s} ds``,
-        computed by Van Loan's (1978) matrix exponential over a step h with
-        ||A|| h <= 1 and doubling to t (stable for long horizons). Discrete time: the
-        number of steps N >= 1 of ``W = sum_{k<N} (A^T)^k C^T C A^k``.
-        None: the infinite-horizon Gramian, from the Lyapunov equation
-        ``A^T W + W A = -C^T C`` (or ``A^T W A - W = -C^T C``), which exists only
-        for a stable A.
-    discrete : bool
-        Discrete-time system.
-
-    Returns
-    -------
-    W : (n, n) ndarray
-        Symmetric positive semi-definite; nonsingular exactly when (A, C) is observable.
-
-    """
-    A = as_matrix(A, 'A', square=True)
-    n = A.shape[0]
-    C = as_matrix(C, 'C', cols=n)
-    Q = C.T @ C
-    if horizon is None:
-        bad = unstable_eigenvalues(A, discrete)
-        if bad:
-            raise ObserverError(
-                f'the infinite-horizon Gramian needs a stable A; A has the eigenvalue '
-                f'{format_complex(bad[0][0])} ({bad[0][1]}); give a finite horizon')
-        if discrete:
-            W = scipy.linalg.solve_discrete_lyapunov(A.T, Q)
-        else:
-            W = scipy.linalg.solve_continuous_lyapunov(A.T, -Q)
-        return (W + W.T) / 2.0
-    if discrete:
-        steps = int(horizon)
-        if steps != horizon or steps < 1:
-            raise ObserverError(
-                f'horizon must be a whole number of steps >= 1 for a discrete system; '
-                f'got {horizon!r}')
-        W = np.zeros((n, n))
-        Ak = np.eye(n)
-        for _ in range(steps):
-            W += Ak.T @ Q @ Ak
-            Ak = A @ Ak
-        return (W + W.T) / 2.0
-    t = float(horizon)
-    if not (t > 0.0 and np.isfinite(t)):
-        raise ObserverError(f'horizon must be positive and finite; got {horizon!r}')
-    # Van Loan on a short step h (||A|| h <= 1, where e^{-A^T h} cannot swamp the
-    # result), then doubling W(2h) = W(h) + e^{A^T h} W(h) e^{A h}: sums of PSD terms.
-    norm = float(np.linalg.norm(A, 1)) * t
-    k = max(0, int(math.ceil(math.log2(norm)))) if norm > 1.0 else 0
-    h = t / 2.0 ** k
-    M = np.zeros((2 * n, 2 * n))
-    M[:n, :n] = -A.T
-    M[:n, n:] = Q
-    M[n:, n:] = A
-    E = scipy.linalg.expm(M * h)
-    Phi = E[n:, n:]
-    W = Phi.T @ E[:n, n:]
-    for _ in range(k):
-        W = W + Phi.T @ W @ Phi
-        Phi = Phi @ Phi
-    return (W + W.T) / 2.0
-
-
-def controllability_gramian(A, B, horizon=None, discrete=False):
-    """
-    Return the controllability Gramian of (A, B): the observability Gramian of (A^T, B^T).
-
-    Parameters
-    ----------
-    A : (n, n) array_like
-        State matrix.
-    B : (n, m) array_like
-        Input matrix.
-    horizon : float or int, optional
-        See :func:`observability_gramian`.
-    discrete : bool
-        Discrete-time system.
-
-    Returns
-    -------
-    W : (n, n) ndarray
-        ``int_0^t e^{A s} B B^T e^{A^T s} ds`` (or its sum / infinite-horizon limit).
-
-    """
-    A = as_matrix(A, 'A', square=True)
-    B = as_matrix(B, 'B', rows=A.shape[0])
-    return observability_gramian(A.T, B.T, horizon, discrete)
+    return list(_structure(A.T, B.T, discrete, tol).pbh)
 
 
 # ---------------------------------------------------------------- reports
@@ -636,10 +606,10 @@ class Mode:
     An unobservable (or uncontrollable) mode and the states it lives on.
 
     ``eigenvalue`` is real or the member with Im > 0 of a conjugate pair;
-    ``weights`` are the normalised row norms of an orthonormal basis of the
-    mode's generalised eigenspace (for an uncontrollable mode: of the left one,
-    i.e. the combinations of states the input cannot move) and ``states`` the
-    names with weight >= ``MODE_WEIGHT_THRESHOLD`` (0.1).
+    ``multiplicity`` the dimension of its unobservable part; ``weights`` are the
+    normalised row norms of an orthonormal basis of that part (for an uncontrollable
+    mode: of the left one, i.e. the combinations of states the input cannot move) and
+    ``states`` the names with weight >= ``MODE_WEIGHT_THRESHOLD`` (0.1).
 
     """
 
@@ -672,32 +642,16 @@ def _names(state_names, n):
     return names
 
 
-def _modes(Abar, T, m, names, discrete, A):
-    """Describe the eigenvalues of the trailing block Abar[m:, m:] (basis T[:, m:])."""
-    n = Abar.shape[0]
-    if m >= n:
-        return []
-    Au = Abar[m:, m:]
-    T2 = T[:, m:]
-    lam, bound = _block_eigenvalues(Au, A)
+def _modes(structure, names):
+    """Describe the failing eigenvalues of a decision (their unobservable parts)."""
     modes = []
-    for g in _clusters(lam):
-        centre = complex(np.mean(lam[g]))
-        if abs(centre.imag) <= 1e-12 * max(1.0, abs(centre)):
-            centre = complex(centre.real, 0.0)
-        elif centre.imag < 0:
-            continue
-        # generalised eigenspace: null space of (Au - lambda I)^k, k the multiplicity
-        k = len(g)
-        M = np.linalg.matrix_power(Au - centre * np.eye(n - m), k)
-        _, _, vh = scipy.linalg.svd(M)
-        basis = vh[-k:].conj().T
-        V = T2 @ basis
-        w = np.sqrt(np.sum(np.abs(V) ** 2, axis=1))
+    for i, basis in zip(structure.failing, structure.bases):
+        res = structure.pbh[i]
+        w = np.sqrt(np.sum(np.abs(basis) ** 2, axis=1))
         w = w / max(float(np.max(w)), _EPS)
         states = tuple(nm for nm, wi in zip(names, w) if wi >= MODE_WEIGHT_THRESHOLD)
-        status = stability_status(centre, float(np.max(bound[g])), discrete)
-        modes.append(Mode(centre, len(g), status, states, tuple(float(x) for x in w)))
+        modes.append(Mode(res.eigenvalue, res.unobserved, res.status, states,
+                          tuple(float(x) for x in w)))
     return modes
 
 
@@ -707,8 +661,8 @@ class ObservabilityReport:
     Observability and detectability of (A, C), with the unobservable modes named.
 
     ``rank`` is the dimension of the observable subspace (the rank of the
-    observability matrix, from the orthogonal staircase); ``pbh`` the per-eigenvalue
-    PBH test; ``unobservable_modes`` human-readable lines such as
+    observability matrix, by the module's decision); ``pbh`` the per-eigenvalue
+    PBH test, the same decision; ``unobservable_modes`` human-readable lines such as
     ``"eigenvalue 5 (unstable): x3"``.
 
     """
@@ -748,29 +702,27 @@ def observability_report(A, C, state_names=None, discrete=False, tol=None):
     discrete : bool
         Stability in the z-plane (``|z| < 1``) instead of ``Re s < 0``.
     tol : float, optional
-        Staircase rank tolerance (see :func:`observable_decomposition`).
+        Threshold of the decision (see :func:`observable_decomposition`).
 
     Returns
     -------
     ObservabilityReport
-        Detectable means every unobservable eigenvalue is stable by the stability
-        rule of :mod:`observer_ros.core.verify` (its bound widened to the staircase's
-        structural tolerance).
+        Detectable means every unobservable mode is stable by the stability rule of
+        :mod:`observer_ros.core.verify` (its eigenvalue of A). The PBH lines, the rank
+        and the modes are one decision: a failing PBH line is exactly an unobservable
+        mode.
 
     """
     A = as_matrix(A, 'A', square=True)
     n = A.shape[0]
     C = as_matrix(C, 'C', cols=n)
     names = _names(state_names, n)
-    Abar, _, _, T, m = observable_decomposition(A, None, C, tol)
-    modes = _modes(Abar, T, m, names, discrete, A)
-    ueigs, ubound = _block_eigenvalues(Abar[m:, m:], A) if m < n else \
-        (np.zeros(0, complex), np.zeros(0))
-    detectable = all(stability_status(lam, b, discrete) == 'stable'
-                     for lam, b in zip(ueigs, ubound))
+    _, _, _, m, s = _decompose(A, C, tol, discrete)
+    modes = _modes(s, names)
+    ueigs = _hidden_eigenvalues(s)
+    detectable = all(md.stable for md in modes)
     return ObservabilityReport(n, m, m == n, detectable, bool(discrete), names, ueigs,
-                               tuple(pbh_test(A, C, discrete)), tuple(modes),
-                               tuple(md.describe() for md in modes))
+                               s.pbh, tuple(modes), tuple(md.describe() for md in modes))
 
 
 @dataclass(frozen=True)
@@ -820,7 +772,7 @@ def controllability_report(A, B, state_names=None, discrete=False, tol=None):
     discrete : bool
         Discrete time: z-plane instead of s-plane.
     tol : float, optional
-        Staircase rank tolerance.
+        Threshold of the decision.
 
     Returns
     -------
@@ -831,20 +783,19 @@ def controllability_report(A, B, state_names=None, discrete=False, tol=None):
     n = A.shape[0]
     B = as_matrix(B, 'B', rows=n)
     dual = observability_report(A.T, B.T, state_names, discrete, tol)
-    pbh = tuple(pbh_test_controllability(A, B, discrete))
     return ControllabilityReport(n, dual.rank, dual.observable, dual.detectable,
                                  bool(discrete), dual.state_names,
-                                 dual.unobservable_eigenvalues, pbh, dual.modes,
+                                 dual.unobservable_eigenvalues, dual.pbh, dual.modes,
                                  dual.unobservable_modes)
 
 
 def is_observable(A, C):
-    """Return True when (A, C) is observable (staircase rank n)."""
+    """Return True when (A, C) is observable (the module's decision)."""
     return observable_decomposition(A, None, C)[4] == as_matrix(A, 'A', square=True).shape[0]
 
 
 def is_controllable(A, B):
-    """Return True when (A, B) is controllable (staircase rank n)."""
+    """Return True when (A, B) is controllable (the module's decision)."""
     return controllable_decomposition(A, B)[4] == as_matrix(A, 'A', square=True).shape[0]
 
 
