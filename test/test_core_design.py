@@ -5,6 +5,7 @@ import warnings
 import control
 import numpy as np
 from numpy.testing import assert_allclose
+from observer_ros.core.analysis import is_controllable
 from observer_ros.core.design import (
     controller_gain, kalman_gain, kalman_update_gain, lqr_gain, observer_gain,
     pole_placement_error, reduced_coordinates, reduced_order_observer)
@@ -112,12 +113,39 @@ def test_repeated_poles_single_output_use_acker():
         observer_gain(A_CART, [[0, 1.0, 0, 0]], poles, method='place')
 
 
-def test_repeated_poles_beyond_outputs_refused_with_pole_and_multiplicity():
-    C = [[0, 1.0, 0, 0], [1.0, 0, 0, 0]]
-    with pytest.raises(DesignError, match='pole -3 is repeated 3 times, more than the 2'):
-        observer_gain(A_CART, C, [-3.0, -3.0, -3.0, -1.0])
-    L = observer_gain(A_CART, C, [-3.0, -3.0, -1.0, -2.0])      # twice is fine
-    assert pole_placement_error(A_CART - L @ np.array(C), [-3, -3, -1, -2]) < 1e-8
+def test_repeated_poles_beyond_outputs_placed_by_a_rank_one_gain():
+    C = np.array([[0, 1.0, 0, 0], [1.0, 0, 0, 0]])
+    poles = [-3.0, -3.0, -3.0, -1.0]
+    with warnings.catch_warnings():
+        warnings.simplefilter('error', ObserverDesignWarning)
+        L = observer_gain(A_CART, C, poles)
+    # a rank-one gain L = l w^T (Ackermann on one combination w of the two outputs)
+    assert np.linalg.matrix_rank(L) == 1
+    assert pole_placement_error(A_CART - L @ C, poles) < 1e-9
+    assert_allclose(np.poly(A_CART - L @ C), np.poly(poles), rtol=1e-9, atol=1e-9)
+    L = observer_gain(A_CART, C, [-3.0, -3.0, -1.0, -2.0])      # twice: place itself
+    assert pole_placement_error(A_CART - L @ C, [-3, -3, -1, -2]) < 1e-8
+    with pytest.raises(DesignError, match="pole -3 is repeated 3 times; method 'place' allows "
+                                          'at most 2'):
+        observer_gain(A_CART, C, poles, method='place')
+
+
+def test_four_fold_controller_pole_with_two_inputs():
+    B = np.array([[0.0, 0.0], [0.0, 0.0], [-1.0, 1.0], [1.0, 0.0]])
+    for poles in ([-2.0] * 4, [-1 - 1j, -1 + 1j, -1 - 1j, -1 + 1j]):
+        K = controller_gain(A_CART, B, poles)
+        assert pole_placement_error(A_CART - B @ K, poles) < 1e-9
+        assert_allclose(np.poly(A_CART - B @ K), np.poly(poles), atol=1e-8)
+
+
+def test_cyclic_design_when_no_input_combination_is_controllable():
+    # eigenvalue 1 of geometric multiplicity 2: no single b = B g makes (A, b) controllable
+    A = np.diag([1.0, 1.0, 2.0])
+    B = np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    for g in (np.array([1.0, 0.0]), np.array([0.3, -0.7])):
+        assert not is_controllable(A, (B @ g).reshape(3, 1))
+    K = controller_gain(A, B, [-1.0, -1.0, -1.0])
+    assert_allclose(np.poly(A - B @ K), np.poly([-1.0, -1.0, -1.0]), atol=1e-9)
 
 
 def test_ill_conditioned_placement_warns():

@@ -202,5 +202,5 @@ def test_a_slow_multi_rate_period_map_is_a_warning(tmp_path):
     check, messages = check_sampled_observer(veh)
     assert check.spectral_radius < 1.0
     assert len(messages) == 1
-    assert 'decays at -0.278/s' in messages[0] and 'designed -1/s' in messages[0]
+    assert 'decays at 0.278/s' in messages[0] and 'designed 1/s' in messages[0]
     assert messages[0] in design_vehicle(veh).warnings

@@ -3,157 +3,26 @@
 
 from dataclasses import dataclass
 from typing import Tuple
-import warnings
 
 import numpy as np
 import scipy.linalg
-import scipy.optimize
 
 from ._lazy import control
-from .analysis import (controllable_decomposition, format_complex, numerical_rank,
-                       observability_report)
-from .errors import (DesignError, DimensionError, NotControllableError, NotDetectableError,
-                     ObserverDesignWarning)
+from .analysis import controllable_decomposition, observability_report
+from .errors import DesignError, DimensionError, NotControllableError, NotDetectableError
 from .model import as_matrix, as_poles
+from .pole_placement import (ACKER_DIGITS_LOST, place_gain, PLACEMENT_WARN_TOL,
+                             pole_placement_error)
 
 __all__ = ['observer_gain', 'controller_gain', 'lqr_gain', 'kalman_gain',
            'kalman_update_gain', 'pole_placement_error', 'reduced_coordinates',
            'ReducedOrderDesign', 'reduced_order_observer', 'PLACEMENT_WARN_TOL',
            'ACKER_DIGITS_LOST']
 
-#: A design whose placed poles are further than this (relative, see
-#: :func:`pole_placement_error`) from the poles asked for emits an
-#: :class:`ObserverDesignWarning`.
-PLACEMENT_WARN_TOL = 1e-6
-
-#: ``method='acker'`` warns when Ackermann's formula is this many times less
-#: accurate than ``place`` (two digits) and its error exceeds 1e-9.
-ACKER_DIGITS_LOST = 100.0
-
 _METHODS = ('auto', 'place', 'acker')
 
 
 # ---------------------------------------------------------------- pole placement
-
-
-def _pole_clusters(p, rel=1e-9):
-    groups = []
-    for i, z in enumerate(p):
-        for g in groups:
-            if abs(z - p[g[0]]) <= rel * max(1.0, abs(p[g[0]])):
-                g.append(i)
-                break
-        else:
-            groups.append([i])
-    return groups
-
-
-def pole_placement_error(M, poles):
-    """
-    Relative distance between eig(M) and the poles asked for.
-
-    Parameters
-    ----------
-    M : (n, n) array_like
-        Closed-loop matrix (``A - L C`` or ``A - B K``).
-    poles : array_like of complex, length n
-        Desired eigenvalues.
-
-    Returns
-    -------
-    err : float
-        The eigenvalues are matched to the poles (optimal assignment). For a pole
-        p of multiplicity k matched by eigenvalues l_i the error is
-        ``max(|mean(l_i) - p|, max_i |l_i - p|^k / s^(k-1)) / s`` with
-        ``s = max(1, |p|)``: a k-fold eigenvalue moves by delta^(1/k) under a
-        perturbation delta, so this is a backward error, and it reduces to
-        ``|l - p| / max(1, |p|)`` for a simple pole.
-
-    """
-    M = as_matrix(M, 'M', square=True)
-    want = np.asarray(poles, dtype=complex).reshape(-1)
-    if want.size != M.shape[0]:
-        raise DimensionError(f'poles has {want.size} poles; expected {M.shape[0]}')
-    if want.size == 0:
-        return 0.0
-    got = np.linalg.eigvals(M)
-    cost = np.abs(got[:, None] - want[None, :]) / np.maximum(1.0, np.abs(want))[None, :]
-    rows, cols = scipy.optimize.linear_sum_assignment(cost)
-    matched = np.empty_like(want)
-    matched[cols] = got[rows]
-    err = 0.0
-    for g in _pole_clusters(want):
-        p0 = want[g[0]]
-        s = max(1.0, abs(p0))
-        k = len(g)
-        mean_err = abs(np.mean(matched[g]) - p0) / s
-        spread = float(np.max(np.abs(matched[g] - p0))) / s
-        err = max(err, mean_err, spread ** k)
-    return float(err)
-
-
-def _multiplicities(p):
-    return [(p[g[0]], len(g)) for g in _pole_clusters(p, 1e-12)]
-
-
-def _place(A, B, p, method, role):
-    """Return K placing eig(A - B K) at p (A, B controllable)."""
-    n, m = B.shape
-    if n == 0:
-        return np.zeros((m, 0))
-    rank_b = numerical_rank(B)
-    side = 'outputs' if role == 'observer' else 'inputs'
-    worst, mult = max(_multiplicities(p), key=lambda t: t[1])
-    place_ok = mult <= rank_b
-    if method == 'acker' and m != 1:
-        raise DesignError(f"method 'acker' needs a single {side[:-1]}; there are {m} {side}")
-    if not place_ok:
-        if m != 1:
-            raise DesignError(
-                f'{role} pole {format_complex(worst)} is repeated {mult} times, more than '
-                f'the {rank_b} independent {side}; pole placement cannot do that '
-                '(use distinct poles, or a Kalman/LQR design)')
-        if method == 'place':
-            raise DesignError(
-                f'{role} pole {format_complex(worst)} is repeated {mult} times; method '
-                f"'place' allows at most {rank_b}; use method 'acker' or 'auto'")
-    candidates = {}
-    if place_ok and method in ('auto', 'place', 'acker'):
-        try:
-            candidates['place'] = np.asarray(control.place(A, B, p), dtype=float)
-        except (ValueError, np.linalg.LinAlgError) as err:
-            if method == 'place':
-                raise DesignError(f'{role} pole placement failed: {err}') from None
-    if m == 1 and method in ('auto', 'acker'):
-        try:
-            candidates['acker'] = np.asarray(control.acker(A, B, p), dtype=float).reshape(1, n)
-        except (ValueError, np.linalg.LinAlgError) as err:
-            if method == 'acker':
-                raise DesignError(f'{role} pole placement by acker failed: {err}') from None
-    if not candidates:
-        raise DesignError(f'no placement method could place the {role} poles '
-                          f'(method={method!r})')
-    # eig(M) and eig(M^T) are the same poles, but LAPACK's round-off differs between the
-    # two (by 10x on ill-conditioned placements): judge each gain by the larger, so that the
-    # choice holds for the observer's A - L C as much as for its dual.
-    errors = {name: max(pole_placement_error(A - B @ K, p),
-                        pole_placement_error((A - B @ K).T, p))
-              for name, K in candidates.items()}
-    chosen = method if method in candidates else min(errors, key=errors.get)
-    if method == 'acker' and 'place' in errors and errors['acker'] > 1e-9 and \
-            errors['acker'] > ACKER_DIGITS_LOST * max(errors['place'], 1e-300):
-        warnings.warn(
-            f"method 'acker' places the {role} poles with relative error "
-            f"{errors['acker']:.1e}, place with {errors['place']:.1e}: Ackermann's formula "
-            "loses digits here; prefer method 'place' or 'auto'",
-            ObserverDesignWarning, stacklevel=4)
-    if errors[chosen] > PLACEMENT_WARN_TOL:
-        warnings.warn(
-            f'{role} poles placed with relative error {errors[chosen]:.1e} '
-            f'(> {PLACEMENT_WARN_TOL:g}) by {chosen}: the placement is ill-conditioned; '
-            'the gain is large or the poles are nearly repeated',
-            ObserverDesignWarning, stacklevel=4)
-    return candidates[chosen]
 
 
 def _design(A, B, poles, method, discrete, state_names, role):
@@ -173,7 +42,7 @@ def _design(A, B, poles, method, discrete, state_names, role):
         if p.size != n:
             raise DimensionError(
                 f'poles has {p.size} poles; expected {n} (one per state)')
-        return _place(A, B, p, method, role)
+        return place_gain(A, B, p, method, role)
     report = observability_report(A.T, B.T, state_names, discrete)
     pair = '(A, C)' if role == 'observer' else '(A, B)'
     lost = 'unobservable' if role == 'observer' else 'uncontrollable'
@@ -194,7 +63,7 @@ def _design(A, B, poles, method, discrete, state_names, role):
                f'only for the {r} {"observable" if role == "observer" else "controllable"} '
                'modes')
         raise DimensionError(msg)
-    Kc = _place(Abar[:r, :r], Bbar[:r], p, method, role)
+    Kc = place_gain(Abar[:r, :r], Bbar[:r], p, method, role)
     Kbar = np.zeros((B.shape[1], n))
     Kbar[:, :r] = Kc
     return Kbar @ T.T
@@ -217,8 +86,10 @@ def observer_gain(A, C, poles, method='auto', discrete=False, state_names=None):
     method : {'auto', 'place', 'acker'}
         ``place`` is python-control's place on the dual (A^T, C^T);
         ``acker`` is Ackermann's formula (one output only);
-        ``auto`` takes the one whose placed poles are closer to those asked
-        (acker is the only one for a pole repeated with one output).
+        ``auto`` takes the best of the candidates of
+        :mod:`observer_ros.core.pole_placement` (place, place run to convergence,
+        acker; for a pole repeated more often than there are outputs, a rank-one
+        gain ``L = l w^T`` or a cyclic design).
     discrete : bool
         Stability of unobservable modes is judged in the z-plane.
     state_names : sequence of str, optional
@@ -236,8 +107,8 @@ def observer_gain(A, C, poles, method='auto', discrete=False, state_names=None):
     NotDetectableError
         An unobservable eigenvalue is not stable; the message names it and its states.
     DesignError
-        A pole repeated more often than there are outputs (several outputs), or a
-        method that does not apply.
+        A method that does not apply (``place`` with a pole repeated more often than
+        there are independent outputs, ``acker`` with several outputs).
 
     Warns
     -----

@@ -38,8 +38,8 @@ import scipy.optimize
 from .errors import DesignVerificationError
 
 __all__ = ['EIG_BOUND_FACTOR', 'PLACEMENT_BOUND_FACTOR', 'eigenvalue_bounds',
-           'stability_status', 'unstable_eigenvalues', 'PlacementCheck', 'placement_bound',
-           'verify_placement', 'verify_stable']
+           'stability_status', 'unstable_eigenvalues', 'describe_status', 'PlacementCheck',
+           'placement_bound', 'verify_placement', 'verify_stable']
 
 _EPS = np.finfo(float).eps
 
@@ -124,7 +124,7 @@ def stability_status(lam, bound, discrete=False):
     return 'unstable' if x > bound else 'marginally stable'
 
 
-def unstable_eigenvalues(M, discrete=False, norm=None):
+def unstable_eigenvalues(M, discrete=False, norm=None, with_bounds=False):
     """
     Return the eigenvalues of M that are not stable by the stability rule.
 
@@ -136,18 +136,55 @@ def unstable_eigenvalues(M, discrete=False, norm=None):
         z-plane instead of s-plane.
     norm : float, optional
         See :func:`eigenvalue_bounds`.
+    with_bounds : bool
+        Also return each eigenvalue's rounding bound.
 
     Returns
     -------
-    list of (complex, str)
-        Each eigenvalue that is not stable and its status, largest real part (or
-        modulus) first.
+    list of (complex, str) or (complex, str, float)
+        Each eigenvalue that is not stable and its status (and bound), largest real
+        part (or modulus) first.
 
     """
     lam, bound = eigenvalue_bounds(M, norm)
-    bad = [(complex(x), stability_status(x, b, discrete)) for x, b in zip(lam, bound)]
-    bad = [t for t in bad if t[1] != 'stable']
-    return sorted(bad, key=lambda t: -(abs(t[0]) if discrete else t[0].real))
+    bad = [(complex(x), stability_status(x, b, discrete), float(b))
+           for x, b in zip(lam, bound)]
+    bad = sorted([t for t in bad if t[1] != 'stable'],
+                 key=lambda t: -(abs(t[0]) if discrete else t[0].real))
+    return bad if with_bounds else [t[:2] for t in bad]
+
+
+def describe_status(lam, status, bound, discrete=False):
+    """
+    Say in words why an eigenvalue is not stable by the rule: unstable, on the axis, or unknown.
+
+    Parameters
+    ----------
+    lam : complex
+        The eigenvalue.
+    status : str
+        Its :func:`stability_status`.
+    bound : float
+        Its rounding bound.
+    discrete : bool
+        z-plane instead of s-plane.
+
+    Returns
+    -------
+    str
+        ``'unstable'``; ``'marginally stable'`` for an eigenvalue on the imaginary axis
+        (unit circle) to within a millionth of its size; otherwise (a pole that looks
+        stable, within its own rounding bound of the axis) ``'not verifiably stable:
+        rounding of this matrix moves it by up to B'``.
+
+    """
+    lam = complex(lam)
+    if status != 'marginally stable':
+        return status
+    x = abs(lam) - 1.0 if discrete else lam.real
+    if abs(x) <= 1e-6 * max(1.0, abs(lam)) or x > 0:
+        return status
+    return f'not verifiably stable: rounding of this matrix moves it by up to {bound:.2g}'
 
 
 @dataclass(frozen=True)
@@ -317,13 +354,14 @@ def verify_placement(M, requested, field, perturbation, discrete=False):
     with np.errstate(divide='ignore', invalid='ignore'):
         ratio = np.where(err > 0, err / np.maximum(bound, 1e-300), 0.0)
     check = PlacementCheck(field, want, got, err, bound, int(np.argmax(ratio)))
-    bad = unstable_eigenvalues(M, discrete)
+    bad = unstable_eigenvalues(M, discrete, with_bounds=True)
     if bad:
-        lam_bad, status = bad[0]
+        lam_bad, status, b = bad[0]
         i = int(np.argmin(np.abs(got - lam_bad)))
         raise DesignVerificationError(
             f'{field}: the designed gain does not place pole {_fmt(want[i])}: it lands at '
-            f'{_fmt(lam_bad)} ({status}; largest placement error {check.max_error:.2g}); '
+            f'{_fmt(lam_bad)} ({describe_status(lam_bad, status, b, discrete)}; largest '
+            f'placement error {check.max_error:.2g}); '
             f'the placement is too ill-conditioned to trust: {_advice(field)}')
     if not check.within_bound:
         i = check.worst
@@ -357,9 +395,9 @@ def verify_stable(M, field, what, discrete=False, norm=None):
         Naming the field and the least stable eigenvalue.
 
     """
-    bad = unstable_eigenvalues(M, discrete, norm)
+    bad = unstable_eigenvalues(M, discrete, norm, with_bounds=True)
     if bad:
-        lam, status = bad[0]
+        lam, status, b = bad[0]
         raise DesignVerificationError(
             f'{field} does not stabilize the loop: {what} has the eigenvalue {_fmt(lam)} '
-            f'({status})')
+            f'({describe_status(lam, status, b, discrete)})')

@@ -24,13 +24,13 @@ common multiple of the dividers):
 
 from dataclasses import dataclass
 import math
-from typing import Tuple
+from typing import Optional, Tuple
 
 import numpy as np
 
 from .factory import make_estimator
 from ..errors import DesignVerificationError
-from ..verify import unstable_eigenvalues
+from ..verify import describe_status, unstable_eigenvalues
 
 __all__ = ['MAX_PATTERN_STEPS', 'SampledCheck', 'sensor_pattern', 'check_sampled_observer']
 
@@ -51,7 +51,8 @@ class SampledCheck:
     ``spectral_radius`` is that of the product of their error maps, ``decay_rate``
     ``ln(spectral_radius) / period`` (1/s; per sample for a discrete plant the period
     is in samples times the sample time) and ``designed_rate`` the slowest requested
-    pole's real part (continuous) or ``ln|z|`` per sample time (discrete).
+    pole's real part (continuous) or ``ln|z|`` per sample time (discrete); -inf for a
+    deadbeat map or design. ``period_map`` is the product of the period's error maps.
 
     """
 
@@ -61,14 +62,17 @@ class SampledCheck:
     decay_rate: float
     designed_rate: float
     sensors: Tuple[str, ...]
+    period_map: Optional[np.ndarray] = None
 
     def to_json(self):
         """Return a JSON-serialisable summary."""
+        def num(x):
+            return None if not np.isfinite(x) else float(x)
         return {'period': self.period,
                 'corrections': [{'h': h, 'outputs': list(o)} for h, o in self.corrections],
                 'spectral_radius': self.spectral_radius,
-                'decay_rate': self.decay_rate,
-                'designed_rate': self.designed_rate,
+                'decay_rate': num(self.decay_rate),
+                'designed_rate': num(self.designed_rate),
                 'sensors': list(self.sensors)}
 
 
@@ -176,16 +180,17 @@ def check_sampled_observer(vehicle):
     lam = np.linalg.eigvals(product)
     rho = float(np.max(np.abs(lam))) if lam.size else 0.0
     poles = np.asarray(spec.poles, dtype=complex)
-    if plant.is_discrete:
-        designed = float(np.log(np.max(np.abs(poles))) / dt)
-    else:
-        designed = float(np.max(poles.real))
-    with np.errstate(divide='ignore'):
+    with np.errstate(divide='ignore'):     # deadbeat (z = 0): -inf, said as such
+        if plant.is_discrete:
+            designed = float(np.log(np.max(np.abs(poles))) / dt)
+        else:
+            designed = float(np.max(poles.real))
         rate = float(np.log(rho) / period) if rho > 0 else -np.inf
-    check = SampledCheck(period, tuple(corrections), rho, rate, designed, tuple(sorted(used)))
+    check = SampledCheck(period, tuple(corrections), rho, rate, designed, tuple(sorted(used)),
+                         product)
     sensors = _describe(vehicle, used)
     multi = len({rows for _, rows, _ in events}) > 1
-    bad = unstable_eigenvalues(product, discrete=True)
+    bad = unstable_eigenvalues(product, discrete=True, with_bounds=True)
     if bad:
         why = ("each step's gain places the poles of its own map, but the product of the "
                'alternating maps is not stable; use observer.type: kalman (it handles '
@@ -196,13 +201,14 @@ def check_sampled_observer(vehicle):
         raise DesignVerificationError(
             f'observer.poles: with sensors {sensors} the sampled observer diverges: the '
             f'error map over one period of the sensor pattern ({period:.6g} s, '
-            f'{len(events)} corrections) has spectral radius {rho:.4g} ({bad[0][1]}); {why}')
+            f'{len(events)} corrections) has spectral radius {rho:.4g} '
+            f'({describe_status(*bad[0], discrete=True)}); {why}')
     messages = []
-    if multi and rate > SLOW_DECAY_FRACTION * designed:
+    if multi and np.isfinite(designed) and rate > SLOW_DECAY_FRACTION * designed:
         messages.append(
             f"observer.poles: with sensors {sensors} the sampled observer's error decays at "
-            f'{rate:.3g}/s over one period of the sensor pattern ({period:.6g} s, spectral '
-            f'radius {rho:.4g}), not at the designed {designed:.3g}/s: the per-step gains '
+            f'{-rate:.3g}/s over one period of the sensor pattern ({period:.6g} s, spectral '
+            f'radius {rho:.4g}), not at the designed {-designed:.3g}/s: the per-step gains '
             f'interact; a Kalman observer (observer.type: kalman) handles sensors at '
             f'different rates')
     return check, messages
