@@ -13,9 +13,9 @@ import time
 from observer_ros.bag import report as eval_report, tune_report
 from observer_ros.bag.errors import BagToolError
 from observer_ros.bag.evaluate import main as eval_main
-from observer_ros.bag.outputs import MARKER
-from observer_ros.bag.staging import StagedOutput, write_new_file
 from observer_ros.bag.tune import main as tune_main
+from observer_ros.outputs.folders import MARKER
+from observer_ros.outputs.staging import StagedOutput, write_new_file
 import pytest
 from ros_helpers import tmpfs, WAIT
 
@@ -106,7 +106,7 @@ def test_an_evaluation_that_cannot_finish_writing_keeps_the_earlier_output(
 def test_a_stage_left_by_a_killed_run_is_removed_and_an_old_folder_restored(tmp_path):
     out = tmp_path / 'eval'
     code = ('import os, signal, sys\n'
-            'from observer_ros.bag.staging import StagedOutput\n'
+            'from observer_ros.outputs.staging import StagedOutput\n'
             f'stage = StagedOutput({str(out)!r}, False, "observer-eval").__enter__()\n'
             '(stage.path / "results.txt").write_text("half")\n'
             'os.kill(os.getpid(), signal.SIGKILL)\n')

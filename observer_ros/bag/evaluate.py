@@ -43,13 +43,13 @@ import numpy as np
 from .errors import BagToolError
 from .metrics import (DEFAULT_TOLERANCE, score_variant, STEADY_FRACTION, tolerances,
                       whiteness, WHITENESS_LAGS)
-from .outputs import check_output
 from .reader import read_recording
 from .replay import CLOCK_JUMP_AGREEMENT, CLOCK_JUMP_TOLERANCE, epochs_of, live_replay, replay
 from .report import BAG_MAX_MESSAGES, format_table, write_results
 from .results import EvalResult, jsonable, ScoredReplay, VariantResult
 from ..core.errors import error_text, ObserverError
 from ..core.vehicle_design import design_vehicle
+from ..outputs.folders import check_output
 
 __all__ = ['DEFAULT_TOLERANCE', 'STEADY_FRACTION', 'WHITENESS_LAGS', 'VariantResult',
            'EvalResult', 'JobResult', 'parse_variant', 'parse_compare', 'parse_tolerance',

@@ -16,8 +16,8 @@ from .metrics import WHITENESS_LAGS
 from .plots import decimate, write_plots
 from .reader import jazzy_typestore
 from .replay import SKIPPED
-from .staging import StagedOutput
 from ..core.innovation import WINDOW as INNOVATION_WINDOW
+from ..outputs.staging import StagedOutput
 
 __all__ = ['BAG_MAX_MESSAGES', 'fmt', 'text_table', 'format_table',
            'write_results', 'write_results_bag', 'csv_cell']
@@ -162,7 +162,7 @@ def write_results(result, out, force=False, plots=True, results_bag=True,
     Write the evaluation to a new folder, whole: the earlier output, or all of the new one.
 
     The files are written beside ``out`` and put in its place at the end
-    (:class:`~observer_ros.bag.staging.StagedOutput`): an interrupted evaluation leaves
+    (:class:`~observer_ros.outputs.staging.StagedOutput`): an interrupted evaluation leaves
     ``out`` as it was.
 
     Parameters

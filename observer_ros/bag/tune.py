@@ -42,14 +42,14 @@ from .errors import BagToolError
 from .evaluate import _load_vehicle, _Progress, IN_MEMORY_HELP, stop_on_sigterm, tool_error
 from .gain_search import DEFAULT_SCALES, gain_search, search_overrides
 from .identify import Identification, identify
-from .outputs import check_output
 from .pole_search import DEFAULT_EVALUATIONS, pole_search, pole_set
 from .results import jsonable
-from .staging import StagedOutput
 from .tune_report import format_report, write_report
 from .tuned_vehicle import OBSERVER_KEYS, write_tuned_vehicle
 from ..core.als import DEFAULT_LAGS
 from ..core.errors import ObserverError
+from ..outputs.folders import check_output
+from ..outputs.staging import StagedOutput
 
 __all__ = ['Identification', 'identify', 'TuneResult', 'tune', 'format_report', 'main']
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import yaml
 
 from .errors import BagToolError
-from .staging import write_new_file
+from ..outputs.staging import write_new_file
 from ..vehicle import load_parameters, load_vehicle, parameters_to_yaml
 
 __all__ = ['OBSERVER_KEYS', 'tuned_parameters', 'write_tuned_vehicle']

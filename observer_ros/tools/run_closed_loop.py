@@ -24,13 +24,13 @@ import warnings
 import numpy as np
 
 from . import interrupt
-from ..bag.outputs import check_output, mark_output, MARKER, prepare_output, seal_output
-from ..bag.staging import write_new_file
 from ..core.errors import error_text, ObserverError
 from ..core.health import Envelope, ENVELOPE_FACTOR
 from ..core.vehicle_design import design_vehicle
 from ..nodes import signals
 from ..nodes.checks import state_scale
+from ..outputs.folders import check_output, mark_output, MARKER, prepare_output, seal_output
+from ..outputs.staging import write_new_file
 from ..params_file import regular_file
 from ..ros_names import check_domain_id, check_namespace
 from ..vehicle import (apply_overrides, load_parameters, load_vehicle, parameters_to_yaml,

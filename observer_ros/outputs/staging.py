@@ -1,4 +1,4 @@
-# observer_ros.bag.staging: a tool's output written aside, then put in place whole.
+# observer_ros.outputs.staging: a tool's output written aside, then put in place whole.
 """
 Outputs that are either the previous ones or a complete new set, whatever interrupts a tool.
 
@@ -33,8 +33,8 @@ from pathlib import Path
 import secrets
 import signal
 
-from .errors import BagToolError
-from .outputs import check_output, MARKER, seal_output
+from .folders import check_output, MARKER, seal_output
+from ..bag.errors import BagToolError
 
 __all__ = ['StagedOutput', 'write_new_file', 'STAGE_MARKER']
 

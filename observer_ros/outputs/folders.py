@@ -1,4 +1,4 @@
-# observer_ros.bag.outputs: output folders a tool may replace only when it can prove it wrote them.
+# observer_ros.outputs.folders: output folders a tool replaces only when it proves it wrote them.
 """
 Output folders with an ownership marker.
 
@@ -21,7 +21,7 @@ import json
 import os
 from pathlib import Path
 
-from .errors import BagToolError
+from ..bag.errors import BagToolError
 
 __all__ = ['MARKER', 'TOOL_FILES', 'check_output', 'prepare_output', 'seal_output',
            'mark_output']
