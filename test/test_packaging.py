@@ -46,6 +46,8 @@ OPTIONAL_IMPORTS = {'backports', 'compression', 'lz4'}
 # tool dependencies with no rosdep key, installed with pip (README's install notes);
 # observer-eval-batch says so when they are missing
 OPTIONAL_IMPORTS |= {'distributed'}
+# only for observer-eval-batch --dashboard (the `dashboard` extra), which says so when missing
+OPTIONAL_IMPORTS |= {'bokeh'}
 
 
 @pytest.fixture(scope='module')

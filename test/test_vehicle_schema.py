@@ -269,3 +269,13 @@ def test_a_bare_n_is_false_as_ros_reads_it_and_written_files_quote_it(tmp_path):
     out.write_text(parameters_to_yaml(flat))
     assert "input_units: ['N']" in out.read_text()
     assert load_vehicle(out).input_units == ('N',)
+
+
+def test_written_files_have_no_yaml_aliases_and_keep_quoted_units():
+    # one list object under two keys: a plain safe_dump writes an anchor and an alias
+    shared = [1.0, 2.0]
+    text = parameters_to_yaml({'observer.a': shared, 'observer.b': shared,
+                               'model.input_units': ['N']})
+    assert '&' not in text and '*' not in text.replace('/**:', ''), text
+    assert "input_units: ['N']" in text
+    assert yaml.safe_load(text)['/**']['ros__parameters']['observer']['b'] == shared

@@ -11,8 +11,6 @@ numbers as a comment on the line before it. An existing file is never overwritte
 
 from pathlib import Path
 
-import yaml
-
 from .errors import BagToolError
 from ..outputs.staging import write_new_file
 from ..vehicle import load_parameters, load_vehicle, parameters_to_yaml
@@ -49,11 +47,6 @@ def tuned_parameters(source, observer, replace=OBSERVER_KEYS):
     return flat
 
 
-class _NoAliasDumper(yaml.SafeDumper):
-    def ignore_aliases(self, data):
-        return True
-
-
 def write_tuned_vehicle(source, path, observer, sources, header=(), replace=OBSERVER_KEYS):
     """
     Write a new vehicle file with a tuned observer; return its path.
@@ -85,10 +78,6 @@ def write_tuned_vehicle(source, path, observer, sources, header=(), replace=OBSE
                            '(give another --output)')
     flat = tuned_parameters(source, observer, replace)
     text = parameters_to_yaml(flat)
-    # parameters_to_yaml uses safe_dump; make sure nothing became an alias
-    if '&' in text or '*' in text.replace('"*', '').replace("'*", ''):
-        text = yaml.dump(yaml.safe_load(text), Dumper=_NoAliasDumper, sort_keys=False,
-                         default_flow_style=None, width=99)
     lines, stack = [], []            # (indent, key) of the mappings the line is in
     for line in text.splitlines():
         key = line.strip().split(':', 1)[0]

@@ -9,7 +9,15 @@ from ..params_file import ROS_BOOL_RE
 
 
 class _Dumper(yaml.SafeDumper):
-    """A safe dumper that quotes a string ROS's parser would read as a boolean (``N``)."""
+    """
+    A safe dumper for ROS parameter files.
+
+    It quotes a string ROS's parser would read as a boolean (``N``) and never writes a YAML
+    alias (ROS's parser refuses them: "Will not support aliasing").
+    """
+
+    def ignore_aliases(self, data):
+        return True
 
 
 _Dumper.add_implicit_resolver('tag:yaml.org,2002:bool', ROS_BOOL_RE, list('yYnN'))
