@@ -62,6 +62,17 @@ def test_node_without_params_file_says_how_to_start(tmp_path):
     assert '--params-file config/<vehicle>.yaml' in line
 
 
+def test_params_file_without_vehicle_sections_is_named(tmp_path):
+    # a file ROS accepts (a scalar; parameters of another node) that holds no vehicle
+    for name, text in (('scalar.yaml', '42\n'),
+                       ('other.yaml', '/**:\n  ros__parameters:\n    foo: 1\n')):
+        path = tmp_path / name
+        path.write_text(text)
+        line = _one_error(_run(NODES['observer'], '--ros-args', '--params-file', str(path)))
+        assert f'no vehicle parameters in {path}' in line, line
+        assert 'vehicle, model, sensors, observer, controller, simulator' in line, line
+
+
 def test_missing_params_file(tmp_path):
     line = _one_error(_run(NODES['observer'], '--ros-args', '--params-file',
                            str(tmp_path / 'nope.yaml')))

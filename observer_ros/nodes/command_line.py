@@ -18,7 +18,8 @@ import sys
 from ..core.errors import ObserverError
 from ..params_file import check_parameters_file, regular_file
 
-__all__ = ['usage', 'check_command_line', 'regular_params_files', 'program_name']
+__all__ = ['usage', 'params_files', 'check_command_line', 'regular_params_files',
+           'program_name']
 
 USAGE = """usage: ros2 run observer_ros {prog} --ros-args --params-file VEHICLE.yaml \\
            [-p NAME:=VALUE ...] [-r __ns:=/NAMESPACE] [-r FROM:=TO ...]
@@ -36,7 +37,8 @@ def usage(prog, module, doc):
     return USAGE.format(prog=prog, module=module) + '\n' + (doc or '').strip() + '\n'
 
 
-def _params_files(argv):
+def params_files(argv):
+    """Return the files a command line gives with ``--params-file``, in order."""
     return [argv[i + 1] for i, arg in enumerate(argv[:-1]) if arg == '--params-file']
 
 
@@ -59,7 +61,7 @@ def check_command_line(argv, prog, module, doc):
         print(usage(prog, module, doc))
         return 0
     try:
-        for path in _params_files(argv):
+        for path in params_files(argv):
             check_parameters_file(path)
     except ObserverError as err:
         print(f'error: {err}', file=sys.stderr)

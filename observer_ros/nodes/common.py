@@ -3,6 +3,7 @@
 
 import array
 import math
+import sys
 import time
 
 from builtin_interfaces.msg import Time
@@ -17,6 +18,7 @@ from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64
 
 from .callback_watch import CallbackWatch
+from .command_line import params_files
 from .parameters import declare_parameters, set_undeclared
 from .topic_watch import level_rank, TopicWatch
 from ..core.errors import ObserverError
@@ -196,6 +198,13 @@ class VehicleNode(Node):
         # each with a ParameterDescriptor: description, read_only, range (nodes/parameters.py)
         declare_parameters(self, own_parameters)
         if not any(name.split('.', 1)[0] in VEHICLE_SECTIONS for name in self._parameters):
+            given = params_files(sys.argv)
+            if given:
+                raise ObserverError(
+                    f'no vehicle parameters in {", ".join(given)}: a vehicle file has the '
+                    f'sections {", ".join(VEHICLE_SECTIONS)} under "/**: ros__parameters:" '
+                    f"(or under this node's name, {self.get_name()}); see "
+                    'config/submarine.yaml')
             raise ObserverError('no vehicle parameters: start the node with --ros-args '
                                 '--params-file config/<vehicle>.yaml (see --help)')
         self.vehicle = self.load_vehicle() if load else None
