@@ -26,6 +26,8 @@ LAUNCH = ('ros2 launch observer_ros closed_loop.launch.py vehicle:=submarine mod
           'duration:=0')
 SECOND = LAUNCH + ' namespace:=sub2 publish_clock:=false'
 MANAGED = LAUNCH + ' autostart:=false'
+ECHO_STAMP = ('ros2 topic echo --once /state/estimate sensor_msgs/msg/JointState '
+              '--field header.stamp')
 LIFECYCLE = ('ros2 lifecycle get /observer', 'ros2 lifecycle set /observer configure',
              'ros2 lifecycle set /observer activate')
 RESET = 'ros2 service call /observer/reset std_srvs/srv/Trigger'
@@ -215,6 +217,7 @@ def test_closed_loop_launch_params_and_one_clock(ros2env, tmp_path):
     try:
         echo = _ros2(ros2env, 'ros2 topic echo --once /state/estimate sensor_msgs/msg/JointState')
         assert echo.returncode == 0 and 'position:' in echo.stdout, first.output()[-3000:]
+        _check_current(ros2env)
         # a second vehicle that does not own time: still one /clock publisher
         second = Launch(ros2env, SECOND, tmp_path / 'second.log')
         echo = _ros2(ros2env,
@@ -235,6 +238,23 @@ def test_closed_loop_launch_params_and_one_clock(ros2env, tmp_path):
         codes = [first.stop()] + ([] if second is None else [second.stop()])
         for launch, code in zip((first, second), codes):
             _assert_stopped_cleanly(launch, 3, code)
+
+
+def _seconds(echoed):
+    """Return the time a `ros2 topic echo --once --field` of a Time printed, in s."""
+    fields = yaml.safe_load(echoed.split('---')[0])
+    return fields['sec'] + fields['nanosec'] * 1e-9
+
+
+def _check_current(env):
+    """`ros2 topic echo --once` of an estimate shows one of now: within a period of /clock."""
+    period = 1.0 / 20.0     # the submarine's simulator.rate_hz
+    got = _ros2(env, f'ros2 topic echo --once /clock rosgraph_msgs/msg/Clock --field clock && '
+                f'{ECHO_STAMP} && ros2 topic echo --once /clock rosgraph_msgs/msg/Clock '
+                '--field clock')
+    assert got.returncode == 0, got.stdout + got.stderr
+    before, stamp, after = (_seconds(part) for part in got.stdout.split('---\n')[:3])
+    assert before - period <= stamp <= after + period, (before, stamp, after)
 
 
 def _check_parameters(env, tmp_path):
