@@ -321,6 +321,9 @@ def test_recorded_lockstep_launch(ros2env, tmp_path):
               for t in meta['topics_with_message_count']}
     # pitch_imu: 3 s at 500 Hz in lock-step, one true state per step (1501 with step 0)
     assert counts['/state/true'] >= 1500, counts
+    # recorded on /clock's time (nothing at 0 s), by ROS 2 Jazzy
+    assert meta['starting_time']['nanoseconds_since_epoch'] >= 1_000_000_000, meta
+    assert meta['ros_distro'] == 'jazzy', meta
 
 
 # Ctrl-C at a random moment: OBSERVER_ROS_SIGNAL_TRIES=50 is the on-demand bar

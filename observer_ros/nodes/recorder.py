@@ -6,7 +6,9 @@ Topics: the vehicle's sensors, ``state/true``, ``state/estimate``, ``observer/re
 ``control/u``, ``control/reference``, ``/clock`` and ``/diagnostics`` (resolved in the
 node's namespace), plus ``extra_topics`` ("name:pkg/msg/Type"). The storage is mcap
 (Jazzy's default) or sqlite3, metadata version 9, each topic's QoS recorded as offered.
-Messages are stamped with the node clock at reception (sim time with use_sim_time). The
+Messages are stamped with the node clock at reception (sim time with use_sim_time; those
+received before the first /clock are written at its time). The metadata names the ROS
+distribution (``ros_distro: jazzy``, ``$ROS_DISTRO`` when set). The
 readers keep up to ``queue_depth`` messages per topic (default 1000, whatever the
 publisher's depth), so that a burst, or a moment without CPU, loses nothing.
 
@@ -55,7 +57,7 @@ from ..bag.play import message_class
 from ..core.errors import error_text, ObserverError
 from ..ros_names import check_topic_name
 
-__all__ = ['RecorderNode', 'RecordingError', 'main', 'recorded_topics']
+__all__ = ['RecorderNode', 'RecorderWriter', 'RecordingError', 'main', 'recorded_topics']
 
 STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
 
@@ -91,6 +93,35 @@ def _check_free_space(path, reserve):
     if reserve >= free:
         raise ObserverError(f'recorder: disk_reserve ({reserve} bytes) is not less than the '
                             f'free space on {parent} ({free} bytes); nothing written')
+
+
+# messages received before the first /clock (simulated time 0) kept for it, at most
+EARLY_LIMIT = 10000
+# the ROS distribution named in the bag's metadata (rosbags writes its own name there)
+ROS_DISTRO = os.environ.get('ROS_DISTRO') or 'jazzy'
+
+
+def _name_distro(metadata):
+    """Return bag metadata (YAML text) with ``ros_distro`` the ROS distribution's."""
+    return metadata.replace('ros_distro: rosbags', f'ros_distro: {ROS_DISTRO}')
+
+
+class RecorderWriter(CrcWriter):
+    """rosbags' Writer with chunk CRCs whose metadata names the ROS distribution."""
+
+    def close(self):
+        """Close as rosbags does; ``ros_distro`` in the storage's and the file's metadata."""
+        storage = self.storage
+        if storage is not None:
+            close_storage = storage.close
+
+            def close_named(version, metadata):
+                close_storage(version, _name_distro(metadata))
+            storage.close = close_named
+        super().close()
+        tmp = self.metapath.with_suffix('.yaml.tmp')
+        tmp.write_text(_name_distro(self.metapath.read_text()), 'utf8')
+        tmp.replace(self.metapath)
 
 
 class RecordingError(ObserverError):
@@ -200,7 +231,8 @@ class RecorderNode(VehicleNode):
             raise ObserverError(f'recorder: queue_depth must be >= 1; got {depth}')
         reserve = self._number('disk_reserve', int)
         _check_free_space(path, reserve)
-        self.writer = CrcWriter(path, version=9, storage_plugin=STORAGES[storage])
+        self._early = []        # (connection, data) received before the first /clock
+        self.writer = RecorderWriter(path, version=9, storage_plugin=STORAGES[storage])
         try:
             self.writer.open()
         except OSError as err:
@@ -317,11 +349,31 @@ class RecorderNode(VehicleNode):
         if self.writer is None:
             return
         t = self.get_clock().now().nanoseconds
+        if not t and len(self._early) < EARLY_LIMIT:
+            # simulated time before the first /clock: kept until it comes, then written at
+            # its time (a bag that starts at 0 s says nothing of when it was recorded)
+            self._early.append((connection, data))
+            return
+        if self._early:
+            self._write_early(t)
+        self._write(connection, t, data)
+
+    def _write(self, connection, t, data):
         try:
             self.writer.write(connection, t, data)
         except (OSError, sqlite3.Error) as err:
             self._fail(err)
         self.counts[connection.topic] += 1
+
+    def _write_early(self, t):
+        """Write what came before the first /clock, in the order it came, at time t."""
+        early, self._early = self._early, []
+        for connection, data in early:
+            self._write(connection, t, data)
+
+    def received(self):
+        """Return the messages received so far (on disk, or waiting for the first /clock)."""
+        return sum(self.counts.values()) + len(self._early)
 
     def _release_lock(self, remove=False):
         """Release the recording lock (and remove its file once the bag is closed)."""
@@ -367,6 +419,8 @@ class RecorderNode(VehicleNode):
 
     def close(self):
         """Close the bag (idempotent)."""
+        if self.writer is not None and self._early:     # no /clock ever came
+            self._write_early(self.get_clock().now().nanoseconds)
         if self.writer is not None:
             writer, self.writer = self.writer, None
             self._release_reserve()
@@ -407,9 +461,9 @@ def _drain(executor, node, quiet=0.3, limit=10.0):
     deadline = time.monotonic() + limit
     idle = 0
     while idle < 3 and time.monotonic() < deadline and not node.failed:
-        before = sum(node.counts.values())
+        before = node.received()
         executor.spin_once(timeout_sec=0.0)
-        idle = idle + 1 if sum(node.counts.values()) == before else 0
+        idle = idle + 1 if node.received() == before else 0
     end = min(deadline, time.monotonic() + quiet)
     while time.monotonic() < end and not node.failed:
         executor.spin_once(timeout_sec=max(0.0, end - time.monotonic()))
