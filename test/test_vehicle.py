@@ -107,6 +107,17 @@ def test_pitch_imu_has_feedthrough_and_aircraft_is_kalman():
     assert air.controller.lqr_Q.shape == (7, 7) and air.controller.lqr_R.shape == (2, 2)
 
 
+def test_base_frame_is_read_with_its_default():
+    # the frame of the state messages: the submarine's FRD body, base_link where unstated
+    assert load_vehicle(SUBMARINE).base_frame == 'base_link_frd'
+    assert load_vehicle(ROOT / 'config' / 'cart_pendulum.yaml').base_frame == 'base_link'
+    assert build({'vehicle.base_frame': 'hull'}).base_frame == 'hull'
+    assert vehicle_to_parameters(build({'vehicle.base_frame': 'hull'}))[
+        'vehicle.base_frame'] == 'hull'
+    with pytest.raises(VehicleFileError, match='vehicle.base_frame'):
+        build({'vehicle.base_frame': ''})
+
+
 # -- round trips --------------------------------------------------------------------------
 
 @pytest.mark.parametrize('path', CONFIGS, ids=lambda p: p.stem)

@@ -105,6 +105,7 @@ class Vehicle:
     simulator: SimulatorSpec
     description: str = ''
     source: str = ''
+    base_frame: str = 'base_link'                   # frame_id of the state messages
     warnings: Tuple[str, ...] = field(default=())   # loader warnings (unknown keys, ...)
     origin: str = ''                                # the file or node it was read from
     # the unit of each state, input and output ('' where unstated): model.*_units

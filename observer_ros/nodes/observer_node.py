@@ -273,9 +273,9 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
         # the estimate first: it is what the compensator waits for (benchmarks P1). A late
         # measurement is answered with the estimate at the newest stamp, now revised.
         if verdict is LATE:
-            self._publish_estimate(history.t, sensor.frame_id, history.head_tag, x_hat)
+            self._publish_estimate(history.t, history.head_tag, x_hat)
         else:
-            self._publish_estimate(t, sensor.frame_id, stamp, x_hat)
+            self._publish_estimate(t, stamp, x_hat)
         if self._cov_pub is not None:
             self._publish_covariance()
         residual = history.residual
@@ -285,9 +285,11 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
             self._res_pub.publisher.publish(joint_state(sensor.outputs, residual, t,
                                                         sensor.frame_id, stamp))
 
-    def _publish_estimate(self, t, frame_id, stamp=None, x_hat=None):
+    def _publish_estimate(self, t, stamp=None, x_hat=None):
         x_hat = self.estimator.x_hat if x_hat is None else x_hat
-        msg = joint_state(self.vehicle.plant.state_names, x_hat, t, frame_id, stamp)
+        # one frame for every estimate, whichever sensor it answers: the vehicle's body
+        msg = joint_state(self.vehicle.plant.state_names, x_hat, t, self.vehicle.base_frame,
+                          stamp)
         self._est_pub.publish(msg)
         self._last_estimate = msg
         if self._lockstep:
@@ -328,7 +330,7 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
                 return
         if np.isfinite(x_hat).all():
             at = t if at is None else at
-            self._publish_estimate(at, sensor.frame_id, stamp if at == t else None, x_hat)
+            self._publish_estimate(at, stamp if at == t else None, x_hat)
 
     def _refused(self, sensor, verdict, t, head, stamp):
         """Log a measurement the admission refused (it counted it); answer a repeat."""
@@ -338,7 +340,7 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
             # again with the current estimate, without correcting twice
             text = f'{topic}: duplicate stamp {t:.6f}; estimate re-published'
             if head == t:
-                self._publish_estimate(t, sensor.frame_id, stamp)
+                self._publish_estimate(t, stamp)
         elif verdict is FAR_BACK:
             adm = self._admission
             newest = adm.newest if adm.newest is not None else head
@@ -346,7 +348,7 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
                     f'({newest:.6f}); skipped (a clock jump needs '
                     f'{adm.clock_jump_agreement} such messages in a row)')
             if self._lockstep:      # the simulator waits for an answer at this stamp
-                self._publish_estimate(t, sensor.frame_id, stamp, self.estimator.x_hat)
+                self._publish_estimate(t, stamp, self.estimator.x_hat)
         elif verdict is OUT_OF_ORDER:
             text = (f'{topic}: stamp {t:.6f} older than the history '
                     f'({self.history.length:g} s before the estimate, {head:.6f}); skipped')
@@ -465,7 +467,7 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
         except (ObserverError, ValueError):
             return
         self.count(counter)
-        self._publish_estimate(now, self.vehicle.sensors[0].frame_id, None, x_hat)
+        self._publish_estimate(now, None, x_hat)
 
     def _on_diagnostics(self):
         now = self.wall_now()

@@ -226,7 +226,8 @@ class PlantSimulatorNode(VehicleNode):
     def _publish_step_state(self):
         """Publish the clock and the true state of step k."""
         self._publish_clock()
-        self._state_pub.publish(joint_state(self.vehicle.plant.state_names, self.x, self.t))
+        self._state_pub.publish(joint_state(self.vehicle.plant.state_names, self.x, self.t,
+                                            self.vehicle.base_frame))
 
     def _advance(self):
         """Integrate from t_k to t_k+1 holding u."""
@@ -287,7 +288,8 @@ class PlantSimulatorNode(VehicleNode):
             self._begin_step()
             if not self._due:
                 self._state_pub.publish(
-                    joint_state(self.vehicle.plant.state_names, self.x, self.t))
+                    joint_state(self.vehicle.plant.state_names, self.x, self.t,
+                                self.vehicle.base_frame))
 
     def _on_command(self, msg):
         try:

@@ -118,6 +118,7 @@ def vehicle_from_parameters(flat, source='', extra_keys=()):
         check.fail('vehicle.name', f'{name!r} may hold only letters, digits, _ . and -')
     description = check.string('vehicle.description', allow_empty=True)
     source_text = check.string('vehicle.source', allow_empty=True)
+    base_frame = check.string('vehicle.base_frame')
 
     plant, discrete = _read_model(check, warnings)
     sensors = _read_sensors(check, plant, sensor_names)
@@ -127,7 +128,8 @@ def vehicle_from_parameters(flat, source='', extra_keys=()):
     state_units, input_units, output_units = read_units(check, plant, sensors)
     return Vehicle(name=name, plant=plant, sensors=sensors, observer=observer,
                    controller=controller, simulator=simulator, description=description,
-                   source=source_text, warnings=tuple(warnings), origin=source,
+                   source=source_text, base_frame=base_frame, warnings=tuple(warnings),
+                   origin=source,
                    state_units=state_units, input_units=input_units,
                    output_units=output_units)
 

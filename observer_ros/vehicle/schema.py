@@ -143,6 +143,8 @@ KNOWN_KEYS = _keys(
     KeySpec('vehicle.description', STRING, 'one line', default=''),
     KeySpec('vehicle.source', STRING, 'where the numbers come from (seed, paper)',
             default=''),
+    KeySpec('vehicle.base_frame', STRING, 'the body frame the states are in: '
+            'header.frame_id of state/estimate and state/true (REP 105)', default='base_link'),
     KeySpec('model.time_domain', STRING, 'continuous or discrete', default='continuous',
             choices=('continuous', 'discrete')),
     KeySpec('model.sample_time', DOUBLE, 'the step of a discrete model; required for '

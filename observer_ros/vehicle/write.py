@@ -91,6 +91,8 @@ def vehicle_to_parameters(vehicle):
         flat['vehicle.description'] = vehicle.description
     if vehicle.source:
         flat['vehicle.source'] = vehicle.source
+    if vehicle.base_frame != 'base_link':
+        flat['vehicle.base_frame'] = vehicle.base_frame
     if plant.is_discrete:
         flat['model.time_domain'] = 'discrete'
         flat['model.sample_time'] = float(plant.dt)
