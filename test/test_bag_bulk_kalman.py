@@ -1,6 +1,6 @@
 # test/test_bag_bulk_kalman.py: the Kalman filter replayed in bulk equals its own calls.
 """
-A Kalman filter replayed in bulk (observer_ros/bag/bulk_kalman.py) equals its calls.
+A Kalman filter replayed in bulk (observer_ros/replay/bulk_kalman.py) equals its calls.
 
 The bulk replay against the filter called message by message (``exact=True``):
 time-varying gains while P converges, then the steady-state gain of each step class;
@@ -13,9 +13,9 @@ from pathlib import Path
 from bag_synth import CONFIG, simulate, write_bag
 import numpy as np
 from numpy.testing import assert_allclose, assert_array_equal
-from observer_ros.bag import bulk_kalman, bulk_runs
 from observer_ros.bag.reader import read_recording
-from observer_ros.bag.replay import replay
+from observer_ros.replay import bulk_kalman, bulk_runs
+from observer_ros.replay.replay import replay
 from observer_ros.vehicle import load_vehicle
 import pytest
 from test_bag_jitter import _jittered
@@ -56,7 +56,7 @@ def spy(monkeypatch):
         if out is not None:
             seen.append((out[3].steady_from, out[1].size))
         return out
-    monkeypatch.setattr('observer_ros.bag.bulk_replay.kalman_maps', recording)
+    monkeypatch.setattr('observer_ros.replay.bulk_replay.kalman_maps', recording)
     return seen
 
 

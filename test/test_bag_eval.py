@@ -25,8 +25,8 @@ from observer_ros.bag.errors import BagToolError
 from observer_ros.bag.evaluate import (evaluate_bag, evaluate_job, main, parse_tolerance,
                                        parse_variant, whiteness, write_results)
 from observer_ros.bag.reader import bag_info, decode_messages, read_recording
-from observer_ros.bag.replay import affine_scan, epochs_of, live_replay, replay
 from observer_ros.core.errors import ObserverError
+from observer_ros.replay.replay import affine_scan, epochs_of, live_replay, replay
 from observer_ros.sensors import extract_measurement
 from observer_ros.timeutil import stamp_to_sec
 from observer_ros.vehicle import load_vehicle
@@ -322,7 +322,7 @@ def test_bag_lockstep_replay_takes_the_nodes_order_not_the_receive_order(runs, t
 
 def test_bag_bulk_self_check_catches_a_discrepancy_anywhere(runs, tmp_path, monkeypatch):
     """A wrong input or a wrong step anywhere in a stretch: replayed call by call."""
-    import observer_ros.bag.bulk_replay as bulk_module
+    import observer_ros.replay.bulk_replay as bulk_module
     vehicle, run = runs['sub_noisy']
     rec = read_recording(write_bag(tmp_path / 'swapped', _swap_commands(run['messages'])),
                          vehicle)

@@ -12,10 +12,10 @@ import copy
 from bag_synth import CONFIG, simulate, write_bag
 import numpy as np
 from numpy.testing import assert_allclose
-from observer_ros.bag.bulk_checks import _twin
 from observer_ros.bag.reader import read_recording
-from observer_ros.bag.replay import replay
 from observer_ros.core.estimators import make_estimator
+from observer_ros.replay.bulk_checks import _twin
+from observer_ros.replay.replay import replay
 from observer_ros.vehicle import load_vehicle
 
 JITTER_NS = 300_000
@@ -64,7 +64,7 @@ def test_a_twin_has_its_own_state_and_the_same_caches():
 
 def test_long_stretches_are_replayed_in_pieces_with_the_same_estimates(tmp_path,
                                                                        monkeypatch):
-    from observer_ros.bag import bulk_runs
+    from observer_ros.replay import bulk_runs
     vehicle = load_vehicle(CONFIG / 'submarine.yaml')
     run = simulate(vehicle, steps=600, noise=True)
     bag = write_bag(tmp_path / 'long', run['messages'])
@@ -82,7 +82,7 @@ def test_long_stretches_are_replayed_in_pieces_with_the_same_estimates(tmp_path,
 
 
 def test_jittered_maps_are_built_in_bulk_with_few_probes(tmp_path, monkeypatch):
-    from observer_ros.bag import bulk_replay
+    from observer_ros.replay import bulk_replay
     vehicle = load_vehicle(CONFIG / 'submarine.yaml')
     run = simulate(vehicle, steps=400, noise=True)
     rec = read_recording(write_bag(tmp_path / 'jit', _jittered(run['messages'])), vehicle)
@@ -104,7 +104,7 @@ def test_jittered_maps_are_built_in_bulk_with_few_probes(tmp_path, monkeypatch):
 
 def test_zoh_stack_equals_scipy_expm():
     import scipy.linalg
-    from observer_ros.bag.step_maps import zoh_stack
+    from observer_ros.replay.step_maps import zoh_stack
     vehicle = load_vehicle(CONFIG / 'submarine.yaml')
     A, B = vehicle.plant.A, vehicle.plant.B
     n, m = B.shape
@@ -120,8 +120,8 @@ def test_zoh_stack_equals_scipy_expm():
 
 
 def test_bulk_maps_equal_the_probed_maps_of_every_step():
-    from observer_ros.bag.bulk_replay import _probe
-    from observer_ros.bag.step_maps import bulk_maps
+    from observer_ros.replay.bulk_replay import _probe
+    from observer_ros.replay.step_maps import bulk_maps
     vehicle = load_vehicle(CONFIG / 'submarine.yaml')
     rows = [tuple(vehicle.plant.output_rows(vehicle.sensors[0].outputs))]
     steps = 0.05 + np.random.default_rng(2).uniform(-3e-4, 3e-4, 50)
@@ -140,7 +140,7 @@ def test_bulk_maps_equal_the_probed_maps_of_every_step():
 
 
 def test_gain_brackets_equal_the_estimators_key_by_key():
-    from observer_ros.bag.step_maps import _brackets
+    from observer_ros.replay.step_maps import _brackets
     vehicle = load_vehicle(CONFIG / 'submarine.yaml')
     est = make_estimator(vehicle.plant, vehicle.observer)
     rng = np.random.default_rng(4)
@@ -155,7 +155,7 @@ def test_gain_brackets_equal_the_estimators_key_by_key():
 
 
 def test_key_ids_number_the_keys_and_mark_steps_without_one():
-    from observer_ros.bag.bulk_runs import _key_ids
+    from observer_ros.replay.bulk_runs import _key_ids
     from observer_ros.core.errors import ObserverError
 
     def key_of(h):

@@ -16,9 +16,9 @@ import numpy as np
 from numpy.testing import assert_array_equal
 from observer_ros.bag import metrics
 from observer_ros.bag.metrics import score_variant, StateError, truth_at
-from observer_ros.bag.replay import epochs_of, Replay
 from observer_ros.bag.results import VariantResult
 from observer_ros.bag.running_metrics import blocked_state_metrics
+from observer_ros.replay.replay import epochs_of, Replay
 from observer_ros.vehicle import load_vehicle
 import pytest
 

@@ -16,14 +16,14 @@ from bag_synth import blank, CONFIG, JOINT_STATE, simulate, write_bag
 import late_sensors
 import numpy as np
 from numpy.testing import assert_array_equal
-from observer_ros.bag import bulk_runs, replay_events, replay_health
-from observer_ros.bag.bulk_runs import _find_runs, _has_late
 from observer_ros.bag.reader import read_recording
-from observer_ros.bag.replay import epochs_of, innovation_health, replay
-from observer_ros.bag.replay_events import _epoch_cuts, _Events
 from observer_ros.core.estimators import make_estimator
 from observer_ros.core.innovation import sequence_health, transient_time
 from observer_ros.core.vehicle_design import design_vehicle
+from observer_ros.replay import bulk_runs, events as replay_events, health as replay_health
+from observer_ros.replay.bulk_runs import _find_runs, _has_late
+from observer_ros.replay.events import _epoch_cuts, _Events
+from observer_ros.replay.replay import epochs_of, innovation_health, replay
 from observer_ros.vehicle import load_vehicle
 import pytest
 from test_bag_late import _bag as late_bag

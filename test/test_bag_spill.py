@@ -18,11 +18,12 @@ import tracemalloc
 from bag_synth import CONFIG, simulate, write_bag
 import numpy as np
 from numpy.testing import assert_array_equal
-from observer_ros.bag import bulk_runs, evaluate, replay_health, replay_outputs
+from observer_ros.bag import evaluate
 from observer_ros.bag.reader import read_recording
-from observer_ros.bag.replay import replay
-from observer_ros.bag.replay_outputs import SpilledColumn
 from observer_ros.bag.report import write_results
+from observer_ros.replay import bulk_runs, health as replay_health, rows as replay_outputs
+from observer_ros.replay.replay import replay
+from observer_ros.replay.rows import SpilledColumn
 from observer_ros.vehicle import load_vehicle
 import pytest
 from test_bag_reader_memory import _p3

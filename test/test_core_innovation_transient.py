@@ -12,12 +12,12 @@ the node's monitor and in the evaluation's figures alike; a fault after that is 
 from bag_synth import blank, IMU, JOINT_STATE, vector_msg, write_bag
 import numpy as np
 from observer_ros.bag.reader import read_recording
-from observer_ros.bag.replay import innovation_health, replay
 from observer_ros.core.estimators import make_estimator
 from observer_ros.core.health import settling_time
 from observer_ros.core.innovation import InnovationMonitor, sequence_health, transient_time
 from observer_ros.core.model import zoh_matrices
 from observer_ros.core.vehicle_design import design_vehicle
+from observer_ros.replay.replay import innovation_health, replay
 from observer_ros.sensors import fill_measurement
 from observer_ros.vehicle import load_vehicle
 import pytest

@@ -21,9 +21,9 @@ import time
 from builtin_interfaces.msg import Time
 import numpy as np
 from observer_ros.bag.reader import read_recording
-from observer_ros.bag.replay import replay
 from observer_ros.core.estimators import make_estimator
 from observer_ros.nodes.common import joint_state, SENSOR_QOS, STATE_PUB_QOS
+from observer_ros.replay.replay import replay
 from observer_ros.sensors import extract_measurement
 from observer_ros.timeutil import sec_to_stamp_parts, stamp_to_ns, stamp_to_sec
 from observer_ros.vehicle import load_vehicle

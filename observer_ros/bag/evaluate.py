@@ -4,7 +4,7 @@ Offline evaluation of estimators on a recorded bag.
 
 The recorded measurements and commands are replayed, at their recorded stamps and in bag
 order, through one or more observer configurations with the same estimator code as the
-observer node (:mod:`observer_ros.bag.replay`). The vehicle file's own design is always
+observer node (:mod:`observer_ros.replay.replay`). The vehicle file's own design is always
 the variant ``design``; ``--variant`` adds configurations that override the file; the
 live estimate recorded on ``state/estimate`` is scored as the variant ``live``.
 
@@ -44,12 +44,13 @@ from .errors import BagToolError
 from .metrics import (DEFAULT_TOLERANCE, score_variant, STEADY_FRACTION, tolerances,
                       whiteness, WHITENESS_LAGS)
 from .reader import read_recording
-from .replay import CLOCK_JUMP_AGREEMENT, CLOCK_JUMP_TOLERANCE, epochs_of, live_replay, replay
 from .report import BAG_MAX_MESSAGES, format_table, write_results
 from .results import EvalResult, jsonable, ScoredReplay, VariantResult
 from ..core.errors import error_text, ObserverError
 from ..core.vehicle_design import design_vehicle
 from ..outputs.folders import check_output
+from ..replay.replay import (CLOCK_JUMP_AGREEMENT, CLOCK_JUMP_TOLERANCE, epochs_of,
+                             live_replay, replay)
 
 __all__ = ['DEFAULT_TOLERANCE', 'STEADY_FRACTION', 'WHITENESS_LAGS', 'VariantResult',
            'EvalResult', 'JobResult', 'parse_variant', 'parse_compare', 'parse_tolerance',
@@ -238,7 +239,7 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
         tuned file against the original); same states, inputs and sensors as
         ``vehicle``.
     spill : True or path, optional
-        Keep each replay's rows in temporary files (:func:`~observer_ros.bag.replay.replay`'s
+        Keep each replay's rows in temporary files (:func:`~observer_ros.replay.replay.replay`'s
         ``spill``): memory no longer grows with them; every figure is the same.
     keep_rows : bool
         Keep each variant's rows (and errors) for the plots and the results bag. When

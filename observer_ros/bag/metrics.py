@@ -10,9 +10,9 @@ import math
 
 import numpy as np
 
-from .replay import innovation_health
 from .running_metrics import BLOCK, blocked_state_metrics
 from ..core.innovation import ljung_box_acf
+from ..replay.replay import innovation_health
 
 __all__ = ['DEFAULT_TOLERANCE', 'STEADY_FRACTION', 'WHITENESS_LAGS', 'truth_at',
            'TruthAt', 'StateError',

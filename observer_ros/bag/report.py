@@ -15,9 +15,9 @@ import numpy as np
 from .metrics import WHITENESS_LAGS
 from .plots import decimate, write_plots
 from .reader import jazzy_typestore
-from .replay import SKIPPED
 from ..core.innovation import WINDOW as INNOVATION_WINDOW
 from ..outputs.staging import StagedOutput
+from ..replay.replay import SKIPPED
 
 __all__ = ['BAG_MAX_MESSAGES', 'fmt', 'text_table', 'format_table',
            'write_results', 'write_results_bag', 'csv_cell']
@@ -194,7 +194,7 @@ def write_results(result, out, force=False, plots=True, results_bag=True,
 
     """
     with StagedOutput(out, force, 'observer-eval') as staged:
-        stage = staged.path         # written aside, put in place whole (bag/staging.py)
+        stage = staged.path         # written aside, put in place whole (outputs/staging.py)
         files = []
         table = format_table(result)
         (stage / 'results.txt').write_text(table + '\n')

@@ -29,7 +29,7 @@ class VariantResult:
     ``lags`` and ``acf_outside``. ``summary`` has ``error_rms`` (RMS of the error norm)
     and ``settling_time`` (the largest over the states). ``sensors`` maps a sensor name to
     its innovation health, judged by windows as the node does
-    (:func:`~observer_ros.bag.replay.innovation_health`).
+    (:func:`~observer_ros.replay.replay.innovation_health`).
 
     """
 

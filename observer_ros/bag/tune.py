@@ -185,7 +185,7 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
                      input_noise) \
         if als else None
     with StagedOutput(out, force, 'observer-tune') as staged:
-        # written aside and put in place whole at the end (bag/staging.py): an interrupted
+        # written aside and put in place whole at the end (outputs/staging.py): an interrupted
         # tune leaves the earlier output, and a rerun with --force finds it unchanged
         stage = staged.path
         files = []

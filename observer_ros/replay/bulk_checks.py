@@ -1,4 +1,4 @@
-# observer_ros.bag.bulk_checks: a bulk stretch checked against the estimator's own calls.
+# observer_ros.replay.bulk_checks: a bulk stretch checked against the estimator's own calls.
 """
 Checks of a bulk-replayed stretch against the estimator, before its estimates are used.
 

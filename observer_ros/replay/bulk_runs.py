@@ -1,4 +1,4 @@
-# observer_ros.bag.bulk_runs: where the replay can take measurements in bulk.
+# observer_ros.replay.bulk_runs: where the replay can take measurements in bulk.
 """
 Find the stretches of measurements the replay can evaluate in bulk.
 
@@ -7,7 +7,7 @@ estimators when its stamp increases, every check of the node passes and every co
 in the gap is stamped at the earlier measurement (:func:`_steps`). :class:`_Runs` finds
 the stretches of such steps a block of :data:`RUN_BLOCK` steps at a time and cuts them
 into pieces of at most :data:`MAX_RUN` steps; :func:`_has_late` tells whether any message
-would be late (then nothing is replayed in bulk). :mod:`observer_ros.bag.bulk_replay`
+would be late (then nothing is replayed in bulk). :mod:`observer_ros.replay.bulk_replay`
 evaluates the pieces.
 
 """
@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from .replay_events import _index_type
+from .events import _index_type
 from ..core.errors import ObserverError
 
 MIN_RUN = 64                   # steps: shorter stretches are replayed call by call

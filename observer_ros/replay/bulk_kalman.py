@@ -1,4 +1,4 @@
-# observer_ros.bag.bulk_kalman: the affine maps of a Kalman filter's steps in a bulk stretch.
+# observer_ros.replay.bulk_kalman: the affine maps of a Kalman filter's steps in a bulk stretch.
 """
 The step maps of a Kalman filter over a bulk stretch: time-varying, then steady.
 

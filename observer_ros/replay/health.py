@@ -1,4 +1,4 @@
-# observer_ros.bag.replay_health: a replay's innovation health, as the node judges it.
+# observer_ros.replay.health: a replay's innovation health, as the node judges it.
 """
 The innovation health of each sensor of a replay, a block of estimates at a time.
 

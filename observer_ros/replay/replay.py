@@ -1,4 +1,4 @@
-# observer_ros.bag.replay: run an estimator over recorded measurements as the node does.
+# observer_ros.replay.replay: run an estimator over recorded measurements as the node does.
 """
 Replay recorded measurements and commands through an estimator, as the observer node.
 
@@ -34,10 +34,10 @@ So replaying a noise-free recorded run through the vehicle's own design reproduc
 live estimate to round-off.
 
 Long single-sensor stretches at a constant step are replayed in bulk for the
-current-form estimators (:mod:`observer_ros.bag.bulk_replay`, checked as described
+current-form estimators (:mod:`observer_ros.replay.bulk_replay`, checked as described
 there); ``exact=True`` turns bulk replay off. The events come in the node's order
-(:mod:`observer_ros.bag.replay_events`); the innovation health of a replay is
-:mod:`observer_ros.bag.replay_health`'s.
+(:mod:`observer_ros.replay.events`); the innovation health of a replay is
+:mod:`observer_ros.replay.health`'s.
 
 """
 
@@ -49,10 +49,10 @@ import numpy as np
 from . import bulk_runs
 from .bulk_replay import _bulk_run, affine_scan
 from .bulk_runs import _find_runs, _has_late
-from .errors import BagToolError
-from .replay_events import _Events, _index_type, _Rows, epochs_of
-from .replay_health import innovation_health
-from .replay_outputs import ReplayOutputs
+from .events import _Events, _index_type, _Rows, epochs_of
+from .health import innovation_health
+from .rows import ReplayOutputs
+from ..bag.errors import BagToolError
 from ..core.errors import ObserverError
 from ..core.estimators import History, make_estimator
 from ..core.estimators.admission import (Admission, CLOCK_JUMP, CLOCK_JUMP_AGREEMENT,
@@ -181,8 +181,8 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
     spill : True or path, optional
         Keep the output rows in temporary files (in this folder; True: the system's
         temporary folder) a block at a time instead of in memory: the result's columns
-        are then :class:`~observer_ros.bag.replay_outputs.SpilledColumn` objects, read
-        on demand with the same values (:mod:`observer_ros.bag.replay_outputs`).
+        are then :class:`~observer_ros.replay.rows.SpilledColumn` objects, read
+        on demand with the same values (:mod:`observer_ros.replay.rows`).
     answers : bool
         Also give the estimates a free-running node publishes, in its order
         (:attr:`Replay.answer_ns`, :attr:`Replay.answer_x`); the events are then replayed

@@ -1,8 +1,8 @@
-# observer_ros.bag.replay_outputs: the replay's rows, in memory or spilled a block at a time.
+# observer_ros.replay.rows: the replay's rows, in memory or spilled a block at a time.
 """
 The rows a replay writes (stamp, estimate, residual, ...), kept in memory or on disk.
 
-:class:`ReplayOutputs` holds the output columns of :func:`observer_ros.bag.replay.replay`.
+:class:`ReplayOutputs` holds the output columns of :func:`observer_ros.replay.replay.replay`.
 With ``spill`` it keeps only a buffer of about :data:`SPILL_BLOCK` rows plus the longest
 bulk piece in memory and appends each full block to a temporary file per column, so a
 bag of 10^7 messages does not hold its ~50 bytes per estimate in memory. The columns of
@@ -21,7 +21,7 @@ import tempfile
 
 import numpy as np
 
-from .errors import BagToolError
+from ..bag.errors import BagToolError
 
 __all__ = ['ReplayOutputs', 'SpilledColumn', 'SPILL_BLOCK']
 

@@ -1,4 +1,4 @@
-# observer_ros.bag.replay_events: the recorded messages in the order the node took them.
+# observer_ros.replay.events: the recorded messages in the order the node took them.
 """
 The recording's measurements and commands merged into the observer node's order.
 

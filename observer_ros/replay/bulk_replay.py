@@ -1,4 +1,4 @@
-# observer_ros.bag.bulk_replay: stretches of measurements replayed as one affine recursion.
+# observer_ros.replay.bulk_replay: stretches of measurements replayed as one affine recursion.
 """
 Replay a stretch of measurements in bulk, as an affine recursion evaluated with numpy.
 
@@ -144,7 +144,7 @@ def _step_maps(est, run, first, sens, rows, warnings):
 
     As ``(F, G, H, Rx, Ry, Ru)``, each stacked over the classes (see :func:`_probe`).
 
-    Built in bulk (:func:`~observer_ros.bag.step_maps.bulk_maps`) when there are more
+    Built in bulk (:func:`~observer_ros.replay.step_maps.bulk_maps`) when there are more
     than :data:`CHECK_CLASSES` classes (jittered stamps) and the estimator is one it
     models, then checked against :func:`_probe` on :data:`CHECK_CLASSES` classes spread
     over the run; else measured by :func:`_probe` class by class. None: not linear.

@@ -1,4 +1,4 @@
-# observer_ros.bag.step_maps: the affine maps of many step lengths at once.
+# observer_ros.replay.step_maps: the affine maps of many step lengths at once.
 """
 The affine maps of the steps of a bulk stretch, computed for all step lengths at once.
 
