@@ -11,6 +11,7 @@ import os
 from pathlib import Path
 
 from .core.errors import ObserverError
+from .params_file import regular_file
 from .ros_names import check_namespace, check_topic_name
 
 __all__ = ['namespace_argument', 'vehicle_file', 'check_vehicle', 'parse_remaps', 'as_bool']
@@ -34,7 +35,9 @@ def vehicle_file(vehicle, share=None):
     Returns
     -------
     str
-        An absolute path to an existing file.
+        An absolute path to an existing regular file: the file, or for a pipe
+        (``vehicle:=<(cat v.yaml)``) a copy of its text that the launch's nodes can each
+        read (deleted when the launch exits).
 
     Raises
     ------
@@ -46,10 +49,13 @@ def vehicle_file(vehicle, share=None):
     if not vehicle:
         raise ObserverError('vehicle: empty; give a vehicle name (submarine) or a file')
     if '/' in vehicle or vehicle.endswith(('.yaml', '.yml')):
-        path = Path(os.path.expanduser(vehicle)).resolve()
-        if not path.is_file():
+        # not resolved: /dev/fd/63 (<(cat v.yaml)) resolves to a name that is no file
+        path = Path(os.path.abspath(os.path.expanduser(vehicle)))
+        if not path.exists():
             raise ObserverError(f'vehicle: {vehicle}: no such file')
-        return str(path)
+        # a pipe is read once, here; every node reads the regular copy. A folder or a
+        # device is refused unopened, naming what it is
+        return str(regular_file(path))
     if share is None:
         from ament_index_python.packages import get_package_share_directory
         share = get_package_share_directory(PACKAGE)

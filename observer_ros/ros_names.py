@@ -9,6 +9,7 @@ rclpy's own validators, and name the offending character and its position.
 """
 
 import os
+import re
 
 from .core.errors import ObserverError
 
@@ -16,8 +17,12 @@ from .core.errors import ObserverError
 # refuses more ("Calculated port number is too high") and the node then exits 1 with no
 # word of ours
 MAX_DOMAIN_ID = 232
+# a -p name as rcl's lexer reads it: tokens separated by . or /, an optional node: in front
+_PARAMETER_NAME = re.compile(r'^(?:[A-Za-z_][A-Za-z0-9_]*:)?[A-Za-z_][A-Za-z0-9_]*'
+                             r'(?:[./][A-Za-z_][A-Za-z0-9_]*)*$')
 
-__all__ = ['check_namespace', 'check_topic_name', 'check_domain_id', 'MAX_DOMAIN_ID']
+__all__ = ['check_namespace', 'check_topic_name', 'check_parameter_override', 'check_domain_id',
+           'MAX_DOMAIN_ID']
 
 
 def _one_line(err, what, name):
@@ -72,6 +77,35 @@ def check_topic_name(name, what='topic'):
     except NameValidationException as err:
         raise ObserverError(_one_line(err, what, name)) from None
     return name
+
+
+def check_parameter_override(text, what='-p'):
+    """
+    Return ``text`` (``name:=value``) if rcl parses it as a ``-p`` parameter override.
+
+    rcl's own parser reads it (``rclpy.utilities.remove_ros_args``, no node made): a name
+    rcl refuses (``observer.0x``, ``x-y``) or a value it cannot read (a mapping ``{a: 1}``,
+    a list of mixed types) stops a node only once it starts, after the others started.
+
+    Raises
+    ------
+    ObserverError
+        One line naming the option, the override and rcl's reason.
+
+    """
+    from rclpy.utilities import remove_ros_args
+    name = text.partition(':=')[0]
+    if ':=' in text and not _PARAMETER_NAME.match(name):
+        raise ObserverError(f'{what} {text!r}: {name!r} is not a parameter name rcl reads '
+                            '(parts separated by ".", each a letter or _ followed by letters, '
+                            'digits or _)')
+    try:
+        remove_ros_args(['observer_ros', '--ros-args', '-p', text])
+    except Exception as err:   # noqa: BLE001 - rclpy's RCLInvalidROSArgsError
+        reason = str(err).split('Error: ', 1)[-1].split(', at /', 1)[0].strip()
+        raise ObserverError(f'{what} {text!r}: rcl cannot parse this parameter override '
+                            f'({reason})') from None
+    return text
 
 
 def check_domain_id(environ=None):

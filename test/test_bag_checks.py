@@ -156,6 +156,43 @@ def test_metadata_that_lies_is_named_and_the_storage_is_read(tmp_path, vehicle, 
     assert recover_bag(bag)['untouched']
 
 
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+@pytest.mark.parametrize('lie', ['storage_identifier', 'relative_file_paths'])
+def test_metadata_naming_another_storage_or_file_is_named_and_the_storage_is_read(
+        tmp_path, vehicle, capsys, storage, lie):
+    bag = _bag(tmp_path / 'bag', vehicle, storage=storage)
+    file = bag_file(bag)
+    with BagReader(bag) as opened:
+        truth = opened.info.message_count
+    meta = yaml.safe_load((bag / 'metadata.yaml').read_text())
+    info = meta['rosbag2_bagfile_information']
+    other = {'mcap': 'sqlite3', 'sqlite3': 'mcap'}[storage]
+    if lie == 'storage_identifier':
+        info['storage_identifier'] = other
+        said = f'storage_identifier {other}, {file.name} is an {storage} file'
+    else:
+        info['relative_file_paths'] = ['other' + file.suffix]
+        for entry in info.get('files') or []:
+            entry['path'] = 'other' + file.suffix
+        said = f"relative_file_paths ['other{file.suffix}'], the folder holds {file.name}"
+    (bag / 'metadata.yaml').write_text(yaml.safe_dump(meta))
+    with BagReader(bag) as opened:
+        assert opened.info.message_count == truth
+        note = [w for w in opened.info.warnings if 'disagrees' in w]
+        assert note and said in note[0] and f'the bag is read from {file.name}' in note[0]
+    code = eval_main([str(bag), '--vehicle', str(CONFIG / 'submarine.yaml'), '--namespace',
+                      '/sub1', '--out', str(tmp_path / 'eval'), '--no-plots', '--no-bag'])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert said in captured.err
+    # recovery names it and rewrites metadata.yaml from the storage; then it agrees
+    report = recover_bag(bag)
+    assert report['metadata_disagreed'] == [said] and not report['untouched']
+    with BagReader(bag) as opened:
+        assert not [w for w in opened.info.warnings if 'disagrees' in w]
+    assert recover_bag(bag)['untouched']
+
+
 @pytest.mark.parametrize('which', ['metadata.yaml', 'storage'])
 def test_a_fifo_in_a_bag_is_refused_not_waited_on(tmp_path, vehicle, which):
     bag = _bag(tmp_path / 'bag', vehicle)

@@ -1,6 +1,8 @@
 # The rules the launch files share: which vehicle file, which remaps, which booleans.
 """observer_ros.launch_support: vehicle names or files, remaps, true/false."""
 
+import os
+
 from observer_ros.core.errors import ObserverError
 from observer_ros.launch_support import as_bool, namespace_argument, parse_remaps, vehicle_file
 import pytest
@@ -41,3 +43,18 @@ def test_names_checked_by_ros_rules_before_any_node_starts():
     with pytest.raises(ObserverError, match=r"remaps: '/x/2b': topic name token must not "
                        r"start with a number \(character 4, '2'\)"):
         parse_remaps('imu/data:=/x/2b')
+
+
+def test_a_vehicle_pipe_is_read_once_for_every_node_and_a_folder_is_refused(tmp_path):
+    text = (CONFIG / 'submarine.yaml').read_text()
+    read, write = os.pipe()         # what vehicle:=<(cat v.yaml) hands the launch
+    os.write(write, text.encode())
+    os.close(write)
+    try:
+        copy = vehicle_file(f'/proc/self/fd/{read}')
+    finally:
+        os.close(read)
+    # a regular file every node can read (before: "no such file", the pipe resolved away)
+    assert os.path.isfile(copy) and open(copy).read() == text
+    with pytest.raises(ObserverError, match=f'{tmp_path}: a folder, not a parameters file'):
+        vehicle_file(f'{tmp_path}/')

@@ -183,3 +183,25 @@ def test_process_substitution_works_for_a_tool_and_a_node(tmp_path):
     finally:
         node.send_signal(signal.SIGINT)
         assert node.wait(timeout=WAIT) == 0
+
+
+def test_a_compare_file_may_be_a_pipe_and_a_fifo_without_a_writer_is_named_as_one(tmp_path):
+    from observer_ros.bag.evaluate import parse_compare
+    from observer_ros.core.errors import ObserverError
+    path = _fifo(tmp_path)
+    # it exists: not "no such file" (before), but what it is, once it is read
+    assert parse_compare(f'tuned={path}') == ('tuned', str(path))
+    writer = subprocess.Popen(['sh', '-c', f'cat "{CONFIG / "submarine.yaml"}" > "{path}"'])
+    try:
+        assert load_vehicle(path).name == 'submarine'
+    finally:
+        writer.wait(timeout=WAIT)
+    with pytest.raises(ObserverError, match='--compare .*: no such file'):
+        parse_compare(str(tmp_path / 'missing.yaml'))
+    result, _ = _run('observer_ros.bag.evaluate', str(SAMPLE), '--vehicle',
+                     str(CONFIG / 'submarine.yaml'), '--compare', str(tmp_path),
+                     '--out', str(tmp_path / 'eval'))
+    assert result.returncode == 2 and result.stderr.strip().splitlines() == [
+        f'error: {tmp_path}: a folder, not a parameters file (a regular file, or a pipe with '
+        'a writer)'], result.stderr
+    assert not (tmp_path / 'eval').exists()

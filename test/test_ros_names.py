@@ -6,8 +6,8 @@ import subprocess
 import sys
 
 from observer_ros.core.errors import ObserverError
-from observer_ros.ros_names import (check_domain_id, check_namespace, check_topic_name,
-                                    MAX_DOMAIN_ID)
+from observer_ros.ros_names import (check_domain_id, check_namespace,
+                                    check_parameter_override, check_topic_name, MAX_DOMAIN_ID)
 import pytest
 from ros_helpers import CONFIG, ros_env
 
@@ -57,3 +57,32 @@ def test_observer_play_refuses_a_remap_to_a_name_rcl_refuses(capsys):
     from observer_ros.bag.play import main as play_main
     assert play_main([str(SAMPLE), '--remap', '/imu/data:=/imu data']) == 2
     assert "--remap '/imu data': topic name must not contain" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize('text, reason', [
+    ('observer.0x:=1.0', 'is not a parameter name rcl reads'),
+    ('observer.x-y:=1.0', 'is not a parameter name rcl reads'),
+    ('observer..x:=1.0', 'is not a parameter name rcl reads'),
+    ('observer:={poles: [-1.0, -2.0, -3.0]}', 'Unknown YAML event'),
+    ('observer.poles:=[a, 1]', 'Sequence should be of same type'),
+    ('observer.poles:=[-1.0, -2.0, -3.0]', None), ('vehicle.description:=café', None),
+])
+def test_parameter_overrides_are_read_by_rcl_before_anything_starts(text, reason):
+    if reason is None:
+        assert check_parameter_override(text) == text
+        return
+    with pytest.raises(ObserverError, match=f"^-p '{text[:8]}.*': .*{reason}"):
+        check_parameter_override(text)
+
+
+def test_observer_run_refuses_an_override_rcl_cannot_parse_before_any_process(tmp_path,
+                                                                              capsys):
+    from observer_ros.tools.run_closed_loop import main as run_main
+    out = tmp_path / 'runs' / 'dive'
+    # before: the four nodes started, the observer exited 2 some 20 s later
+    assert run_main([str(CONFIG / 'submarine.yaml'), '--out', str(out),
+                     '-p', 'observer.0x:=1.0']) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        "error: -p 'observer.0x:=1.0': 'observer.0x' is not a parameter name rcl reads (parts "
+        'separated by ".", each a letter or _ followed by letters, digits or _)']
+    assert not (tmp_path / 'runs').exists()

@@ -15,7 +15,10 @@ A bag folder checked before it is opened: regular files, no writer, truthful met
   :data:`RECENT` s.
 - **Metadata that lies**: ``metadata.yaml`` is a summary of the storage file. When it
   disagrees (message counts, topics, types, time span), :func:`metadata_disagreement`
-  names the differences; the storage file is the truth, and the bag is read from it.
+  names the differences; when it names another storage (``storage_identifier``) or other
+  files (``relative_file_paths``) than the folder's one storage file,
+  :func:`metadata_storage_disagreement` does. The storage file is the truth, and the bag
+  is read from it.
 
 """
 
@@ -32,7 +35,7 @@ from .errors import BagToolError
 
 __all__ = ['LOCK_NAME', 'MAX_METADATA_BYTES', 'RECENT', 'check_regular', 'check_metadata_file',
            'hold_recording_lock', 'recording_holder', 'still_growing',
-           'metadata_disagreement']
+           'metadata_disagreement', 'metadata_storage_disagreement', 'storage_kind']
 
 LOCK_NAME = '.recording.lock'
 # a rosbag2 metadata.yaml is a few kB per hundred topics
@@ -41,6 +44,8 @@ MAX_METADATA_BYTES = 16 << 20
 RECENT = 5.0
 # s: how long it is watched for growth (more than the recorder's flush period, 1 s)
 WATCH = 2.0
+# the first bytes of each storage rosbag2 writes
+_MAGIC = {b'\x89MCAP0\r\n': 'mcap', b'SQLite format 3\x00': 'sqlite3'}
 
 
 def _kind(mode):
@@ -195,4 +200,48 @@ def metadata_disagreement(directory_reader):
             directory_reader.metadata.start_time != storage.metadata.start_time or
             directory_reader.metadata.end_time != storage.metadata.end_time):
         out.append("its time span differs from the storage's")
+    return out
+
+
+def storage_kind(path):
+    """Return what a storage file's first bytes say it is: ``mcap``, ``sqlite3`` or None."""
+    try:
+        with open(path, 'rb') as f:
+            head = f.read(16)
+    except OSError:
+        return None
+    return next((kind for magic, kind in _MAGIC.items() if head.startswith(magic)), None)
+
+
+def metadata_storage_disagreement(metadata_path, file):
+    """
+    Return how a metadata.yaml misnames a bag folder's one storage file ([] if it does not).
+
+    What rosbags opens is what ``metadata.yaml`` says: another ``storage_identifier`` than
+    the file's own first bytes, or ``relative_file_paths`` that are not the file, and the
+    bag does not open (``file is not a database``, ``Some database files are missing``)
+    though its storage is whole.
+
+    Parameters
+    ----------
+    metadata_path : Path
+        The folder's ``metadata.yaml``, checked by :func:`check_metadata_file`.
+    file : Path
+        The folder's one storage file (``.mcap`` or ``.db3``).
+
+    """
+    try:
+        loader = getattr(yaml, 'CSafeLoader', yaml.SafeLoader)
+        info = yaml.load(Path(metadata_path).read_bytes(), Loader=loader)
+        info = info['rosbag2_bagfile_information']
+        said_kind = info.get('storage_identifier')
+        said_files = [str(p) for p in info.get('relative_file_paths') or []]
+    except Exception:   # noqa: BLE001 - unreadable: the reader says why
+        return []
+    out = []
+    kind = storage_kind(file)
+    if kind and said_kind != kind:
+        out.append(f'storage_identifier {said_kind}, {file.name} is an {kind} file')
+    if said_files != [file.name]:
+        out.append(f'relative_file_paths {said_files}, the folder holds {file.name}')
     return out

@@ -19,7 +19,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
 
 from .bag_checks import (check_metadata_file, check_regular, LOCK_NAME, metadata_disagreement,
-                         recording_holder, still_growing)
+                         metadata_storage_disagreement, recording_holder, still_growing)
 from .cdr_decode import _PAD
 from .errors import BagToolError
 from .integrity import checksum_note, chunk_crcs
@@ -151,7 +151,16 @@ class BagReader:
                 check_regular(file)
             if (p / 'metadata.yaml').exists() or (p / 'metadata.yaml').is_symlink():
                 check_metadata_file(p / 'metadata.yaml')
-                return p
+                lies = metadata_storage_disagreement(p / 'metadata.yaml', files[0]) \
+                    if len(files) == 1 else []
+                if not lies:
+                    return p
+                # the storage file is the truth: read it, not what metadata.yaml names
+                self.warnings.append(
+                    f'{p / "metadata.yaml"} disagrees with {files[0].name}: '
+                    f'{"; ".join(lies)}; the bag is read from {files[0].name}, its storage '
+                    f'(`observer-bag-recover {p}` rewrites metadata.yaml from it)')
+                return files[0]
             if not files:
                 raise BagToolError(
                     f'{p}: not a bag: the directory has no metadata.yaml and no .mcap or '

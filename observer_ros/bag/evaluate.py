@@ -155,7 +155,9 @@ def parse_compare(text):
     if not _NAME.match(name) or name in RESERVED:
         raise BagToolError(f'--compare {text!r}: the name {name!r} must be a letter '
                            'followed by letters, digits or _, and not design or live')
-    if not Path(path).is_file():
+    # a pipe (--compare <(cat V_tuned.yaml)) is read as the --vehicle file is; a folder or a
+    # device is refused by the loader (params_file.read_text), naming what it is
+    if not os.path.exists(path):
         raise BagToolError(f'--compare {text!r}: {path}: no such file')
     return name, path
 

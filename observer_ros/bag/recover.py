@@ -42,8 +42,8 @@ import sys
 
 import yaml
 
-from .bag_checks import (check_regular, LOCK_NAME, metadata_disagreement, recording_holder,
-                         still_growing)
+from .bag_checks import (check_regular, LOCK_NAME, metadata_disagreement,
+                         metadata_storage_disagreement, recording_holder, still_growing)
 from .errors import BagRecoveryError
 from .mcap_repair import channel_counts, repair_mcap, scan_mcap, time_range
 from ..core.errors import error_text
@@ -209,12 +209,15 @@ def _is_intact(bag, file):
     # sqlite3: a writer that died leaves its journal (or write-ahead log) next to the file
     elif any(file.with_name(file.name + tail).exists() for tail in ('-journal', '-wal')):
         return False
-    return not _metadata_lies(bag)
+    return not _metadata_lies(bag, file)
 
 
-def _metadata_lies(bag):
+def _metadata_lies(bag, file):
     """Return what metadata.yaml says that the storage does not ([] when it agrees)."""
     from rosbags.rosbag2 import Reader
+    misnamed = metadata_storage_disagreement(bag / 'metadata.yaml', file)
+    if misnamed:
+        return misnamed
     try:
         with Reader(bag) as reader:
             return metadata_disagreement(reader.storage)
@@ -340,7 +343,7 @@ def _recover(bag, file):
         raise BagRecoveryError(f'{bag} is still being written ({growing}, and no '
                                'observer_ros recorder holds it: another program records '
                                'it); nothing changed: recover it once its writer stopped')
-    lies = _metadata_lies(bag) if (bag / 'metadata.yaml').is_file() else []
+    lies = _metadata_lies(bag, file) if (bag / 'metadata.yaml').is_file() else []
     copied = _own_copies(bag, file)
     # the space the recorder kept free for this moment (nodes.recorder, disk_reserve)
     (bag / '.disk_reserve').unlink(missing_ok=True)

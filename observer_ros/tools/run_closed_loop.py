@@ -32,7 +32,7 @@ from ..nodes.checks import state_scale
 from ..outputs.folders import check_output, mark_output, MARKER, prepare_output, seal_output
 from ..outputs.staging import write_new_file
 from ..params_file import regular_file
-from ..ros_names import check_domain_id, check_namespace
+from ..ros_names import check_domain_id, check_namespace, check_parameter_override
 from ..vehicle import (apply_overrides, load_parameters, load_vehicle, parameters_to_yaml,
                        vehicle_from_parameters)
 
@@ -508,6 +508,8 @@ def _run(args):
     try:
         # names ROS would refuse only once a node is made, after others started
         args.namespace = check_namespace(args.namespace)
+        for text in args.param:
+            check_parameter_override(text)
         check_domain_id()
         # a pipe (<(cat v.yaml)) is read once: the nodes read a copy of it
         vehicle_path = Path(regular_file(vehicle_path))
