@@ -102,14 +102,16 @@ def format_table(result):
                 continue
             rows.append([name, output, _unit(result, 'output', output), m['samples'],
                          fmt(m['residual_rms']), fmt(m['ljung_box_q']),
-                         fmt(m['ljung_box_p'], 3), fmt(m['acf_outside'], 3)])
+                         fmt(m['acf_outside'], 3)])
     if rows:
-        lines += ['', 'residual whiteness (Ljung-Box over lags 1..'
-                      f'{WHITENESS_LAGS}; p small = not white; acf_out ~0.05 if white)',
-                  '', text_table(['variant', 'output', 'unit', 'N', 'rms', 'LB_Q', 'LB_p',
-                                  'acf_out'], rows)]
+        lines += ['', 'residual autocorrelation over the run (Ljung-Box statistic over lags '
+                      f'1..{WHITENESS_LAGS}, fraction of those lags outside +-1.96/sqrt(N), '
+                      'about 0.05 if white): figures; the verdict is the innovation health',
+                  '', text_table(['variant', 'output', 'unit', 'N', 'rms', 'LB_Q', 'acf_out'],
+                                 rows)]
     rows = [[name, sensor, h['samples'], h.get('transient', 0), fmt(h['nis_mean']),
-             f"{h['windows_inconsistent']}/{h['windows']}", fmt(h['whiteness_p'], 3),
+             f"{h['windows_inconsistent']}/{h['windows']}", h.get('windows_allowed', 0),
+             fmt(h['whiteness_p'], 3), fmt(h.get('false_alarm', math.nan), 2),
              'WARN' if not h['consistent'] else 'ok' if h['windows'] else 'unjudged']
             for name, vr in result.variants.items()
             for sensor, h in getattr(vr, 'sensors', {}).items()]
@@ -117,9 +119,12 @@ def format_table(result):
         lines += ['', 'innovation health per sensor (NIS and whiteness over windows of '
                       f'{INNOVATION_WINDOW}, as the node judges them; the initial transient '
                       'of observers other than Kalman, one settling time of the slowest '
-                      'pole, is not judged)',
+                      'pole, is not judged). WARN when more windows are flagged than '
+                      "'allowed' or one is far outside; 'false_alarm' is the probability "
+                      "that a consistent Kalman filter's run is called WARN",
                   '', text_table(['variant', 'sensor', 'N', 'transient', 'NIS',
-                                  'bad_windows', 'white_p', 'health'], rows)]
+                                  'bad_windows', 'allowed', 'white_p', 'false_alarm',
+                                  'health'], rows)]
     return '\n'.join(lines)
 
 

@@ -9,21 +9,28 @@ predicted covariance of the residual); for the other observers the sensor's nois
 residual. Over the last ``window`` residuals of the sensor:
 
 - the NIS ``|e|^2`` has mean p (the sensor's number of outputs) when the model holds;
-  its window mean is compared with the two-sided chi-square bounds of ``window * p``
-  degrees of freedom at the level ``alpha``: above the upper bound the residuals are
-  too large (a bias, a wrong sign or frame, noise_std too small), below the lower one
-  too small (noise_std too large, reported but not a warning);
-- each component of e is tested for whiteness (Ljung-Box over lags 1..``lags``, mean
-  removed, the statistic ``N (N + 2) sum rho_k^2 / (N - k)`` against chi-square with
-  ``lags`` degrees of freedom): a Kalman filter's innovations are white when its model
-  is right; a correlated residual means a model error, a wrong latency or a frame
-  mismatch.
+  the window's mean is compared with the chi-square bounds of ``window * p`` degrees of
+  freedom: above the upper one the residuals are too large (a bias, a wrong sign or
+  frame, noise_std too small), below the lower one too small (noise_std too large,
+  reported but not a warning);
+- each component of e is tested for whiteness by the one test of
+  :mod:`observer_ros.core.whiteness` (the cumulative periodogram of the window): a Kalman
+  filter's innovations are white when its model is right; a coloured residual means a
+  model error, a wrong latency or a frame mismatch.
 
-A sensor is *inconsistent* when, for a Kalman filter, its window mean NIS is above the
-upper bound or a component is not white; for the other observers (S without the
-estimation error) when the mean NIS is above :data:`OTHER_MARGIN` times the upper bound,
-a residual several times the sensor's noise. The node reports this on /diagnostics, the
-evaluation over a whole bag (:func:`sequence_health`).
+A window of a Kalman filter is *inconsistent* when its NIS mean is above the upper bound
+or a component is not white; the two tests share the level ``alpha`` so that a window of
+a consistent filter (Gaussian residuals, right S) is flagged with probability exactly
+alpha: the NIS at ``a = 1 - sqrt(1 - alpha)`` (upper tail), the components' whiteness at
+``a`` together (each at ``1 - (1 - a)^(1/p)``; the periodogram's shape is independent of
+the NIS of Gaussian residuals). For the other observers (S without the estimation error)
+a window is inconsistent when its NIS mean is above :data:`OTHER_MARGIN` times the upper
+bound, a residual several times the sensor's noise. The node reports its last window on
+/diagnostics. A whole run (:func:`sequence_health`, ``observer-eval``) is judged in
+consecutive windows by :func:`observer_ros.core.whiteness.run_rule`: inconsistent when
+more windows are flagged than a consistent filter's would be but with probability
+:data:`~observer_ros.core.whiteness.RUN_LEVEL`, or when one window is far outside (a short
+fault); the exact false-alarm probability of that verdict is reported with it.
 
 The initial transient is not judged (:func:`transient_time`): while the estimate of an
 observer other than Kalman converges, the estimation error dominates its residuals (the
@@ -40,8 +47,11 @@ import math
 import numpy as np
 import scipy.linalg
 from scipy.special import chdtrc, chdtri
+from scipy.stats import kstwo
 
 from .health import settling_time
+from .whiteness import (component_level, critical_distance, periodogram_statistic,
+                        RUN_LEVEL, run_rule, run_verdict)
 
 __all__ = ['InnovationMonitor', 'SensorHealth', 'whiten', 'ljung_box', 'ljung_box_acf',
            'nis_bounds', 'sequence_health', 'sequence_health_blocks', 'transient_time',
@@ -50,11 +60,12 @@ __all__ = ['InnovationMonitor', 'SensorHealth', 'whiten', 'ljung_box', 'ljung_bo
 #: Residuals per sensor in a window.
 WINDOW = 50
 
-#: Largest lag of the whiteness test.
+#: Largest lag of :func:`ljung_box` (a descriptive figure; the verdicts use
+#: :mod:`observer_ros.core.whiteness`).
 LAGS = 5
 
-#: Level of the tests (two-sided for the NIS): a consistent sensor is flagged this
-#: seldom per window.
+#: Level of a window's verdict: a window of a consistent Kalman filter is flagged with
+#: this probability (the NIS and the whiteness tests together).
 ALPHA = 1e-3
 
 #: Observers other than Kalman whiten by the sensor noise only: their NIS is flagged only
@@ -194,7 +205,7 @@ class SensorHealth:
     nis_mean: float              # window mean of the NIS (NaN until the window is full)
     nis_low: float
     nis_high: float
-    whiteness_p: float           # smallest Ljung-Box p over the components
+    whiteness_p: float           # smallest whiteness p over the components
     consistent: bool             # False: a WARN naming the sensor
     problem: str = ''            # what is wrong, naming the sensor
     transient: int = 0           # residuals of the initial transient, not judged
@@ -205,23 +216,57 @@ class SensorHealth:
         return dict(vars(self))
 
 
-def _judge(name, E, kalman, lags, alpha, samples):
+def _test_level(alpha):
+    """Return the level of each of the window's two tests (NIS, whiteness): alpha together."""
+    return -math.expm1(0.5 * math.log1p(-float(alpha)))
+
+
+def _nis_limit(window, p, alpha, kalman):
+    """Return the window mean NIS above which a window is flagged at level alpha."""
+    high = float(chdtri(window * p, _test_level(alpha))) / window
+    return high if kalman else OTHER_MARGIN * high
+
+
+def _white_limit(points, p, alpha):
+    """Return the periodogram distance above which a component flags its window."""
+    if not points:
+        return math.inf
+    return critical_distance(points, component_level(_test_level(alpha), p))
+
+
+def _window_figures(E):
+    """Return the NIS sum and the largest periodogram distance of windows (W, N, p)."""
+    nis = np.sum(E * E, axis=(1, 2))
+    D, points = periodogram_statistic(np.moveaxis(E, 2, 1).reshape(-1, E.shape[1]))
+    D = D.reshape(E.shape[0], E.shape[2])
+    worst = np.max(np.nan_to_num(D, nan=-1.0), axis=1)
+    worst[worst < 0.0] = np.nan
+    return nis, worst, points
+
+
+def _problem(name, window, nis_mean, limit, worst, points):
+    if not nis_mean <= limit:
+        return (f'{name}: residuals too large for the model (mean NIS {nis_mean:.3g} over '
+                f'the last {window}, at most {limit:.3g} expected): a bias, a wrong sign or '
+                'frame, or noise_std too small')
+    p = float(kstwo.sf(worst, points)) if points and math.isfinite(worst) else math.nan
+    return (f'{name}: residuals not white (cumulative periodogram p {p:.2g} over the last '
+            f'{window}): a model error, a latency or a frame mismatch')
+
+
+def _judge(name, E, kalman, alpha, samples):
     """Health of the whitened residuals E (window x p)."""
     W, p = E.shape
-    low, high = nis_bounds(W, p, alpha)
-    nis_mean = float(np.mean(np.sum(E * E, axis=1)))
-    pvals = [ljung_box(E[:, j], lags)[1] for j in range(p)]
-    pvals = [v for v in pvals if math.isfinite(v)]
-    white_p = min(pvals) if pvals else math.nan
-    limit = high if kalman else OTHER_MARGIN * high
-    problem = ''
-    if not nis_mean <= limit:
-        problem = (f'{name}: residuals too large for the model (mean NIS {nis_mean:.3g} over '
-                   f'the last {W}, at most {limit:.3g} expected): a bias, a wrong sign or '
-                   'frame, or noise_std too small')
-    elif kalman and white_p < alpha:
-        problem = (f'{name}: residuals not white (Ljung-Box p {white_p:.2g} over lags '
-                   f'1..{min(lags, W // 4)}): a model error, a latency or a frame mismatch')
+    a = _test_level(alpha)
+    low, high = nis_bounds(W, p, 2.0 * a)
+    nis, worst, points = _window_figures(E[None])
+    nis_mean = float(nis[0]) / W
+    worst = float(worst[0])
+    white_p = float(kstwo.sf(worst, points)) if points and math.isfinite(worst) \
+        else math.nan
+    limit = _nis_limit(W, p, alpha, kalman)
+    bad = not nis_mean <= limit or (kalman and worst > _white_limit(points, p, alpha))
+    problem = _problem(name, W, nis_mean, limit, worst, points) if bad else ''
     return SensorHealth(name, samples, nis_mean, low, high, white_p, not problem, problem)
 
 
@@ -237,7 +282,8 @@ class InnovationMonitor:
     kalman : bool
         The residuals come with S = C P C^T + R (a Kalman filter): both tests apply.
     window, lags, alpha
-        See :data:`WINDOW`, :data:`LAGS`, :data:`ALPHA`.
+        See :data:`WINDOW`, :data:`ALPHA`; ``lags`` is not used (the whiteness test
+        takes the window's whole periodogram).
     transient : float
         Seconds after the first residual (or :meth:`restart`) whose residuals are not
         judged (:func:`transient_time`); they need the time ``t`` given to :meth:`add`.
@@ -251,7 +297,6 @@ class InnovationMonitor:
         if not float(transient) >= 0.0:
             raise ValueError(f'transient must be >= 0 s; got {transient!r}')
         self._window = int(window)
-        self._lags = int(lags)
         self._alpha = float(alpha)
         self._kalman = bool(kalman)
         self._transient = float(transient)
@@ -353,14 +398,14 @@ class InnovationMonitor:
         skipped = self._skipped[name]
         if count < self._window:
             p = self._std[name].size
-            low, high = nis_bounds(self._window, p, self._alpha)
+            low, high = nis_bounds(self._window, p, 2.0 * _test_level(self._alpha))
             return SensorHealth(name, count, math.nan, low, high, math.nan, True,
                                 transient=skipped, converging=self.converging)
         k = count % self._window
         ring = self._ring[name]
         E = np.array([np.multiply(values, factor)                   # oldest first
                       for values, factor in ring[k:] + ring[:k]])
-        h = _judge(name, E, self._kalman, self._lags, self._alpha, count)
+        h = _judge(name, E, self._kalman, self._alpha, count)
         h.transient = skipped
         return h
 
@@ -381,7 +426,7 @@ class InnovationMonitor:
 
 
 def sequence_health(name, E, kalman, window=WINDOW, lags=LAGS, alpha=ALPHA, since=None,
-                    transient=0.0):
+                    transient=0.0, level=RUN_LEVEL):
     """
     Health of a sensor over a whole run: its windows judged as the node judges them.
 
@@ -394,12 +439,15 @@ def sequence_health(name, E, kalman, window=WINDOW, lags=LAGS, alpha=ALPHA, sinc
     kalman : bool
         See :class:`InnovationMonitor`.
     window, lags, alpha
-        See :class:`InnovationMonitor`.
+        See :class:`InnovationMonitor` (``lags`` is not used).
     since : (N,) array_like, optional
         Seconds from the estimator's (re)start to each residual: those before
         ``transient`` (:func:`transient_time`) are not judged, as the node does not.
     transient : float
         See ``since``.
+    level : float
+        The largest false-alarm probability of the run's verdict
+        (:func:`observer_ros.core.whiteness.run_rule`).
 
     Returns
     -------
@@ -407,25 +455,31 @@ def sequence_health(name, E, kalman, window=WINDOW, lags=LAGS, alpha=ALPHA, sinc
         ``samples`` (judged), ``transient`` (residuals of the initial transient, not
         judged), ``nis_mean`` (judged residuals), ``nis_low`` and ``nis_high`` (bounds
         of a window mean), ``windows`` (consecutive, non-overlapping),
-        ``windows_inconsistent``, ``whiteness_p`` (smallest over the windows),
-        ``consistent`` (every window) and ``problem`` (the first inconsistent window's).
+        ``windows_inconsistent`` (flagged at ``alpha``), ``windows_allowed`` (the most
+        a consistent run may have), ``windows_extreme`` (flagged at the rule's far
+        smaller level), ``false_alarm`` (the exact probability that a consistent run is
+        called inconsistent), ``whiteness_p`` (smallest over the windows),
+        ``consistent`` (the run's verdict) and ``problem`` (the first flagged window's,
+        when the run is inconsistent).
 
     """
-    return sequence_health_blocks(name, [(E, since)], kalman, window, lags, alpha, transient)
+    return sequence_health_blocks(name, [(E, since)], kalman, window, lags, alpha, transient,
+                                  level=level)
 
 
 def sequence_health_blocks(name, blocks, kalman, window=WINDOW, lags=LAGS, alpha=ALPHA,
-                           transient=0.0, rows=None):
+                           transient=0.0, rows=None, level=RUN_LEVEL):
     """
     Return :func:`sequence_health`'s figures of a run given a block of residuals at a time.
 
     The figures are those of :func:`sequence_health` over the blocks' rows in order,
     exactly: the windows run across the blocks, and the NIS mean is taken over every
-    judged row at once.
+    judged row at once. Each window keeps two numbers (its NIS and its largest
+    periodogram distance) until the run is judged.
 
     Parameters
     ----------
-    name, kalman, window, lags, alpha, transient
+    name, kalman, window, lags, alpha, transient, level
         See :func:`sequence_health`.
     blocks : iterable of (E, since)
         The run's whitened residuals ``(n, p)`` and their seconds since the estimator's
@@ -445,9 +499,8 @@ def sequence_health_blocks(name, blocks, kalman, window=WINDOW, lags=LAGS, alpha
     nis = np.empty(rows) if rows is not None else []
     N = 0
     rest = None                 # judged rows not yet in a full window
-    out = {'windows': 0, 'windows_inconsistent': 0, 'whiteness_p': math.nan,
-           'consistent': True, 'problem': ''}
-    ps = []
+    sums, worst = [], []        # per window: NIS sum, largest periodogram distance
+    points = 0
     for E, since in blocks:
         E = np.asarray(E, dtype=float)
         if since is not None and transient > 0.0 and E.size:
@@ -468,23 +521,39 @@ def sequence_health_blocks(name, blocks, kalman, window=WINDOW, lags=LAGS, alpha
         if rest is not None and rest.shape[0]:
             E = np.concatenate([rest, E])
         full = E.shape[0] // window
-        for w in range(full):
-            h = _judge(name, E[w * window:(w + 1) * window], kalman, lags, alpha, N)
-            if math.isfinite(h.whiteness_p):
-                ps.append(h.whiteness_p)
-            if not h.consistent:
-                out['windows_inconsistent'] += 1
-                if out['consistent']:
-                    out['consistent'], out['problem'] = False, h.problem
-        out['windows'] += full
+        if full:
+            s, w, points = _window_figures(E[:full * window].reshape(full, window, -1))
+            sums.append(s)
+            worst.append(w)
         rest = E[full * window:].copy()
     nis = nis[:N] if rows is not None else (np.concatenate(nis) if nis else np.zeros(0))
-    low, high = nis_bounds(window, 1 if p is None else p, alpha)
-    out.update({'samples': int(N), 'transient': skipped,
-                'nis_mean': float(np.mean(nis)) if N else math.nan,
-                'nis_low': low, 'nis_high': high})
-    if ps:
-        out['whiteness_p'] = min(ps)
-    return {k: out[k] for k in ('samples', 'transient', 'nis_mean', 'nis_low', 'nis_high',
-                                'windows', 'windows_inconsistent', 'whiteness_p',
-                                'consistent', 'problem')}
+    p = 1 if p is None else p
+    a = _test_level(alpha)
+    low, high = nis_bounds(window, p, 2.0 * a)
+    sums = np.concatenate(sums) if sums else np.zeros(0)
+    worst = np.concatenate(worst) if worst else np.zeros(0)
+    rule = run_rule(sums.size, alpha, level)
+
+    def bad(at):
+        out = ~(sums / window <= _nis_limit(window, p, at, kalman))
+        if kalman:
+            out |= np.nan_to_num(worst, nan=0.0) > _white_limit(points, p, at)
+        return out
+    flagged = bad(alpha)
+    verdict = run_verdict(rule, np.count_nonzero(flagged),
+                          np.count_nonzero(bad(rule['alpha_extreme'])))
+    problem = ''
+    if verdict['white'] is False:
+        k = int(np.argmax(flagged))
+        problem = _problem(name, window, sums[k] / window, _nis_limit(window, p, alpha, kalman),
+                           worst[k], points)
+    top = np.nanmax(worst) if np.isfinite(worst).any() else math.nan
+    return {'samples': int(N), 'transient': skipped,
+            'nis_mean': float(np.mean(nis)) if N else math.nan,
+            'nis_low': low, 'nis_high': high, 'windows': int(sums.size),
+            'windows_inconsistent': verdict['flagged'],
+            'windows_allowed': verdict['allowed'], 'windows_extreme': verdict['extreme'],
+            'false_alarm': verdict['level'],
+            'whiteness_p': float(kstwo.sf(top, points)) if points and math.isfinite(top)
+            else math.nan,
+            'consistent': verdict['white'] is not False, 'problem': problem}
