@@ -1,10 +1,10 @@
 # test/test_core_autocovariance.py: running lagged sums against the whole-array formulas.
 """
-Sample autocovariances and whiteness from blocks (core.autocovariance, core.als).
+Sample autocovariances from blocks (core.autocovariance, core.als).
 
 :class:`LaggedSums` given the rows in blocks of any size must give the whole-array
-:func:`sample_autocovariances` (pooled sequences included) to 1e-12 relative, and the
-Ljung-Box whiteness of :func:`observer_ros.bag.metrics.whiteness`; the blocked predictor
+:func:`sample_autocovariances` (pooled sequences included) to 1e-12 relative; the blocked
+predictor
 the same innovations and final prediction as one call; and the memory of summing does
 not grow with the number of rows.
 
@@ -14,7 +14,6 @@ import tracemalloc
 
 import numpy as np
 from numpy.testing import assert_allclose
-from observer_ros.bag.metrics import whiteness
 from observer_ros.core.als import (ALSError, predictor_blocks, predictor_innovations,
                                    sample_autocovariances)
 from observer_ros.core.autocovariance import LaggedSums
@@ -63,33 +62,12 @@ def test_blocked_autocovariances_equal_the_whole_array_ones(block):
     assert abs(one[3, 0, 1] - one[3, 1, 0]) > 1e-3 * abs(one[3, 0, 1])
 
 
-@pytest.mark.parametrize('block', [1, 5, 333, 10 ** 6])
-def test_blocked_whiteness_equals_the_whole_array_test(block):
-    for seed, mean in ((4, 0.3), (5, -2.0)):
-        e = _coloured(seed, 2000, mean=mean)
-        e[:, 1] = np.random.default_rng(seed).standard_normal(2000) + mean   # white
-        sums = _summed([e], 21, block)
-        for j in range(2):
-            want = whiteness(e[:, j], 20)
-            got = sums.whiteness(j, 20)
-            assert got['samples'] == want['samples'] and got['lags'] == want['lags'] == 20
-            assert_allclose(got['acf'], want['acf'], rtol=1e-9, atol=1e-12)
-            for key in ('residual_rms', 'ljung_box_q', 'ljung_box_p', 'acf_outside'):
-                assert got[key] == pytest.approx(want[key], rel=1e-9, abs=1e-300), key
-        assert sums.whiteness(0, 20)['acf_outside'] > 0.5       # AR(1): coloured
-        assert sums.whiteness(1, 20)['ljung_box_p'] > 1e-3      # white
-    # few samples: the lag count is cut to N // 4, as the whole-array test
-    short = _summed([e[:30]], 21, block)
-    assert short.whiteness(0, 20)['lags'] == whiteness(e[:30, 0], 20)['lags'] == 7
-
-
-def test_too_few_rows_and_pooled_whiteness_are_refused():
+def test_too_few_rows_are_refused():
     sums = _summed([_coloured(6, 10)], 15, 4)
     with pytest.raises(ALSError, match='10 innovations are too few for 15 lags'):
         sums.autocovariances()
-    pooled = _summed([_coloured(6, 100), _coloured(7, 100)], 5, 10)
-    with pytest.raises(ObserverError, match='one sequence'):
-        pooled.whiteness(0, 4)
+    with pytest.raises(ObserverError, match='lags must be at least 1'):
+        LaggedSums(2, 0)
 
 
 def test_blocked_predictor_gives_the_same_innovations_and_prediction():

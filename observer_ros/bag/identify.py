@@ -2,14 +2,30 @@
 """
 Identify a vehicle's process and measurement noise covariances from bags.
 
-The bags' outputs and commands on their sample grid (:mod:`observer_ros.bag.sampled`),
-the innovations of a stable reference predictor (the vehicle's own observer), the
-transient dropped, and autocovariance least squares (:mod:`observer_ros.core.als`),
-pooled over the bags. A second pass repeats it with the Kalman predictor of the first
-pass's covariances as the reference, started from the reference's state (Rajamani &
-Rawlings 2009 recommend a reference close to the optimal filter). Mehra's whiteness test
-of the innovations before (reference) and after (Kalman filter of the identified
-covariances).
+The bags' outputs and commands at their steps (:mod:`observer_ros.bag.sampled`), the
+innovations of a stable reference predictor (the vehicle's own observer), the transient
+dropped, and autocovariance least squares (:mod:`observer_ros.core.als`), pooled over the
+bags. Data with every output at every sample and equal steps take the time-invariant
+model; outputs missing at some samples or jittered stamps take the filter run at the
+actual stamps and the time-varying model (:mod:`observer_ros.core.als_ltv`).
+
+Each later pass (:data:`PASSES` in all by default) repeats it with the Kalman predictor
+of the previous pass's covariances as the reference (Rajamani & Rawlings 2009 recommend
+a reference close to the optimal filter), each variance at least its standard error
+(:func:`filter_Q`), started from the reference's prediction at the end of the transient
+corrected by the initial state that best explains its first innovations
+(:func:`~observer_ros.core.als_ltv.fit_initial_state`: the Kalman filter's slowest mode
+may take longer than the bag to forget the reference's error). The lags are chosen from
+the plant for each pass unless given.
+
+Every identified entry has a standard error; an entry the data do not determine (its +-2
+sigma reaching zero) is named with the remedies. A measurement noise that comes out
+non-positive or not told from zero, or a fit far off (chi2/dof above :data:`POOR_FIT`),
+is diagnosed: the other noise structures are fitted to the same autocovariances and the
+likely cause named; the identification is refused when another structure does far
+better. The whiteness of the innovations before (reference) and after (Kalman filter of
+the identified covariances) is judged by the test of the node and ``observer-eval``
+(:mod:`observer_ros.core.whiteness`).
 
 """
 
@@ -21,21 +37,37 @@ import numpy as np
 
 from .errors import BagToolError
 from .evaluate import _load_vehicle
-from .metrics import WHITENESS_LAGS
 from .reader import read_recording
 from .results import jsonable
 from .sampled import noise_input, reference_gain, sampled_data, sampled_model
-from ..core.als import (ALSError, DEFAULT_LAGS, identify_noise, kalman_predictor_gain,
-                        predictor_blocks, process_noise_map)
+from ..core.als import (ALSError, choose_lags, DEFAULT_LAGS, identify_noise,
+                        kalman_predictor_gain, predictor_blocks, predictor_innovations,
+                        process_noise_map)
+from ..core.als_ltv import event_predictor, fit_initial_state, LTVModel, StepModel
+from ..core.als_stats import DECAYS
 from ..core.autocovariance import LaggedSums
+from ..core.innovation import ALPHA, WINDOW
+from ..core.whiteness import WindowWhiteness
 
-__all__ = ['BLOCK', 'TRANSIENT_DECAY', 'Identification', 'identify']
+__all__ = ['BLOCK', 'TRANSIENT_DECAY', 'RATE_TOLERANCE', 'POOR_FIT', 'Identification',
+           'identify', 'filter_Q', 'FILE_FLOOR', 'PASSES',
+           'uncertain_entries']
 
 #: Samples dropped at the start of each bag: until the reference predictor's slowest mode
 #: has decayed to this fraction.
 TRANSIENT_DECAY = 1e-6
 #: Innovations are computed and summed this many samples at a time.
 BLOCK = 1 << 16
+#: Bags identified together: their median steps within this fraction of the first's.
+RATE_TOLERANCE = 0.05
+#: A fit whose chi2 per degree of freedom is above this is poor: a warning.
+POOR_FIT = 2.0
+#: Most innovations a later pass fits its start's transient to.
+FIT_START_MAX = 50_000
+#: The tuned vehicle file's Kalman filter has no variance below this many standard errors.
+FILE_FLOOR = 0.5
+#: ALS passes by default: the reference, then twice the Kalman filter of the estimate.
+PASSES = 3
 
 
 @dataclass
@@ -54,6 +86,8 @@ class Identification:
     whiteness_before: Dict[str, dict]
     whiteness_after: Dict[str, dict]
     warnings: List[str] = field(default_factory=list)
+    irregular: Dict[str, dict] = field(default_factory=dict)   # bag -> missing, steps
+    lags_given: bool = False
 
     @property
     def result(self):
@@ -67,39 +101,262 @@ class Identification:
             'bags': self.bags, 'vehicle': self.vehicle.name, 'dt': self.dt,
             'noise_input': self.G.tolist(), 'noise_names': self.noise_names,
             'reference': self.reference, 'samples': self.samples, 'burn': self.burn,
-            'Qd': r.Q.tolist(), 'Rd': r.R.tolist(), 'condition': r.condition,
-            'passes': [p.to_dict() for p in self.passes],
+            'Qd': r.Q.tolist(), 'Rd': r.R.tolist(), 'Qd_std': r.Q_std.tolist(),
+            'Rd_std': r.R_std.tolist(), 'condition': r.condition,
+            'entries': [{'kind': k, 'name': n, 'value': v, 'std': s}
+                        for k, n, v, s in r.entries()],
+            'passes': [p.to_dict() for p in self.passes], 'irregular': self.irregular,
             'whiteness_reference': self.whiteness_before,
             'whiteness_tuned_kalman': self.whiteness_after, 'warnings': self.warnings})
 
 
-def _mehra(sums, names):
-    """Mehra's test per output: white when at most 5 % of the lags leave +-1.96/sqrt(N)."""
+class _RMS:
+    """Running mean square of each column over its finite values."""
+
+    def __init__(self, p):
+        self.sq = np.zeros(p)
+        self.n = np.zeros(p)
+
+    def add(self, block):
+        finite = np.isfinite(block)
+        self.sq += np.sum(np.where(finite, block, 0.0) ** 2, axis=0)
+        self.n += np.count_nonzero(finite, axis=0)
+
+
+def _whiteness(white, rms, names):
+    """Return the verdict of each output (the test of the node and observer-eval)."""
     out = {}
-    for j, name in enumerate(names):
-        w = sums.whiteness(j, WHITENESS_LAGS)
-        w['white'] = bool(w['acf_outside'] <= 0.05) if math.isfinite(w['acf_outside']) \
-            else None
-        w.pop('acf', None)
-        out[name] = w
+    for j, (name, v) in enumerate(zip(names, white.verdicts())):
+        v['samples'] = int(rms.n[j])
+        v['residual_rms'] = math.sqrt(rms.sq[j] / rms.n[j]) if rms.n[j] else math.nan
+        out[name] = v
+    return out
+
+
+class _Bag:
+    """One bag's data as the passes use them."""
+
+    def __init__(self, name, s, D, drop):
+        self.name = name
+        self.s = s
+        self.t = s.t
+        self.z = s.y - s.u_meas @ D.T if D.size else s.y.copy()
+        measured = np.flatnonzero(np.isfinite(s.y).any(axis=1))
+        self.measured = measured
+        self.drop = int(min(drop, measured.size))
+        # the step (incl. command-only steps) where the summed innovations start
+        self.first = int(measured[self.drop]) if self.drop < measured.size else s.y.shape[0]
+
+    def sequence(self):
+        """Return (t, present, start) of its measured steps for the time-varying model."""
+        m = self.measured
+        return self.t[m], np.isfinite(self.s.y[m]), self.drop
+
+
+def _structures(vehicle, G, input_noise, states):
+    """Return the other noise structures to try: (what, option, G, names)."""
+    plant = vehicle.plant
+    out = []
+    candidates = [('every state', f'--states {",".join(plant.state_names)}',
+                   *noise_input(vehicle, list(plant.state_names)))]
+    if plant.m:
+        candidates.append(('the inputs (a force or torque disturbance)', '--input-noise',
+                           *noise_input(vehicle, inputs=True)))
+    if vehicle.observer.Bd is not None:
+        candidates.append(("observer.Bd's columns", 'neither --input-noise nor --states',
+                           *noise_input(vehicle)))
+    for what, option, Galt, names in candidates:
+        if Galt.shape == G.shape and np.allclose(Galt, G):
+            continue
+        out.append((what, option, Galt, names))
+    return out
+
+
+def _describe(G, vehicle, input_noise, states):
+    if input_noise:
+        return 'the inputs (--input-noise)'
+    if states:
+        return f'the states {", ".join(states)} (--states)'
+    if vehicle.observer.Bd is not None:
+        return "observer.Bd's columns"
+    return 'every state'
+
+
+def _fmt(x):
+    return f'{x:.3g}'
+
+
+def _determined(res):
+    """Tell whether every measurement noise variance is positive beyond two standard errors."""
+    rd, rs = np.diag(res.R), np.diag(res.R_std)
+    return bool(np.all(rd > 2.0 * np.where(np.isfinite(rs), rs, np.inf)))
+
+
+def _diagnose(res, fits, current, outputs):
+    """
+    Return the refusal of an R that is not positive (or not told from zero), or None.
+
+    The other noise structures are fitted to the same autocovariances; one whose R is
+    positive beyond two standard errors and whose fit is not worse names the likely
+    cause. None: R is positive but undetermined and no other structure does better (the
+    identification goes on, with its warnings).
+
+    """
+    rd, rs = np.diag(res.R), np.diag(res.R_std)
+    positive = bool(np.all(rd > 0.0)) and np.min(np.linalg.eigvalsh(res.R)) > 0.0
+    ratio = res.residual / max(res.dof, 1)
+    bad = [f'{outputs[i]} {_fmt(rd[i])} +- {_fmt(rs[i])}' for i in range(rd.size)
+           if not rd[i] > 2.0 * rs[i]]
+    lines = [f'the identified measurement noise covariance R is '
+             f'{"not told from zero" if positive else "not positive definite"} '
+             f'({"; ".join(bad)}): with process noise on {current}, the autocovariances '
+             'leave no room for measurement noise'
+             + ('' if positive else ', and a Kalman filter cannot be designed') + '.',
+             f'fit with process noise on {current}: chi2/dof {_fmt(ratio)}']
+    good = []
+    for what, option, alt in fits:
+        if isinstance(alt, str):
+            lines.append(f'with process noise on {what}: {alt}')
+            continue
+        r, sd = np.diag(alt.R), np.diag(alt.R_std)
+        fit = alt.residual / max(alt.dof, 1)
+        lines.append(f'with process noise on {what}: R diag '
+                     f'{", ".join(f"{_fmt(x)} +- {_fmt(y)}" for x, y in zip(r, sd))}, '
+                     f'chi2/dof {_fmt(fit)}')
+        if _determined(alt) and fit <= 1.1 * ratio:
+            good.append((fit, what, option))
+    if good:
+        fit, what, option = min(good)
+        lines.append(f'likely cause: the noise structure. The process noise is not only on '
+                     f'{current}; with noise on {what} R is positive and the fit is '
+                     f'{"better" if fit < ratio else "as good"}: identify with {option}')
+    elif positive:
+        return None
+    else:
+        lines.append('likely cause: no noise structure tried gives a positive R: the outputs '
+                     'show no measurement noise beyond what the process noise explains (a '
+                     "filtered or quantised sensor), or the model (A, C, the sensors' "
+                     'outputs) differs from the plant')
+    return '\n'.join(lines)
+
+
+def _missing_text(runs):
+    """Return how much of each output is missing, for a refusal ('' when nothing is)."""
+    gone = {}
+    for r in runs:
+        for name, frac in r.s.missing.items():
+            gone.setdefault(name, []).append(frac)
+    parts = [f'{name} {max(v):.1%}' for name, v in gone.items() if max(v) > 0.0]
+    return f' (measurements missing at some samples: {", ".join(parts)})' if parts else ''
+
+
+def filter_Q(res, floor=1.0):
+    """
+    Return the Q a Kalman filter is designed with: no variance below ``floor`` sigma.
+
+    A variance the data do not tell from zero (its estimate below ``floor`` times its
+    standard error) is raised to that: a filter given zero stops following that noise for
+    good (its slowest mode then forgets an error only at the plant's own rate). The later
+    passes' references take each variance at least at its standard error (``floor`` 1: a
+    reference that follows any noise the data cannot rule out keeps the next pass's
+    standard errors honest); the tuned vehicle file at least at half of it
+    (:data:`FILE_FLOOR`: an estimate at zero raised no further than it need be, since a
+    filter that overrates a noise's intensity loses more than one that underrates it by as
+    much). The identified values and their standard errors are reported as they are.
+
+    """
+    Q = np.array(res.Q, dtype=float)
+    sd = np.diag(res.Q_std) if res.Q_std is not None else np.zeros(Q.shape[0])
+    low = float(floor) * sd
+    raise_ = np.where(np.isfinite(low) & (low > np.diag(Q)), low - np.diag(Q), 0.0)
+    return Q + np.diag(raise_)
+
+
+def _poor_fit(res, fits, current):
+    """
+    Return the text of a poor fit, and whether another noise structure fits far better.
+
+    Far better: its chi2/dof under half this one's and its R positive beyond two
+    standard errors (then the identification is refused: its numbers would mislead).
+
+    """
+    ratio = res.residual / res.dof
+    text = (f'the identified model fits the autocovariances poorly (chi2/dof {_fmt(ratio)} '
+            f'over {res.dof}, about 1 when it fits)')
+    better = sorted((alt.residual / max(alt.dof, 1), what, option) for what, option, alt in fits
+                    if not isinstance(alt, str) and _determined(alt) and
+                    alt.residual / max(alt.dof, 1) < 0.5 * ratio)
+    if better:
+        fit, what, option = better[0]
+        return (text + f' with process noise on {current}; with process noise on {what} it '
+                f'is {_fmt(fit)}: likely cause: the noise structure (the process noise is not '
+                f'only on {current}): identify with {option}'), True
+    return (text + ': no other noise structure fits better; the model (A, C, the sensors) '
+            'may differ from the plant'), False
+
+
+def uncertain_entries(res, lags_given, samples):
+    """Return a warning for each entry whose +-2 sigma reaches zero, with the remedies."""
+    out = []
+    entries = res.entries()
+    corr = res.correlation() if res.cov is not None and np.all(np.isfinite(res.cov)) \
+        else None
+    for u, (kind, name, value, std) in enumerate(entries):
+        if not (2.0 * std >= abs(value) or not value > 0.0):
+            continue
+        what = 'Qd' if kind == 'Q' else 'Rd'
+        remedies = []
+        want = DECAYS * res.decay
+        if want > res.lags:
+            if lags_given and res.auto_lags > res.lags:
+                remedies.append(f'more lags (--lags {res.auto_lags}: the slowest mode the '
+                                f'noise excites takes {res.decay} lags to decay; {res.lags} '
+                                'used)')
+            else:
+                remedies.append(f'more lags ({want}: {DECAYS} times the {res.decay} the '
+                                f'slowest mode takes to decay; {res.lags} is the most '
+                                f'{samples} samples allow: a longer bag)')
+        if value > 0.0 and math.isfinite(std):
+            factor = (4.0 * std / value) ** 2
+            remedies.append(f'a longer bag (sigma falls as 1/sqrt(samples): about '
+                            f'{_fmt(factor)}x the {samples} samples for +-2 sigma within half '
+                            'the value)')
+        else:
+            remedies.append('a longer bag (sigma falls as 1/sqrt(samples)), or this noise '
+                            'may be absent')
+        if corr is not None:
+            row = np.abs(np.nan_to_num(corr[u]))
+            row[u] = 0.0
+            k = int(np.argmax(row))
+            if row[k] > 0.8:
+                remedies.append(f'fewer unknowns (it trades off with {entries[k][1]}: '
+                                f'correlation {_fmt(corr[u, k])}; estimate fewer noise '
+                                'entries, e.g. --states or --input-noise)')
+        raised = kind == 'Q' and FILE_FLOOR * std > value and \
+            res.labels[u][1] == res.labels[u][2]
+        written = (f'; the tuned Kalman filter is given half its standard error, '
+                   f'{_fmt(FILE_FLOOR * std)}, not zero' if raised else '')
+        out.append(f'{what} {name} = {_fmt(value)} +- {_fmt(std)} (1 sigma): +-2 sigma '
+                   f'reaches zero, so these data do not determine it{written}; remedies: '
+                   + '; '.join(remedies))
     return out
 
 
 def identify(bags, vehicle, namespace=None, lags=DEFAULT_LAGS, full=False, states=None,
-             burn=None, passes=2, input_noise=False, block=BLOCK):
+             burn=None, passes=PASSES, input_noise=False, block=BLOCK):
     """
     Identify the process and measurement noise covariances from bags (ALS).
 
     Parameters
     ----------
     bags : sequence of str or Path
-        Bags of the same vehicle at the same sample rate.
+        Bags of the same vehicle at about the same sample rate.
     vehicle : str or Path or Vehicle
         The vehicle (its model, sensors and observer, the reference).
     namespace : str, optional
         The vehicle's namespace in the bags (detected when None).
-    lags : int
-        Autocovariance lags.
+    lags : int, optional
+        Autocovariance lags (default: chosen from the plant for each pass).
     full : bool
         Full symmetric covariances (default diagonal).
     states : sequence of str, optional
@@ -122,7 +379,8 @@ def identify(bags, vehicle, namespace=None, lags=DEFAULT_LAGS, full=False, state
     BagToolError
         A bag cannot be used (see :func:`~observer_ros.bag.sampled.sampled_data`).
     ALSError
-        The noise is not identifiable with this model and these data.
+        The noise is not identifiable with this model and these data, or the measurement
+        noise comes out non-positive (the message names the likely cause).
 
     """
     vehicle = _load_vehicle(vehicle)
@@ -136,11 +394,13 @@ def identify(bags, vehicle, namespace=None, lags=DEFAULT_LAGS, full=False, state
     del rec                 # only the sampled arrays are kept
     dt = data[0].dt
     for bag, s in zip(bags, data):
-        if abs(s.dt / dt - 1.0) > 1e-3:
-            raise BagToolError(f'{bag}: sample step {s.dt:.6g} s differs from {dt:.6g} s of '
+        if abs(s.dt / dt - 1.0) > RATE_TOLERANCE:
+            raise BagToolError(f'{bag}: median step {s.dt:.6g} s differs from {dt:.6g} s of '
                                f'{bags[0]}: identify bags of one rate together')
+    regular = all(s.regular and s.dt == dt for s in data)
     Ad, Bd = sampled_model(vehicle, dt)
     C, D = np.asarray(plant.C, float), np.asarray(plant.D, float)
+    A, B = np.asarray(plant.A, float), np.asarray(plant.B, float)
     G, noise_names = noise_input(vehicle, states, input_noise)
     F = process_noise_map(plant.A, G, dt, plant.is_discrete)
     Lp, reference = reference_gain(vehicle, Ad, dt, G)
@@ -149,46 +409,123 @@ def identify(bags, vehicle, namespace=None, lags=DEFAULT_LAGS, full=False, state
         if 0.0 < rho < 1.0 else 10
     if burn is not None:
         drop = int(burn)
-    short = [str(b) for b, s in zip(bags, data) if s.y.shape[0] - drop < 10 * lags]
+    need = 10 * (lags if lags is not None else 10)
+    short = [str(b) for b, s in zip(bags, data) if s.measured - drop < need]
     if short:
-        raise BagToolError(f'{short[0]}: fewer than {10 * lags} samples after dropping the '
+        raise BagToolError(f'{short[0]}: fewer than {need} samples after dropping the '
                            f'first {drop} (the transient); record longer or lower --burn')
     names = (noise_names, list(plant.output_names))
     outputs = list(plant.output_names)
     p = len(outputs)
+    runs = [_Bag(str(b), s, D, drop) for b, s in zip(bags, data)]
+    irregular = {r.name: {'missing': r.s.missing, 'step_range': list(r.s.steps),
+                          'measured_steps': r.s.measured, 'steps': int(r.s.y.shape[0])}
+                 for r in runs}
+    samples = sum(r.measured.size - r.drop for r in runs)
 
-    # the innovations are never held whole: each pass runs its predictor a block at a
-    # time into running lagged sums (per bag for ALS; one sequence, the bags end to end,
-    # for Mehra's test); the reference's prediction at the end of the transient starts
-    # every later pass
-    starts = [predictor_blocks(Ad, Bd, C, D, Lp, s.y[:drop], s.u[:drop], s.u_meas[:drop],
-                               block=block) for s in data]
+    def model(gain):
+        return StepModel(A, B, C, gain, dt, plant.is_discrete)
 
-    def run(gain, mehra=False):
+    # the reference's prediction at the end of the transient starts every later pass
+    if regular:
+        starts = [predictor_blocks(Ad, Bd, C, D, Lp, r.s.y[:r.first], r.s.u[:r.first],
+                                   r.s.u_meas[:r.first], block=block) for r in runs]
+    else:
+        ref = model(Lp)
+        starts = [event_predictor(ref, r.t[:r.first], r.z[:r.first], r.s.u[:r.first])
+                  for r in runs]
+
+    def fitted_starts(gain):
+        """Return each bag's start for ``gain``: the reference's, its transient fitted."""
+        if gain is Lp:
+            return starts
+        Phi = Ad - gain @ C
+        rho_k = float(np.max(np.abs(np.linalg.eigvals(Phi))))
+        steps = FIT_START_MAX if not 0.0 < rho_k < 1.0 else \
+            int(min(FIT_START_MAX, math.ceil(math.log(1e-3) / math.log(rho_k))))
+        out = []
+        for r, x0 in zip(runs, starts):
+            a = r.first
+            if regular:
+                T = min(steps, r.s.y.shape[0] - a)
+                e = predictor_innovations(Ad, Bd, C, D, gain, r.s.y[a:a + T], r.s.u[a:a + T],
+                                          r.s.u_meas[a:a + T], x0=x0)
+                psi = np.empty((T, p, Ad.shape[0]))
+                left = C.copy()
+                for k in range(T):
+                    psi[k] = left
+                    left = left @ Phi
+            else:
+                end = int(r.measured[min(r.measured.size - 1, r.drop + steps)]) + 1
+                _, psi, e = event_predictor(model(gain), r.t[a:end], r.z[a:end],
+                                            r.s.u[a:end], x0=x0, free=steps)
+            out.append(np.asarray(x0, float) + fit_initial_state(psi, e))
+        return out
+
+    def run(gain, nlags, white=False):
         """Run the predictor of ``gain`` after the transient; return its sums."""
-        sums = LaggedSums(p, lags)
-        white = LaggedSums(p, WHITENESS_LAGS + 1) if mehra else None
-        for s, x0 in zip(data, starts):
+        sums = LaggedSums(p, nlags)
+        extra = [WindowWhiteness(p, WINDOW, ALPHA), _RMS(p)] if white else []
+        if not regular:
+            sm = model(gain)
+        for r, x0 in zip(runs, fitted_starts(gain)):
             sums.new_sequence()
-            predictor_blocks(Ad, Bd, C, D, gain, s.y[drop:], s.u[drop:], s.u_meas[drop:],
-                             x0=x0, sinks=[sums] + ([white] if mehra else []), block=block)
-        return sums, white
+            a = r.first
+            if regular:
+                predictor_blocks(Ad, Bd, C, D, gain, r.s.y[a:], r.s.u[a:], r.s.u_meas[a:],
+                                 x0=x0, sinks=[sums] + extra, block=block)
+            else:
+                event_predictor(sm, r.t[a:], r.z[a:], r.s.u[a:], x0=x0,
+                                sinks=[sums] + extra, block=min(block, 1 << 14))
+        return sums, extra
 
     results = []
     gain = Lp
     before = None
+    current = _describe(G, vehicle, input_noise, states)
     for i in range(max(1, int(passes))):
-        sums, white = run(gain, mehra=i == 0)
+        auto, decay = choose_lags(Ad, C, gain, F, G.shape[1], samples, full)
+        nlags = int(lags) if lags is not None else auto
+        sums, extra = run(gain, nlags, white=i == 0)
         if i == 0:
-            before = _mehra(white, outputs)
-        res = identify_noise(sums, Ad, C, gain, F, G.shape[1], lags, full, names)
+            before = _whiteness(*extra, outputs)
+        ltv = None if regular else LTVModel(model(gain), G, [r.sequence() for r in runs])
+        try:
+            res = identify_noise(sums, Ad, C, gain, F, G.shape[1], nlags, full, names, ltv)
+        except ALSError as err:
+            raise ALSError(f'{err}{_missing_text(runs)}') from None
+        res.decay, res.auto_lags = decay, auto
         results.append(res)
-        if np.min(np.linalg.eigvalsh(res.R)) <= 0.0:
-            raise ALSError('the identified measurement noise covariance R is not positive '
-                           f'definite (diag {np.diag(res.R).tolist()}): the data do not '
-                           'show measurement noise; a Kalman filter cannot be designed')
-        gain = kalman_predictor_gain(Ad, C, res.Qk, res.R)
-    after = _mehra(run(gain, mehra=True)[1], outputs)
+
+        def alternatives():
+            """Fit the other noise structures to these autocovariances."""
+            fits = []
+            for what, option, Galt, alt_names in _structures(vehicle, G, input_noise, states):
+                Falt = process_noise_map(plant.A, Galt, dt, plant.is_discrete)
+                alt_ltv = None if regular else LTVModel(model(gain), Galt,
+                                                        [r.sequence() for r in runs])
+                try:
+                    alt = identify_noise(sums, Ad, C, gain, Falt, Galt.shape[1], nlags, full,
+                                         (alt_names, outputs), alt_ltv)
+                except ALSError as err:
+                    alt = f'not identifiable ({err})'
+                fits.append((what, option, alt))
+            return fits
+        if not _determined(res) or np.min(np.linalg.eigvalsh(res.R)) <= 0.0:
+            refusal = _diagnose(res, alternatives(), current, outputs)
+            if refusal is not None:
+                raise ALSError(refusal)
+        if res.dof > 0 and res.residual / res.dof > POOR_FIT:
+            text, better = _poor_fit(res, alternatives(), current)
+            if better:
+                raise ALSError(text)
+            if i == max(1, int(passes)) - 1:
+                warn.append(text)
+        gain = kalman_predictor_gain(Ad, C, F(filter_Q(res)), res.R)
+    _, extra = run(gain, 1, white=True)
+    after = _whiteness(*extra, outputs)
+    final = results[-1]
+    warn += uncertain_entries(final, lags is not None, samples)
     return Identification(vehicle, [str(b) for b in bags], dt, G, noise_names, reference,
-                          results, {str(b): int(s.y.shape[0]) for b, s in zip(bags, data)},
-                          drop, before, after, warn)
+                          results, {r.name: int(r.measured.size) for r in runs},
+                          drop, before, after, warn, irregular, lags is not None)

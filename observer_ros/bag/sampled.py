@@ -1,18 +1,24 @@
 # observer_ros.bag.sampled: a recording as regularly sampled arrays (y, u) for identification.
 """
-A recording's measurements and commands on the sample grid, and the sampled model.
+A recording's measurements and commands at their stamps, and the sampled model.
 
-Noise identification (:mod:`observer_ros.core.als`) works on a regularly sampled model:
-``y[k]`` every output at sample k, ``u[k]`` the command held from sample k to k + 1 (the
-last command stamped at or before it: the compensator answers the measurement of sample k
-with a command of the same stamp) and ``u_meas[k]`` the one in effect when ``y[k]`` was
-measured (the last stamped strictly before it, for ``D u``). A continuous plant is sampled
-with a zero-order hold at the median step, as the estimators do.
+Noise identification (:mod:`observer_ros.core.als`) works on the steps of a recording:
+the stamps at which an output was measured and, for a continuous plant, those at which
+the command changed (so the command is held from one step to the next). ``y[k]`` has
+each output measured at step k and NaN for those that were not (a message lost, a sensor
+at another rate or latency), ``u[k]`` the command held from step k to k + 1 (the last one
+stamped at or before it: the compensator answers the measurement of a sample with a
+command of the same stamp) and ``u_meas[k]`` the one in effect when ``y[k]`` was measured
+(the last stamped strictly before it, for ``D u``). Step lengths are the stamps' own: a
+continuous plant is sampled exactly at each (:mod:`observer_ros.core.als_ltv`). A
+discrete plant's steps are its samples: each stamp is put on the nearest sample of its
+``model.sample_time`` grid (refused when it is more than a quarter of a sample off).
 
 """
 
-from dataclasses import dataclass
-from typing import List, Tuple
+from dataclasses import dataclass, field
+import math
+from typing import Dict, List, Tuple
 
 import numpy as np
 
@@ -21,115 +27,156 @@ from ..core.als import kalman_predictor_gain, process_noise_map
 from ..core.design import observer_gain
 from ..core.model import map_poles_to_discrete, zoh_matrices
 
-__all__ = ['BLOCK', 'JITTER_MAX', 'Sampled', 'sampled_data', 'sampled_model', 'noise_input',
-           'reference_gain']
+__all__ = ['BLOCK', 'GRID_TOLERANCE', 'REGULAR', 'Sampled', 'sampled_data', 'sampled_model',
+           'noise_input', 'reference_gain']
 
-#: Largest relative deviation of a sample step from the median step.
-JITTER_MAX = 0.05
-#: Samples looked at a time by :func:`sampled_data`'s checks and command look-up.
+#: Samples looked at a time by :func:`sampled_data`'s command look-up.
 BLOCK = 1 << 16
+#: A discrete plant's stamps may be this fraction of a sample off its grid.
+GRID_TOLERANCE = 0.25
+#: Steps within this fraction of the median step count as regular.
+REGULAR = 1e-6
 
 
 @dataclass
 class Sampled:
-    """A recording on its sample grid (see the module)."""
+    """A recording at its steps (see the module)."""
 
-    stamp_ns: np.ndarray          # (N,)
-    y: np.ndarray                 # (N, p), outputs in the plant's order
+    stamp_ns: np.ndarray          # (N,) the steps
+    y: np.ndarray                 # (N, p), outputs in the plant's order, NaN: not measured
     u: np.ndarray                 # (N, m)
     u_meas: np.ndarray            # (N, m)
-    dt: float
+    dt: float                     # the median step between measurements, s
     warnings: List[str]
+    regular: bool = True          # every output at every step, every step dt long
+    missing: Dict[str, float] = field(default_factory=dict)   # output -> fraction
+    steps: Tuple[float, float] = (math.nan, math.nan)         # shortest, longest / dt
+    measured: int = 0             # steps with a measurement
+
+    @property
+    def t(self):
+        """Return the steps' stamps in seconds from the first."""
+        return (self.stamp_ns - self.stamp_ns[0]).astype(np.float64) * 1e-9
+
+
+def _sensor_stamps(sensor, stream, warnings):
+    """Return a sensor's valid stamps (sorted) and the rows of its values they come from."""
+    sel = np.flatnonzero(stream.valid)
+    ns = stream.stamp_ns[sel]
+    if ns.size > 1:
+        steps = np.diff(ns)
+        if np.any(steps < 0):
+            typical = float(np.median(np.abs(steps))) if steps.size else 0.0
+            back = float(-steps.min())
+            if back > max(10.0 * typical, 1e9):
+                raise BagToolError(f'sensor {sensor.name!r} ({stream.topic}): its stamps go '
+                                   f'back by {back * 1e-9:.3g} s (a clock jump: two runs in '
+                                   'one bag): cut the bag to one run')
+            order = np.argsort(ns, kind='stable')
+            sel, ns = sel[order], ns[order]
+        same = np.flatnonzero(np.diff(ns) == 0)
+        if same.size:
+            keep = np.ones(ns.size, dtype=bool)
+            keep[same] = False                      # the later message of a stamp wins
+            warnings.append(f'sensor {sensor.name!r}: {same.size} messages repeat an '
+                            'earlier stamp; the last of each is used')
+            sel, ns = sel[keep], ns[keep]
+    return ns, sel
 
 
 def sampled_data(recording, vehicle, block=BLOCK):
     """
-    Return the recording's outputs and inputs on the sample grid.
-
-    The checks and the commands' look-up go a block of ``block`` samples at a time, so
-    the transient memory is that of the one array of steps (8 bytes a sample) beside
-    the result (``y``, ``u``, ``u_meas``); a stream whose messages are all valid is not
-    copied for its stamps.
+    Return the recording's outputs and inputs at its steps (see the module).
 
     Raises
     ------
     BagToolError
-        An output is missing at a sample (sensors at different rates), too few samples,
-        or the stamps are not regular (a step more than :data:`JITTER_MAX` from the
-        median, e.g. a clock jump or a gap).
+        Fewer than 100 steps with a measurement, an output never measured, stamps going
+        back (a clock jump), or a discrete plant's stamps off its sample grid.
 
     """
     plant = vehicle.plant
     warnings = []
-    stamps, picks = None, []
+    picks = []
     for sensor in vehicle.sensors:
         stream = recording.sensors[sensor.name]
-        sel = None if stream.valid.all() else np.flatnonzero(stream.valid)
-        ns = stream.stamp_ns if sel is None else stream.stamp_ns[sel]
-        if stamps is None:
-            stamps = ns
-        elif ns.size != stamps.size or not np.array_equal(ns, stamps):
-            raise BagToolError(f'sensor {sensor.name!r} ({stream.topic}) is not measured at '
-                               f'the same stamps as {vehicle.sensors[0].name!r} '
-                               f'({ns.size} against {stamps.size} messages): the noise '
-                               'identification needs every output at every sample')
-        picks.append((sensor, stream, sel))
-    if stamps is None or stamps.size < 100:
-        raise BagToolError(f'{0 if stamps is None else stamps.size} samples: too few to '
-                           'identify noise covariances (need at least 100)')
-    dt = _regular_step(stamps, block)
-    if vehicle.plant.is_discrete and abs(dt / vehicle.sample_time - 1.0) > JITTER_MAX:
-        raise BagToolError(f"measurement step {dt:.6g} s is not the discrete model's "
-                           f'model.sample_time {vehicle.sample_time:.6g} s')
-    N, m = stamps.size, plant.m
-    y = np.empty((N, plant.p))
-    for sensor, stream, sel in picks:
-        for j, row in enumerate(plant.output_rows(sensor.outputs)):
-            y[:, row] = stream.values[:, j] if sel is None else stream.values[sel, j]
-    u = np.zeros((N, m))
-    u_meas = np.zeros((N, m))
+        ns, sel = _sensor_stamps(sensor, stream, warnings)
+        if not ns.size:
+            raise BagToolError(f'sensor {sensor.name!r} ({stream.topic}) has no valid '
+                               'message: its outputs cannot be identified')
+        picks.append((sensor, stream, ns, sel))
+    meas = np.unique(np.concatenate([ns for _, _, ns, _ in picks]))
+    if meas.size < 100:
+        raise BagToolError(f'{meas.size} samples: too few to identify noise covariances '
+                           '(need at least 100)')
+    dt = float(np.median(np.diff(meas))) * 1e-9
     cmd = recording.command
+    m = plant.m
+    c_ns = c_val = None
     if m and (cmd is None or not cmd.valid.any()):
         warnings.append('no control/u in the bag: the inputs are taken as zero')
     elif m:
         sel = np.flatnonzero(cmd.valid)
         order = np.argsort(cmd.stamp_ns[sel], kind='stable')
         c_ns, c_val = cmd.stamp_ns[sel][order], cmd.values[sel][order]
+    if plant.is_discrete:
+        T = float(vehicle.sample_time)
+        steps, index = _grid(meas, T)
+        if c_ns is not None:
+            c_ns = meas[0] + np.rint((c_ns - meas[0]) * 1e-9 / T).astype(np.int64) * \
+                int(round(T * 1e9))
+        dt = T
+    else:
+        steps = meas
+        if c_ns is not None:
+            inside = c_ns[(c_ns > meas[0]) & (c_ns < meas[-1])]
+            if inside.size and not np.isin(inside, meas).all():
+                steps = np.union1d(meas, inside)
+        index = np.searchsorted(steps, meas)
+    N = steps.size
+    y = np.full((N, plant.p), np.nan)
+    present = np.zeros((N, plant.p), dtype=bool)
+    for sensor, stream, ns, sel in picks:
+        at = index[np.searchsorted(meas, ns)]
+        if plant.is_discrete and np.any(np.diff(at) == 0):
+            raise BagToolError(f'sensor {sensor.name!r}: two of its stamps fall on one sample '
+                               "of the discrete model's grid (model.sample_time "
+                               f'{vehicle.sample_time:.6g} s)')
+        for j, row in enumerate(plant.output_rows(sensor.outputs)):
+            y[at, row] = stream.values[sel, j]
+            present[at, row] = True
+    measured = present.any(axis=1)
+    count = int(np.count_nonzero(measured))
+    missing = {name: 1.0 - float(np.count_nonzero(present[measured, i])) / count
+               for i, name in enumerate(plant.output_names)}
+    u = np.zeros((N, m))
+    u_meas = np.zeros((N, m))
+    if c_ns is not None:
         for a in range(0, N, block):
-            t = stamps[a:a + block]
+            t = steps[a:a + block]
             at = np.searchsorted(c_ns, t, side='right') - 1       # stamp <= t_k
             before = np.searchsorted(c_ns, t, side='left') - 1    # stamp < t_k
             u[a:a + block][at >= 0] = c_val[at[at >= 0]]
             u_meas[a:a + block][before >= 0] = c_val[before[before >= 0]]
-    return Sampled(stamps, y, u, u_meas, dt, warnings)
+    ratio = np.diff(meas).astype(np.float64) * 1e-9 / dt
+    regular = bool(N == meas.size and present.all() and
+                   np.all(np.abs(ratio - 1.0) <= REGULAR))
+    return Sampled(steps, y, u, u_meas, dt, warnings, regular, missing,
+                   (float(ratio.min()), float(ratio.max())), count)
 
 
-def _regular_step(stamps, block):
-    """Return the median step in seconds; refuse stamps that are not increasing or regular."""
-    steps = np.diff(stamps)
-    if np.any(steps <= 0):
-        raise BagToolError('measurement stamps are not increasing (a clock jump or '
-                           'reordered messages): cut the bag to one run')
-    # np.median of the steps in seconds, partitioning the integer steps in place: the
-    # middle one, or the mean of the two middle ones, converted as the steps were
-    k = steps.size // 2
-    steps.partition([k - 1, k] if steps.size % 2 == 0 else [k])
-    middle = steps[k - 1:k + 1] if steps.size % 2 == 0 else steps[k:k + 1]
-    middle = [float(x) * 1e-9 for x in middle]
-    dt = float(np.mean(middle))
-    del steps
-    worst, where = -1.0, 0
-    for a in range(0, stamps.size - 1, block):
-        rel = np.abs(np.diff(stamps[a:a + block + 1]).astype(np.float64) * 1e-9 / dt - 1.0)
-        k = int(np.argmax(rel))
-        if rel[k] > worst:
-            worst, where = float(rel[k]), a + k
-    if worst > JITTER_MAX:
-        step = float(stamps[where + 1] - stamps[where]) * 1e-9
-        raise BagToolError(f'measurement steps are not regular: {step:.6g} s at sample '
-                           f'{where + 1} against a median of {dt:.6g} s (more than '
-                           f'{JITTER_MAX:.0%} off)')
-    return dt
+def _grid(meas, T):
+    """Return a discrete plant's sample stamps (first to last) and each stamp's sample."""
+    rel = (meas - meas[0]).astype(np.float64) * 1e-9 / T
+    k = np.rint(rel).astype(np.int64)
+    off = np.abs(rel - k)
+    worst = int(np.argmax(off))
+    if off[worst] > GRID_TOLERANCE:
+        raise BagToolError(f'measurement at {meas[worst] * 1e-9:.9g} s is {off[worst]:.0%} of '
+                           f"a sample off the discrete model's grid (model.sample_time "
+                           f'{T:.6g} s): stamps must be within {GRID_TOLERANCE:.0%} of it')
+    step = int(round(T * 1e9))
+    return meas[0] + np.arange(k[-1] + 1, dtype=np.int64) * step, k
 
 
 def sampled_model(vehicle, dt):

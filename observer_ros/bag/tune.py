@@ -3,18 +3,21 @@
 Tune an observer from recorded data.
 
 1. Noise covariances by autocovariance least squares (:mod:`observer_ros.bag.identify`,
-   :mod:`observer_ros.core.als`): the bags' outputs and commands on their sample grid
-   (:mod:`observer_ros.bag.sampled`), the innovations of a stable reference predictor
-   (the vehicle's own observer), the transient dropped, autocovariances over ``--lags``
-   lags (pooled over the bags), Q on the noise input's columns (``observer.Bd``,
-   ``--states``, ``--input-noise`` or every state) and R; diagonal and
-   non-negative, or ``--full`` (symmetric, projected to be positive semidefinite). A
-   second pass repeats it with the Kalman predictor of the first pass's covariances as
-   the reference (``--passes``; Rajamani & Rawlings 2009 recommend a reference close to
-   the optimal filter).
-2. Mehra's whiteness test of the innovations of the reference and of the Kalman filter
-   designed from the identified covariances; a plot of the empirical autocovariances
-   against the fitted ones, with +-2 sigma bands.
+   :mod:`observer_ros.core.als`): the bags' outputs and commands at their stamps
+   (:mod:`observer_ros.bag.sampled`; outputs missing at some samples and jittered stamps
+   included), the innovations of a stable reference predictor (the vehicle's own
+   observer) run at the actual stamps, the transient dropped, autocovariances over
+   ``--lags`` lags (chosen from the plant by default; pooled over the bags), Q on the
+   noise input's columns (``observer.Bd``, ``--states``, ``--input-noise`` or every
+   state) and R by weighted least squares, with a standard error for each entry;
+   diagonal and non-negative, or ``--full`` (symmetric, projected to be positive
+   semidefinite). Each later pass (``--passes``, 3 by default) repeats it with the
+   Kalman predictor of the previous pass's covariances as the reference (Rajamani &
+   Rawlings 2009 recommend a reference close to the optimal filter).
+2. The whiteness of the innovations of the reference and of the Kalman filter designed
+   from the identified covariances (:mod:`observer_ros.core.whiteness`, the test of the
+   node and ``observer-eval``); a plot of the empirical autocovariances against the
+   fitted ones, with +-2 sigma bands.
 3. A gain search (:mod:`observer_ros.bag.gain_search`) over a scale of the Kalman weights
    (``--search kalman``, the default) or of the vehicle's observer poles (``--search
    poles``, also without identification: ``--no-als``), or of each pole
@@ -41,7 +44,7 @@ import numpy as np
 from .errors import BagToolError
 from .evaluate import _load_vehicle, _Progress, IN_MEMORY_HELP, stop_on_sigterm, tool_error
 from .gain_search import DEFAULT_SCALES, gain_search, search_overrides
-from .identify import Identification, identify
+from .identify import FILE_FLOOR, filter_Q, Identification, identify, PASSES
 from .pole_search import DEFAULT_EVALUATIONS, pole_search, pole_set
 from .results import jsonable
 from .tune_report import format_report, write_report
@@ -59,18 +62,30 @@ def _tuned_observer(ident):
     r = ident.result
     n, k = ident.G.shape
     src = (f'observer-tune: autocovariance least squares on {", ".join(ident.bags)} '
-           f'({sum(ident.samples.values())} samples, dt {ident.dt:.6g} s, {r.lags} lags, '
+           f'({sum(ident.samples.values())} samples, median dt {ident.dt:.6g} s, {r.lags} lags, '
            f'{len(ident.passes)} passes, reference {ident.reference}; '
            f'condition number {r.condition:.3g})')
     outputs = ', '.join(ident.vehicle.plant.output_names)
     what = 'intensity' if not ident.vehicle.plant.is_discrete else 'per-sample covariance'
-    obs = {'observer.type': 'kalman', 'observer.Qd': list(np.ravel(r.Q)),
+    std = {'Q': [], 'R': []}
+    for kind, name, value, sd in r.entries():
+        std[kind].append(f'{name} {value:.4g} +- {sd:.2g}')
+    Q = filter_Q(r, FILE_FLOOR)
+    raised = [f'{name} {Q[i, i]:.4g}' for i, name in enumerate(ident.noise_names)
+              if Q[i, i] != r.Q[i, i]]
+    if raised:
+        std['Q'].append('; not told from zero by these data, so given half their standard '
+                        'error (a filter given zero stops following that noise): '
+                        f'{", ".join(raised)}')
+    obs = {'observer.type': 'kalman', 'observer.Qd': list(np.ravel(Q)),
            'observer.Rd': list(np.ravel(r.R)), 'observer.Bd': list(np.ravel(ident.G))}
     sources = {
         'observer.type': 'observer-tune: Kalman filter from identified noise covariances',
         'observer.Qd': f"{what} of the process noise on Bd's columns "
-                       f'({", ".join(ident.noise_names)}); {src}',
-        'observer.Rd': f'measurement noise covariance of {outputs}; {src}',
+                       f'({", ".join(ident.noise_names)}); {src}\n'
+                       f'standard errors (1 sigma): {", ".join(std["Q"])}',
+        'observer.Rd': f'measurement noise covariance of {outputs}; {src}\n'
+                       f'standard errors (1 sigma): {", ".join(std["R"])}',
         'observer.Bd': f'process noise input ({n}x{k}): '
                        f'{", ".join(ident.noise_names)} (observer-tune)',
     }
@@ -104,7 +119,7 @@ def default_out(bag):
 
 
 def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS,
-         full=False, states=None, burn=None, passes=2, als=True, search='auto',
+         full=False, states=None, burn=None, passes=PASSES, als=True, search='auto',
          scales=DEFAULT_SCALES, use_search=False, force=False, plots=True, progress=None,
          input_noise=False, refine=0, evaluations=DEFAULT_EVALUATIONS, dask=None,
          spill=True):
@@ -270,11 +285,14 @@ _EPILOG = """\
 what it does:
   1. identifies the process noise (on observer.Bd's columns, --states, --input-noise, or
      every state) and the measurement noise covariances from the bags by
-     autocovariance least squares (Odelson, Rajamani & Rawlings 2006), with the
-     vehicle's own observer as the reference, then once more with the Kalman filter of
-     the first estimate;
-  2. Mehra's whiteness test of the innovations before (reference) and after (Kalman
-     filter of the identified covariances);
+     autocovariance least squares (Odelson, Rajamani & Rawlings 2006; weighted as
+     Rajamani & Rawlings 2009), with the vehicle's own observer as the reference, then
+     twice more with the Kalman filter of the previous estimate (--passes); messages
+     lost and jittered stamps are taken as they are (the filter and its model at the
+     actual stamps); each entry comes with its standard error, and a warning names the
+     entries the data do not determine, with the remedies;
+  2. the whiteness of the innovations before (reference) and after (Kalman filter of
+     the identified covariances), by the test of the node and observer-eval;
   3. a gain search: the identified Kalman filter's Qd times each --grid scale (--search
      kalman) or the vehicle's observer poles times each scale (--search poles), or
      each pole (--search each-pole: the scale grid, then scipy.optimize Nelder-Mead on
@@ -312,7 +330,8 @@ def _parser():
                         '<out>/<vehicle>_tuned.yaml; elsewhere never overwritten)')
     parser.add_argument('--namespace', help="the vehicle's namespace in the bags")
     parser.add_argument('--lags', type=int, default=DEFAULT_LAGS,
-                        help=f'autocovariance lags (default {DEFAULT_LAGS})')
+                        help='autocovariance lags (default: chosen from the plant, enough '
+                        'for the slowest mode the noise excites to decay)')
     parser.add_argument('--full', action='store_true',
                         help='full symmetric Qd and Rd (default diagonal, non-negative)')
     parser.add_argument('--states', help='process noise on these states, comma-separated '
@@ -322,8 +341,8 @@ def _parser():
                         'or torque disturbance)')
     parser.add_argument('--burn', type=int, help='samples dropped at the start of each bag '
                         "(default: the reference observer's transient)")
-    parser.add_argument('--passes', type=int, default=2,
-                        help='identification passes (default 2)')
+    parser.add_argument('--passes', type=int, default=PASSES,
+                        help=f'identification passes (default {PASSES})')
     parser.add_argument('--no-als', action='store_true',
                         help='no noise identification (only --search poles)')
     parser.add_argument('--search', choices=['auto', 'kalman', 'poles', 'each-pole', 'none'],
@@ -357,7 +376,7 @@ def _parser():
 
 
 def _check_args(args):
-    if args.lags < 1:
+    if args.lags is not None and args.lags < 1:
         raise BagToolError(f'--lags {args.lags}: must be at least 1')
     if args.workers is not None and args.workers < 1:
         raise BagToolError(f'--workers {args.workers}: must be at least 1')

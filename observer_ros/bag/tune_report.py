@@ -2,7 +2,7 @@
 """
 The report of :func:`observer_ros.bag.tune.tune`.
 
-``tune.txt`` (what ``observer-tune`` prints: the identification, Mehra's test, the
+``tune.txt`` (what ``observer-tune`` prints: the identification, the whiteness verdicts, the
 search tables with a column per bag, their mean and each bag's best), ``tune.json``
 (every number), ``search.csv`` (the common-scale grid), ``pole_search.csv`` (each
 evaluation of ``--search each-pole`` with its poles) and the PNGs (autocovariances, the
@@ -15,9 +15,9 @@ import math
 
 import numpy as np
 
-from .metrics import WHITENESS_LAGS
 from .plots import plot_autocovariances, plot_search
 from .report import csv_cell, fmt, text_table
+from ..core.innovation import ALPHA as INNOVATION_ALPHA, WINDOW as INNOVATION_WINDOW
 
 __all__ = ['format_report', 'write_report']
 
@@ -30,29 +30,40 @@ def format_report(result):
         r = ident.result
         lines += [f'noise identification (autocovariance least squares) of '
                   f'{ident.vehicle.name} on {len(ident.bags)} bag(s): '
-                  f'{sum(ident.samples.values())} samples at dt {ident.dt:.6g} s, first '
-                  f'{ident.burn} of each dropped, {r.lags} lags, '
+                  f'{sum(ident.samples.values())} samples at dt {ident.dt:.6g} s (median), '
+                  f'first {ident.burn} of each dropped, '
                   f'{"full" if r.full else "diagonal"} covariances',
-                  f'reference: {ident.reference}; condition number {fmt(r.condition)} '
-                  f'(rank {r.rank} of {r.unknowns})', '']
+                  f'reference: {ident.reference}; lags {_lags_text(ident)}; condition number '
+                  f'{fmt(r.condition)} (rank {r.rank} of {r.unknowns}); fit chi2/dof '
+                  f'{fmt(r.residual / max(r.dof, 1), 3)} over {r.dof}']
+        lines += _irregular_lines(ident) + ['']
         rows = []
         for i, p in enumerate(ident.passes):
-            for j, name in enumerate(ident.noise_names):
-                rows.append([i + 1, f'Qd {name}', fmt(p.Q[j, j])])
-            for j, name in enumerate(ident.vehicle.plant.output_names):
-                rows.append([i + 1, f'Rd {name}', fmt(p.R[j, j])])
-        lines += [text_table(['pass', 'entry', 'value'], rows), '']
+            for kind, name, value, std in p.entries():
+                what = 'Qd' if kind == 'Q' else 'Rd'
+                rows.append([i + 1, f'{what} {name}', fmt(value), fmt(std),
+                             '+-2sd reaches 0' if (2 * std >= abs(value) or not value > 0)
+                             else 'ok'])
+        lines += ['identified entries with their standard errors (1 sigma, from the '
+                  'covariance of the weighted least squares)', '',
+                  text_table(['pass', 'entry', 'value', 'std_err', 'determined'], rows), '']
         rows = []
         for label, w in (('reference', ident.whiteness_before),
                          ('tuned kalman', ident.whiteness_after)):
             for name, m in w.items():
                 rows.append([label, name, m['samples'], fmt(m['residual_rms']),
-                             fmt(m['ljung_box_p'], 3), fmt(m['acf_outside'], 3),
+                             f"{m['flagged']}/{m['windows']}", m['allowed'],
+                             fmt(m['min_p'], 3), fmt(m['level'], 2),
                              {True: 'yes', False: 'no'}.get(m['white'], '-')])
-        lines += [f'Mehra whiteness test of the innovations (lags 1..{WHITENESS_LAGS}; '
-                  'white if at most 5% of the lags are outside +-1.96/sqrt(N))', '',
-                  text_table(['filter', 'output', 'N', 'rms', 'LB_p', 'acf_out', 'white'],
-                             rows), '']
+        lines += [f'whiteness of the innovations (the test of the node and observer-eval: '
+                  f'the cumulative periodogram of windows of {INNOVATION_WINDOW}, each flagged '
+                  f'with probability {INNOVATION_ALPHA:g} if white; not white when more than '
+                  "'allowed' are flagged or one is far outside; 'false_alarm' is the "
+                  'probability that white innovations are called not white)', '',
+                  text_table(['filter', 'output', 'N', 'rms', 'flagged', 'allowed',
+                              'min_p', 'false_alarm', 'white'], rows), '']
+        if ident.warnings:
+            lines += ['warnings:'] + [f'- {w}' for w in ident.warnings] + ['']
     sr = result.search
     if sr is not None:
         grid = getattr(sr, 'grid', sr)          # a per-pole search starts with a grid
@@ -61,6 +72,34 @@ def format_report(result):
             lines += _pole_lines(sr)
     lines.append(f'tuned vehicle file: {result.vehicle_file}')
     return '\n'.join(lines)
+
+
+def _lags_text(ident):
+    r = ident.result
+    how = 'given' if ident.lags_given else 'chosen from the plant'
+    text = f'{r.lags} ({how}'
+    text += f'; the slowest mode the noise excites decays in {r.decay}'
+    return text + ')'
+
+
+def _irregular_lines(ident):
+    """Return what the bags lack: outputs missing, steps of other lengths."""
+    out = []
+    for bag, info in ident.irregular.items():
+        gone = ', '.join(f'{k} {v:.1%}' for k, v in info['missing'].items() if v > 0.0)
+        low, high = info['step_range']
+        jitter = not (abs(low - 1.0) <= 1e-6 and abs(high - 1.0) <= 1e-6)
+        if gone or jitter:
+            text = f'{bag}: '
+            if gone:
+                text += f'measurements missing at some samples ({gone}; autocovariances over '
+                text += 'the pairs that exist)'
+            if jitter:
+                text += ('; ' if gone else '') + (f'steps {low:.3g}..{high:.3g} x the median '
+                                                  '(the filter and the model at the actual '
+                                                  'stamps)')
+            out.append(text)
+    return out
 
 
 def _grid_lines(sr):

@@ -30,10 +30,21 @@ autocovariances are::
 
 linear in (Q, R). Stacking ``C0 .. C(N-1)`` for each basis element of the unknowns (one
 discrete Lyapunov solution each) gives the ALS matrix; the sample autocovariances of the
-measured innovations (after the transient) are the right-hand side. Diagonal Q and R are
-solved non-negative (``scipy.optimize.lsq_linear``); full symmetric ones by least squares
-and projected onto the positive semidefinite cone. The unknowns are identifiable when the
-(column-scaled) ALS matrix has full column rank; otherwise :class:`ALSError`.
+measured innovations (after the transient) are the right-hand side. When outputs are
+missing at some samples or the stamps jitter, the innovations are those of the filter run
+at the actual stamps and the ALS matrix that of the time-varying model along the data's
+own sequence (:mod:`observer_ros.core.als_ltv`); each sample autocovariance is then the
+average over the pairs that exist.
+
+The least squares are weighted by the inverse covariance of the sample autocovariances
+(Bartlett's formula under the fitted model: :mod:`observer_ros.core.als_stats`), which
+also gives the covariance of the estimate, hence a standard error for every identified
+entry. Diagonal Q and R are solved non-negative (``scipy.optimize.lsq_linear``); full
+symmetric ones by least squares and projected onto the positive semidefinite cone. The
+unknowns are identifiable when the (weighted, column-scaled) ALS matrix has full column
+rank; otherwise :class:`ALSError`. The number of lags is chosen from the plant when not
+given (:func:`choose_lags`): enough for the slowest mode of the reference filter that the
+noise excites and the outputs see.
 
 No ROS here: numpy and scipy only.
 
@@ -44,17 +55,19 @@ import math
 
 import numpy as np
 import scipy.linalg
-from scipy.optimize import lsq_linear
 
+from .als_stats import (als_rows, autocovariance_covariance, lag_cap, plant_lags,
+                        weighted_als)
 from .errors import ObserverError
 from .model import as_matrix
 
 __all__ = ['ALSError', 'ALSResult', 'DEFAULT_LAGS', 'RANK_TOL', 'predictor_innovations',
            'predictor_blocks', 'sample_autocovariances', 'model_autocovariances',
-           'autocovariance_sigma',
+           'autocovariance_sigma', 'choose_lags',
            'process_noise_map', 'als_matrix', 'identify_noise', 'kalman_predictor_gain']
 
-DEFAULT_LAGS = 15
+#: Lags when none are given: None, chosen from the plant (:func:`choose_lags`).
+DEFAULT_LAGS = None
 #: The ALS matrix (columns scaled to unit norm) is rank deficient when its smallest
 #: singular value is below this fraction of the largest.
 RANK_TOL = 1e-9
@@ -70,11 +83,15 @@ class ALSResult:
     What :func:`identify_noise` found.
 
     ``Q`` (k x k) and ``R`` (p x p) are the identified covariances (``Q`` in the units of
-    the map ``F``: an intensity for a continuous plant); ``Qk`` = F(Q) per step.
-    ``empirical`` and ``fitted`` are the autocovariances (lags, p, p) of the data and of
-    the identified model for the reference gain; ``sigma`` (lags, p) the standard
-    deviation of the empirical diagonal ones (Bartlett). ``condition`` is the condition
-    number of the column-scaled ALS matrix, ``rank`` its rank of ``unknowns``.
+    the map ``F``: an intensity for a continuous plant); ``Qk`` = F(Q) per step;
+    ``Q_std`` and ``R_std`` the standard error of each entry (the covariance of the
+    weighted least squares, ``cov`` over the unknowns ``labels``: ``('Q', i, j)`` or
+    ``('R', i, j)``). ``empirical`` and ``fitted`` are the autocovariances (lags, p, p)
+    of the data and of the identified model for the reference gain; ``sigma`` (lags, p)
+    the standard deviation of the empirical diagonal ones (Bartlett). ``condition`` is
+    the condition number of the weighted, column-scaled ALS matrix, ``rank`` its rank of
+    ``unknowns``; ``residual`` the weighted residual (chi-square with ``dof`` degrees of
+    freedom when the model fits); ``decay`` the lags the slowest column needs.
 
     """
 
@@ -92,12 +109,43 @@ class ALSResult:
     residual: float
     full: bool
     raw: np.ndarray        # the unconstrained / unprojected solution, stacked
+    Q_std: np.ndarray = None
+    R_std: np.ndarray = None
+    cov: np.ndarray = None
+    labels: list = None
+    names: tuple = None
+    dof: int = 0
+    decay: int = 0
+    counts: np.ndarray = None
+    auto_lags: int = 0
+
+    def entries(self):
+        """Return ``(kind, name, value, std)`` of every identified entry (Q's first)."""
+        qn, rn = self.names if self.names is not None else \
+            ([f'Q[{i}]' for i in range(self.Q.shape[0])],
+             [f'R[{i}]' for i in range(self.R.shape[0])])
+        out = []
+        for kind, i, j in self.labels or []:
+            names, M, S = (qn, self.Q, self.Q_std) if kind == 'Q' else (rn, self.R, self.R_std)
+            name = names[i] if i == j else f'{names[i]},{names[j]}'
+            out.append((kind, name, float(M[i, j]),
+                        float(S[i, j]) if S is not None else math.nan))
+        return out
+
+    def correlation(self):
+        """Return the correlation matrix of the unknowns' estimates."""
+        d = np.sqrt(np.abs(np.diag(self.cov)))
+        with np.errstate(invalid='ignore', divide='ignore'):
+            return self.cov / np.outer(d, d)
 
     def to_dict(self):
         """Return the result as JSON-ready data."""
         return {'Q': self.Q.tolist(), 'R': self.R.tolist(), 'Qk': self.Qk.tolist(),
-                'lags': self.lags, 'samples': self.samples, 'condition': self.condition,
-                'rank': self.rank, 'unknowns': self.unknowns, 'residual': self.residual,
+                'Q_std': None if self.Q_std is None else self.Q_std.tolist(),
+                'R_std': None if self.R_std is None else self.R_std.tolist(),
+                'lags': self.lags, 'decay_lags': self.decay, 'samples': self.samples,
+                'condition': self.condition, 'rank': self.rank, 'unknowns': self.unknowns,
+                'residual': self.residual, 'dof': self.dof,
                 'form': 'full' if self.full else 'diagonal'}
 
 
@@ -391,8 +439,54 @@ def _psd(M):
     return (V * np.maximum(w, 0.0)) @ V.T
 
 
+def choose_lags(Ad, C, Lp, noise_map, k, samples, full=False):
+    """
+    Return the lags to use, from the plant (see the module), and the lags the noise needs.
+
+    Each unknown's column of the ALS matrix (its noise's autocovariances through the
+    reference predictor ``Lp``) is computed over a long horizon and covered until
+    :data:`~observer_ros.core.als_stats.TAIL_ENERGY` of its energy is left
+    (:func:`~observer_ros.core.als_stats.plant_lags`), within the cap of ``samples``
+    innovations (:func:`~observer_ros.core.als_stats.lag_cap`).
+
+    Returns
+    -------
+    lags : int
+    decay : int
+        The lags the slowest column needs (more than ``lags`` when capped).
+
+    """
+    p = np.asarray(C).shape[0]
+    cap = lag_cap(int(samples), p)
+    horizon = int(min(max(cap, 200), 4000))
+    M, _, _ = als_matrix(Ad, C, Lp, noise_map, k, horizon, full)
+    return plant_lags(M.reshape(horizon, p, p, -1), cap)
+
+
+def _row_index(rows, p):
+    j, i, l_ = rows
+    return (j * p + i) * p + l_
+
+
+def _gamma(Ad, C, Lp, noise_map, Q, R, horizon, fitted=None):
+    """Return the innovations' autocovariances of the fitted model over ``horizon`` lags."""
+    gamma = model_autocovariances(Ad, C, Lp, noise_map(Q), R, horizon)
+    if fitted is not None:
+        gamma[:fitted.shape[0]] = fitted
+    return gamma
+
+
+def _check_rank(fit, unknowns):
+    """Refuse a fit whose ALS matrix has a rank below the number of unknowns."""
+    if fit['rank'] < unknowns:
+        raise ALSError(f'not identifiable: the ALS matrix has rank {fit["rank"]} for '
+                       f'{unknowns} unknowns (condition number {fit["condition"]:.3g}); '
+                       'estimate fewer noise entries (noise on fewer states or observer.Bd '
+                       'columns, diagonal instead of full) or use more lags')
+
+
 def identify_noise(innovations, Ad, C, Lp, noise_map, k, lags=DEFAULT_LAGS, full=False,
-                   names=None):
+                   names=None, ltv=None):
     """
     Identify Q and R from a stable predictor's innovations (autocovariance least squares).
 
@@ -401,22 +495,27 @@ def identify_noise(innovations, Ad, C, Lp, noise_map, k, lags=DEFAULT_LAGS, full
     innovations : (N, p) array_like, or a list of them, or LaggedSums
         The predictor's innovations, the transient already dropped (several
         sequences, e.g. one per bag, are pooled), or their running lagged sums
-        (:class:`~observer_ros.core.autocovariance.LaggedSums`, at least ``lags`` lags).
+        (:class:`~observer_ros.core.autocovariance.LaggedSums`, at least ``lags`` lags;
+        NaN values, missing outputs, enter no sum).
     Ad, C : array_like
-        Sampled model.
+        Sampled model (at the nominal step).
     Lp : (n, p) array_like
         The predictor's gain (must be stable: eig(Ad - Lp C) inside the unit circle).
     noise_map : callable
         F of :func:`process_noise_map`.
     k : int
         Size of Q.
-    lags : int
-        Number of autocovariance lags (default 15).
+    lags : int, optional
+        Number of autocovariance lags (default: :func:`choose_lags`).
     full : bool
         Full symmetric Q and R, projected onto the PSD cone; default diagonal and
         non-negative.
     names : tuple of (list, list), optional
-        Names of Q's and R's diagonal entries, for the refusal message.
+        Names of Q's and R's diagonal entries, for the messages.
+    ltv : object, optional
+        The time-varying model of irregular data
+        (:class:`~observer_ros.core.als_ltv.LTVModel`): its ``als_matrix(k, full, lags)``
+        replaces the time-invariant one.
 
     Returns
     -------
@@ -436,51 +535,93 @@ def identify_noise(innovations, Ad, C, Lp, noise_map, k, lags=DEFAULT_LAGS, full
     rho = float(np.max(np.abs(np.linalg.eigvals(Ad - Lp @ C))))
     if not rho < 1.0:
         raise ALSError(f'the reference predictor is not stable (spectral radius {rho:.4g})')
-    lags = int(lags)
-    if hasattr(innovations, 'autocovariances'):       # LaggedSums: given a block at a time
-        emp = innovations.autocovariances(lags)
-        samples = innovations.samples
+    sums = innovations if hasattr(innovations, 'autocovariances') else None
+    if sums is None:
+        seqs = innovations if isinstance(innovations, (list, tuple)) else [innovations]
+        seqs = [np.asarray(x, dtype=float).reshape(np.shape(x)[0], -1) for x in seqs]
+        samples = sum(x.shape[0] for x in seqs)
     else:
-        emp = sample_autocovariances(innovations, lags)
-        samples = sum(np.asarray(s).shape[0] for s in innovations) \
-            if isinstance(innovations, (list, tuple)) else np.asarray(innovations).shape[0]
-    M, q_labels, r_labels = als_matrix(Ad, C, Lp, noise_map, k, lags, full)
-    scale = np.linalg.norm(M, axis=0)
+        samples = sums.samples
+    auto = lags is None
+    chosen, decay = choose_lags(Ad, C, Lp, noise_map, k, samples, full)
+    lags = chosen if auto else int(lags)
+    if sums is None:
+        from .autocovariance import LaggedSums
+        if lags < 1 or any(x.shape[0] <= lags for x in seqs):
+            raise ALSError(f'{min(x.shape[0] for x in seqs)} innovations are too few for '
+                           f'{lags} lags')
+        sums = LaggedSums(p, lags)
+        for x in seqs:
+            sums.new_sequence()
+            sums.add(x)
+    emp = sums.autocovariances(lags)
+    counts = sums.counts[:lags]
+    if ltv is not None:
+        M, q_labels, r_labels = ltv.als_matrix(k, lags, full)
+    else:
+        M, q_labels, r_labels = als_matrix(Ad, C, Lp, noise_map, k, lags, full)
+    nq = len(q_labels)
+    labels = [('Q', i, j) for i, j in q_labels] + [('R', i, j) for i, j in r_labels]
     unknowns = M.shape[1]
     qn, rn = names if names is not None else \
         ([f'Q[{i}]' for i in range(k)], [f'R[{i}]' for i in range(p)])
-    zero = [qn[i] if c < len(q_labels) else rn[r_labels[c - len(q_labels)][0]]
-            for c, (i, _) in enumerate(q_labels + r_labels) if scale[c] == 0.0]
+    rows = als_rows(lags, p)
+    n_row = counts[rows]
+    keep = n_row > 0
+    rows = tuple(r[keep] for r in rows)
+    n_row = n_row[keep]
+    idx = _row_index(rows, p)
+    Mr, b = M[idx], emp.ravel()[idx]
+    zero = [qn[i] if c < nq else rn[r_labels[c - nq][0]]
+            for c, (i, _) in enumerate(q_labels + r_labels)
+            if not np.any(Mr[:, c] != 0.0)]
     if zero:
         raise ALSError(f'not identifiable: {", ".join(zero)} does not reach the '
                        'measured outputs')
-    Ms = M / scale
-    sv = np.linalg.svd(Ms, compute_uv=False)
-    rank = int(np.sum(sv > RANK_TOL * sv[0]))
-    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
-    if rank < unknowns:
-        raise ALSError(f'not identifiable: the ALS matrix has rank {rank} for {unknowns} '
-                       f'unknowns (condition number {cond:.3g}); estimate fewer noise '
-                       'entries (noise on fewer states or observer.Bd columns, diagonal '
-                       'instead of full) or use more lags')
-    b = emp.ravel()
-    if full:
-        z = np.linalg.lstsq(Ms, b, rcond=None)[0]
-    else:
-        z = lsq_linear(Ms, b, bounds=(0.0, np.inf), method='bvls').x
-    x = z / scale
-    nq = len(q_labels)
+    nonneg = not full           # diagonal: non-negative; full: projected afterwards
+    # a first fit weighted by each row's variance for white innovations, then the
+    # weights of the fitted model (Bartlett), twice
+    c0 = np.diag(emp[0])
+    j_, i_, l_ = rows
+    white = (c0[i_] * c0[l_] + np.where(j_ == 0, emp[0][i_, l_] ** 2, 0.0)) / n_row
+    white = np.where(white > 0, white, np.max(white[white > 0], initial=1.0))
+    theta, cov, fit = weighted_als(Mr, b, white, nonneg)
+    _check_rank(fit, unknowns)
+    # the innovations' autocovariances to where they have decayed, for Bartlett's sums
+    horizon = int(min(max(2 * lags, lags + 2 * decay), 4000))
+    Sigma = None
+    for _ in range(2):
+        Q = _assemble(theta[:nq], q_labels, k)
+        R = _assemble(theta[nq:], r_labels, p)
+        fitted = (M @ theta).reshape(lags, p, p) if ltv is not None else None
+        gamma = _gamma(Ad, C, Lp, noise_map, Q, R, horizon, fitted)
+        if not np.all(np.diag(gamma[0]) > 0.0):
+            gamma = np.where(np.isfinite(emp), emp, 0.0)
+        Sigma = autocovariance_covariance(gamma, rows, n_row)
+        theta, cov, fit = weighted_als(Mr, b, Sigma, nonneg)
+    _check_rank(fit, unknowns)
+    x = theta
     Q = _assemble(x[:nq], q_labels, k)
     R = _assemble(x[nq:], r_labels, p)
+    std = np.sqrt(np.abs(np.diag(cov)))
+    Q_std = _assemble(std[:nq], q_labels, k)
+    R_std = _assemble(std[nq:], r_labels, p)
     if full:
         Q, R = _psd(Q), _psd(R)
     Qk = noise_map(Q)
-    fitted = model_autocovariances(Ad, C, Lp, Qk, R, 2 * lags)
-    sigma = autocovariance_sigma(fitted, samples)
-    resid = float(np.linalg.norm(M @ x - b))
+    fitted = (M @ x).reshape(lags, p, p) if ltv is not None else \
+        model_autocovariances(Ad, C, Lp, Qk, R, lags)
+    sigma = np.full((lags, p), np.nan)
+    diag = np.sqrt(np.abs(np.diag(Sigma)))
+    on = i_ == l_
+    sigma[j_[on], i_[on]] = diag[on]
     return ALSResult(Q=Q, R=R, Qk=Qk, lags=lags, samples=int(samples), empirical=emp,
-                     fitted=fitted[:lags], sigma=sigma[:lags], condition=cond, rank=rank,
-                     unknowns=unknowns, residual=resid, full=bool(full), raw=x)
+                     auto_lags=int(chosen),
+                     fitted=fitted, sigma=sigma, condition=fit['condition'],
+                     rank=fit['rank'], unknowns=unknowns, residual=fit['chi2'],
+                     full=bool(full), raw=x, Q_std=Q_std, R_std=R_std, cov=cov,
+                     labels=labels, names=(list(qn), list(rn)), dof=fit['dof'],
+                     decay=int(decay), counts=counts)
 
 
 def kalman_predictor_gain(Ad, C, Qk, R):

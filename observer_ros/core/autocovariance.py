@@ -6,19 +6,16 @@ Sample autocovariances of sequences given a block at a time (bounded memory).
 ``sum_k e[k+j] e[k]^T`` within each sequence, carrying the last ``lags - 1`` rows of a
 block into the next, so a sequence of any length is never held whole. Its
 :meth:`~LaggedSums.autocovariances` are :func:`observer_ros.core.als.sample_autocovariances`
-of the whole sequences (pooled the same way) up to the order of the float summation;
-:meth:`~LaggedSums.whiteness` is the Ljung-Box test of
-:func:`observer_ros.core.innovation.ljung_box_acf` (mean removed) of one output, from the
-same sums, the first and last ``lags`` rows and the sum of the rows.
+of the whole sequences (pooled the same way) up to the order of the float summation.
+A missing value (NaN: an output not measured at that step) enters no product: the sums
+are over the pairs that exist, and each lag's count of them is kept per pair of columns
+(:attr:`~LaggedSums.counts`), so the autocovariances are the averages over those pairs.
 
-No ROS here: numpy and scipy only.
+No ROS here: numpy only.
 
 """
 
-import math
-
 import numpy as np
-from scipy.special import chdtrc
 
 from .errors import ObserverError
 
@@ -43,12 +40,29 @@ class LaggedSums:
             raise ObserverError(f'lags must be at least 1, not {lags}')
         self.p, self.lags = int(p), int(lags)
         self.sums = np.zeros((self.lags, self.p, self.p))
-        self.total = np.zeros(self.p)       # sum of every row (for the mean)
         self.samples = 0                    # rows of every sequence
         self.lengths = []                   # rows of each sequence
         self._tail = np.zeros((0, self.p))  # the current sequence's last lags-1 rows
-        self._head = np.zeros((0, self.p))  # its first lags rows
         self._open = False
+        self._counts = None                 # per lag and pair; None while nothing is missing
+
+    @property
+    def counts(self):
+        """Return the number of products in each sum, ``(lags, p, p)``."""
+        if self._counts is not None:
+            return self._counts.copy()
+        j = np.arange(self.lags)
+        full = np.sum(np.maximum(np.subtract.outer(self.lengths, j), 0), axis=0) \
+            if self.lengths else np.zeros(self.lags)
+        return np.broadcast_to(full[:, None, None].astype(float),
+                               (self.lags, self.p, self.p)).copy()
+
+    @property
+    def missing(self):
+        """Return the number of missing values of each column."""
+        if self._counts is None:
+            return np.zeros(self.p, dtype=np.int64)
+        return self.samples - np.rint(np.diagonal(self._counts[0])).astype(np.int64)
 
     def new_sequence(self):
         """Start a new sequence: no products across its start."""
@@ -57,10 +71,16 @@ class LaggedSums:
     def add(self, block):
         """Add the next rows ``(N, p)`` of the current sequence (a new one if none)."""
         block = np.asarray(block, dtype=float).reshape(-1, self.p)
+        finite = np.isfinite(block)
+        gaps = not finite.all()
+        if gaps and self._counts is None:
+            self._counts = self.counts          # every pair so far existed
+        if gaps:
+            block = np.where(finite, block, 0.0)
         if not self._open:
             self.lengths.append(0)
             self._tail = np.zeros((0, self.p))
-            self._head = np.zeros((0, self.p))
+            self._mtail = np.zeros((0, self.p))
             self._open = True
         n = block.shape[0]
         if not n:
@@ -68,25 +88,34 @@ class LaggedSums:
         # rows of the previous blocks that pair with this block's first rows
         joined = np.concatenate([self._tail, block]) if self._tail.shape[0] else block
         t = self._tail.shape[0]
+        mask = None
+        if self._counts is not None:
+            mask = np.concatenate([self._mtail, finite.astype(float)])
         for j in range(self.lags):
             if t + n - j <= 0:
                 break
             # products e[k+j] e[k]^T whose later row k+j is in this block
             lo = max(t, j)
             self.sums[j] += joined[lo:].T @ joined[lo - j:t + n - j]
-        self.total += block.sum(axis=0)
+            if mask is not None:
+                self._counts[j] += mask[lo:].T @ mask[lo - j:t + n - j]
         self.samples += n
         self.lengths[-1] += n
-        if self._head.shape[0] < self.lags:
-            self._head = np.concatenate([self._head, block[:self.lags - self._head.shape[0]]])
         keep = self.lags - 1
         self._tail = joined[max(0, joined.shape[0] - keep):].copy() if keep else \
             np.zeros((0, self.p))
-        self._last = joined[max(0, joined.shape[0] - self.lags):].copy()
+        if mask is not None:
+            self._mtail = mask[max(0, mask.shape[0] - keep):].copy() if keep else \
+                np.zeros((0, self.p))
+        else:
+            self._mtail = np.ones(self._tail.shape)
 
     def autocovariances(self, lags=None):
         """
-        Return ``C[j] = sum of e[k+j] e[k]^T / (samples - j * sequences)``, j < lags.
+        Return ``C[j]``: the sum of ``e[k+j] e[k]^T`` over the pairs that exist, averaged.
+
+        With nothing missing, ``sum / (samples - j * sequences)``; otherwise each entry
+        is divided by its own count (:attr:`counts`; NaN where there is no pair).
 
         Raises
         ------
@@ -98,47 +127,12 @@ class LaggedSums:
         if lags > self.lags or lags < 1 or not self.lengths or min(self.lengths) <= lags:
             raise _too_few(min(self.lengths, default=0), lags)
         out = self.sums[:lags].copy()
-        for j in range(lags):
-            out[j] /= self.samples - j * len(self.lengths)
-        return out
-
-    def whiteness(self, column, lags):
-        """
-        Ljung-Box whiteness of one column of a single sequence, mean removed.
-
-        Returns the dict of :func:`observer_ros.bag.metrics.whiteness` (``samples``,
-        ``residual_rms``, ``lags``, ``acf``, ``ljung_box_q``, ``ljung_box_p``,
-        ``acf_outside``) for finite rows; the lag is reduced to ``samples // 4``.
-
-        """
-        if len(self.lengths) > 1:
-            raise ObserverError('whiteness of pooled sequences: use one sequence')
-        N = self.samples
-        i = int(column)
-        out = {'samples': int(N), 'lags': 0, 'acf': [], 'ljung_box_q': math.nan,
-               'ljung_box_p': math.nan, 'acf_outside': math.nan,
-               'residual_rms': math.sqrt(self.sums[0, i, i] / N) if N else math.nan}
-        k = min(int(lags), N // 4, self.lags - 1)
-        if k < 1:
+        if self._counts is None:
+            for j in range(lags):
+                out[j] /= self.samples - j * len(self.lengths)
             return out
-        m = self.total[i] / N
-        head = np.concatenate([[0.0], np.cumsum(self._head[:, i])])
-        last = self._last[:, i]
-        tail = np.concatenate([[0.0], np.cumsum(last[::-1])])
-        # sum_{k < N-j} (x[k] - m)(x[k+j] - m) = S_j - m (A_j + B_j) + (N - j) m^2, with
-        # A_j the sum without the last j rows and B_j without the first j
-        denom = self.sums[0, i, i] - N * m * m
-        if not denom > 0.0 or not math.isfinite(denom):
-            return out
-        j = np.arange(1, k + 1)
-        lagged = self.sums[1:k + 1, i, i] - m * ((self.total[i] - tail[j]) +
-                                                 (self.total[i] - head[j])) + (N - j) * m * m
-        rho = lagged / denom
-        q = float(N * (N + 2) * np.sum(rho ** 2 / (N - j)))
-        out.update(lags=int(k), acf=rho.tolist(), ljung_box_q=q,
-                   ljung_box_p=float(chdtrc(k, q)),
-                   acf_outside=float(np.mean(np.abs(rho) > 1.96 / math.sqrt(N))))
-        return out
+        with np.errstate(invalid='ignore', divide='ignore'):
+            return np.where(self._counts[:lags] > 0, out / self._counts[:lags], np.nan)
 
 
 def _too_few(rows, lags):
