@@ -101,3 +101,27 @@ def test_observer_run_no_clock_turns_the_simulators_clock_off(monkeypatch, tmp_p
     assert code == 2 and 'stopped by the test' in capsys.readouterr().err
     assert seen['namespace'] == '/sub2'      # made absolute, as rcl needs it
     assert 'simulator.publish_clock:=false' in seen['overrides']
+
+
+@pytest.mark.parametrize('name', ['observer_design', 'observer_eval'])
+def test_a_reader_that_left_ends_a_tool_quietly_and_its_outputs_stay(tmp_path, name):
+    import os
+    from observer_ros.core.errors import CLOSED_PIPE_STATUS
+    read, write = os.pipe()
+    os.close(read)          # `... | head` gone before the first line: every print fails
+    out = tmp_path / 'eval'
+    args = {'observer_design': [str(CONFIG / 'submarine.yaml')],
+            'observer_eval': [str(CONFIG.parent / 'bags' / 'samples' / 'submarine'),
+                              '--vehicle', str(CONFIG / 'submarine.yaml'), '--out', str(out),
+                              '--no-plots', '--no-bag']}[name]
+    try:
+        done = subprocess.run([sys.executable, '-W', 'ignore::DeprecationWarning', '-m',
+                               TOOLS[name], *args], stdout=write, stderr=subprocess.PIPE,
+                              text=True, timeout=300, env=ros_env())
+    finally:
+        os.close(write)
+    # before: a BrokenPipeError traceback, and Python's "Exception ignored ... <stdout>"
+    assert done.returncode == CLOSED_PIPE_STATUS and done.stderr == '', done.stderr
+    if name == 'observer_eval':
+        assert sorted(p.name for p in out.iterdir()) == [
+            '.observer_ros_output.json', 'results.csv', 'results.json', 'results.txt']

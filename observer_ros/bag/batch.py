@@ -38,7 +38,7 @@ from .jobs import (connect, job_dict, LOST_TIMEOUT, make_jobs, run_jobs, SCHEDUL
                    summarize, workers_of, WorkersLost)
 from .report import text_table
 from .results import jsonable
-from ..core.errors import error_text, ObserverError
+from ..core.errors import error_text, ObserverError, quiet_on_closed_pipe
 from ..params_file import regular_file
 
 __all__ = ['find_bags', 'write_batch', 'format_batch', 'main']
@@ -307,6 +307,7 @@ def _efficiency(rows, wall, workers):
     return line
 
 
+@quiet_on_closed_pipe
 def main(argv=None):
     """Entry point of ``observer-eval-batch``; returns the exit status."""
     argv = sys.argv[1:] if argv is None else list(argv)

@@ -46,7 +46,7 @@ from .metrics import (DEFAULT_TOLERANCE, score_variant, STEADY_FRACTION, toleran
 from .reader import read_recording
 from .report import BAG_MAX_MESSAGES, format_table, write_results
 from .results import EvalResult, jsonable, ScoredReplay, VariantResult
-from ..core.errors import error_text, ObserverError
+from ..core.errors import error_text, ObserverError, quiet_on_closed_pipe
 from ..core.vehicle_design import design_vehicle
 from ..outputs.folders import check_output
 from ..replay.replay import (CLOCK_JUMP_AGREEMENT, CLOCK_JUMP_TOLERANCE, epochs_of,
@@ -605,6 +605,7 @@ def _default_out(bag):
     return bag.parent / f'{bag.name or "bag"}_eval'
 
 
+@quiet_on_closed_pipe
 def main(argv=None):
     """Entry point of ``observer-eval``; returns the exit status."""
     args = _parser().parse_args(argv)

@@ -25,7 +25,7 @@ import warnings
 
 from .errors import BagToolError
 from .reader import BagReader
-from ..core.errors import ObserverError
+from ..core.errors import ObserverError, quiet_on_closed_pipe
 from ..ros_names import check_domain_id, check_topic_name
 
 __all__ = ['main', 'message_class', 'parse_remap', 'PlayOptions', 'Player']
@@ -292,6 +292,7 @@ def _parser():
     return parser
 
 
+@quiet_on_closed_pipe
 def main(argv=None):
     """Entry point of ``observer-play``; returns the exit status."""
     warnings.filterwarnings('ignore', category=DeprecationWarning)

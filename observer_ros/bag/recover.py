@@ -46,7 +46,7 @@ from .bag_checks import (check_regular, LOCK_NAME, metadata_disagreement,
                          metadata_storage_disagreement, recording_holder, still_growing)
 from .errors import BagRecoveryError
 from .mcap_repair import channel_counts, repair_mcap, scan_mcap, time_range
-from ..core.errors import error_text
+from ..core.errors import error_text, quiet_on_closed_pipe
 
 __all__ = ['BagRecoveryError', 'recover_bag', 'main']
 
@@ -357,6 +357,7 @@ def _recover(bag, file):
     return report
 
 
+@quiet_on_closed_pipe
 def main(argv=None):
     """Entry point of ``observer-bag-recover``."""
     parser = argparse.ArgumentParser(

@@ -50,7 +50,7 @@ from .results import jsonable
 from .tune_report import format_report, write_report
 from .tuned_vehicle import OBSERVER_KEYS, write_tuned_vehicle
 from ..core.als import DEFAULT_LAGS
-from ..core.errors import ObserverError
+from ..core.errors import ObserverError, quiet_on_closed_pipe
 from ..outputs.folders import check_output
 from ..outputs.staging import StagedOutput
 
@@ -409,6 +409,7 @@ def _dask(args):
     return {'workers': args.workers, 'scheduler': args.scheduler}
 
 
+@quiet_on_closed_pipe
 def main(argv=None):
     """Entry point of ``observer-tune``; returns the exit status."""
     args = _parser().parse_args(argv)

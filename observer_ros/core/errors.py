@@ -1,10 +1,17 @@
 # observer_ros.core.errors: the exception classes of the ROS-free core.
-"""Exception classes raised by observer_ros."""
+"""Exception classes raised by observer_ros, and how a command-line tool reports them."""
+
+import functools
+import os
+import sys
 
 __all__ = ['ObserverError', 'DimensionError', 'NotObservableError',
            'NotDetectableError', 'NotControllableError', 'DesignError',
            'VehicleFileError', 'ObserverDesignWarning', 'DesignVerificationError',
-           'error_text']
+           'error_text', 'quiet_on_closed_pipe', 'CLOSED_PIPE_STATUS']
+
+# a tool whose reader left (``observer-eval ... | head``) exits as one SIGPIPE ended: 128 + 13
+CLOSED_PIPE_STATUS = 141
 
 
 class ObserverError(Exception):
@@ -58,3 +65,36 @@ def error_text(err):
         return f'{where}: {err.strerror}' if where else err.strerror
     text = str(err).splitlines()[0] if str(err) else type(err).__name__
     return text
+
+
+def quiet_on_closed_pipe(main):
+    """
+    Wrap a tool's ``main``: when its output's reader leaves, end without a traceback.
+
+    ``observer-design v.yaml | head`` closes the pipe after ten lines; the next ``print``
+    raises BrokenPipeError (and Python's final flush of stdout another). What was written
+    (output folders included) stays; the rest of stdout goes to ``/dev/null`` and the tool
+    exits :data:`CLOSED_PIPE_STATUS`, as a shell tool ended by SIGPIPE does. A closed pipe
+    that ``main`` itself reported (an ``error:`` line) keeps its status.
+    """
+    @functools.wraps(main)
+    def run(*args, **kwargs):
+        try:
+            status = main(*args, **kwargs)
+        except BrokenPipeError:
+            status = CLOSED_PIPE_STATUS
+        try:
+            sys.stdout.flush()
+            return status
+        except BrokenPipeError:
+            status = status or CLOSED_PIPE_STATUS
+        except (OSError, ValueError):       # stdout closed or gone: nothing to flush
+            return status
+        try:        # Python flushes stdout once more at exit: let that go nowhere
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+            os.close(devnull)
+        except (OSError, ValueError, AttributeError):
+            pass
+        return status
+    return run

@@ -15,7 +15,7 @@ import json
 import sys
 import warnings
 
-from ..core.errors import error_text, ObserverError
+from ..core.errors import error_text, ObserverError, quiet_on_closed_pipe
 from ..core.sensor_subsets import format_sensor_subsets, sensor_subsets
 from ..core.vehicle_design import design_vehicle
 from ..core.vehicle_report import format_report, to_json_dict
@@ -25,6 +25,7 @@ from ..vehicle import apply_overrides, load_vehicle, vehicle_from_parameters, \
 __all__ = ['main']
 
 
+@quiet_on_closed_pipe
 def main(argv=None):
     """Entry point of ``observer-design``."""
     parser = argparse.ArgumentParser(

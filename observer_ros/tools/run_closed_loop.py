@@ -24,7 +24,7 @@ import warnings
 import numpy as np
 
 from . import interrupt
-from ..core.errors import error_text, ObserverError
+from ..core.errors import error_text, ObserverError, quiet_on_closed_pipe
 from ..core.health import Envelope, ENVELOPE_FACTOR
 from ..core.vehicle_design import design_vehicle
 from ..nodes import signals
@@ -466,6 +466,7 @@ def _print_summary(vehicle, summary):
     return problems
 
 
+@quiet_on_closed_pipe
 def main(argv=None):
     """Entry point of ``observer-run``."""
     warnings.filterwarnings('ignore', category=DeprecationWarning)
