@@ -4,21 +4,11 @@ Observability and controllability analysis: ranks, PBH test, decompositions, rep
 
 Every function takes plain matrices (no ROS, no Plant required).
 
-**The decision** (stated here once; the reports, the PBH lines, the decompositions, the
-pole count of a design and the sensor advisor all read it). A mode of A is unobservable
-through C when the PBH matrix ``[A - lambda I; C]`` loses rank at its eigenvalue. The test
-is made on the plant *scaled to itself*: A balanced by a diagonal similarity (states in
-any units), divided by its norm, and each row of C divided by its own norm (sensors in any
-units); then ``sigma_min([A_s - lambda I; C_s]) <= PBH_TOL_FACTOR (n + p) eps kappa``,
-``kappa`` being the eigenvalue's condition number (at most ``1 / sqrt(eps)``): the mode is
-unobservable to within the rounding with which its eigenvalue is known. Eigenvalues whose
-rounding disks overlap form one (numerically multiple) eigenvalue. For a multiple
-eigenvalue the unobservable part of its generalized eigenspace is followed along its
-Jordan chains (``v`` with ``C v = 0`` and ``(A - lambda I) v`` in the part found so far),
-each step the same scaled test. The unobservable subspace is the span of those parts; the
-observable decomposition is an orthogonal basis split along it. A staircase (Krylov)
-reduction is not used: its steps mix the time scales of a stiff plant (eigenvalues from
-1e-3 to 1e5), where a coupling of 1e-5 it cannot drop says nothing about observability.
+**The decision** (:mod:`observer_ros.core.pbh`, stated there once; the reports, the PBH
+lines, the decompositions, the pole count of a design and the sensor advisor all read
+it): a mode is unobservable when the PBH matrix of the plant scaled to itself loses rank
+at its eigenvalue, to within the rounding of that eigenvalue. The decompositions split an
+orthogonal basis along the unobservable subspace the decision finds.
 The textbook rank of ``obsv(A, C)`` is still available as :func:`obsv` and
 :func:`numerical_rank`.
 
@@ -28,7 +18,6 @@ An unobservable mode's stability is its eigenvalue's verdict by the stability ru
 """
 
 from dataclasses import dataclass, field
-import math
 from typing import Tuple
 
 import numpy as np
@@ -37,7 +26,9 @@ import scipy.linalg
 from ._lazy import control
 from .errors import DimensionError
 from .model import as_matrix
-from .verify import EIG_BOUND_FACTOR, eigenvalue_bounds, stability_status
+from .pbh import (hidden_eigenvalues, pbh_decision, pbh_test, pbh_test_controllability,
+                  PBH_TOL_FACTOR, PBHResult)
+from .verify import EIG_BOUND_FACTOR
 
 __all__ = ['obsv', 'ctrb', 'numerical_rank', 'rank_tolerance', 'PBHResult', 'pbh_test',
            'pbh_test_controllability', 'observable_decomposition', 'controllable_decomposition',
@@ -49,19 +40,9 @@ __all__ = ['obsv', 'ctrb', 'numerical_rank', 'rank_tolerance', 'PBHResult', 'pbh
 
 _EPS = np.finfo(float).eps
 
-#: Constant of the decision's threshold ``PBH_TOL_FACTOR (n + p) eps kappa`` on the scaled
-#: PBH matrix (the rounding error of an eigenvalue, as in ``core/verify.py``).
-PBH_TOL_FACTOR = 10.0
-
-#: Eigenvalues closer than this fraction of ``||A||`` are never told apart when their
-#: rounding disks overlap (a defective eigenvalue splits by ``eps^(1/k) ||A||``).
-CLUSTER_LIMIT = 1e-3
-
 #: A state is named in a mode description when its weight in the mode's
 #: eigenvector(s) is at least this fraction of the largest weight.
 MODE_WEIGHT_THRESHOLD = 0.1
-
-_KAPPA_CAP = 1.0 / math.sqrt(_EPS)
 
 
 # ---------------------------------------------------------------- ranks
@@ -244,159 +225,12 @@ def _format_pair(z, digits=6):
         return format_complex(z.real, digits)
     return f'{format_complex(z.real, digits)}±{abs(z.imag):.{digits}g}j'
 
-# ---------------------------------------------------------------- the decision
-
-
-@dataclass(frozen=True)
-class PBHResult:
-    """
-    One distinct eigenvalue of A and its PBH (Popov-Belevitch-Hautus) rank test.
-
-    ``rank`` is the numerical rank of ``[A - lambda I; C]`` (observability) or
-    ``[A - lambda I, B]`` (controllability) on the scaled plant (see the module's
-    decision); the mode passes when it equals n. ``min_singular_value`` and ``tol`` are
-    relative (on the scaled matrix). ``unobserved`` is the dimension of the mode's
-    unobservable (uncontrollable) part, its Jordan chains included; ``stable`` its
-    eigenvalue's verdict by the stability rule.
-
-    """
-
-    eigenvalue: complex
-    multiplicity: int
-    rank: int
-    n: int
-    passed: bool
-    stable: bool
-    min_singular_value: float
-    tol: float
-    unobserved: int = 0
-    status: str = 'stable'
-
-
-@dataclass(frozen=True)
-class _Structure:
-    """The decision for (A, C): per distinct eigenvalue, and the unobservable subspace."""
-
-    pbh: Tuple[PBHResult, ...]
-    bases: Tuple[np.ndarray, ...]       # per failing eigenvalue: its unobservable part
-    failing: Tuple[int, ...]            # indices into pbh of the failing eigenvalues
-    V: np.ndarray                       # orthonormal basis of the unobservable subspace
-    Q: np.ndarray                       # orthogonal: [complement, V]
-
-
-def _scaled(A, C):
-    """Return A balanced and normalised, C in its coordinates with unit rows, the scaling."""
-    n = A.shape[0]
-    if n and np.any(A):
-        _, (d, _) = scipy.linalg.matrix_balance(A, permute=False, separate=True)
-    else:
-        d = np.ones(n)
-    As = A * (1.0 / d)[:, None] * d[None, :]
-    a = float(np.linalg.norm(As, 2)) if n else 0.0
-    a = a if a > 0.0 else 1.0
-    Cs = C * d[None, :]
-    rows = np.linalg.norm(Cs, axis=1) if Cs.size else np.zeros(C.shape[0])
-    Cs = Cs[rows > 0.0] / rows[rows > 0.0, None]
-    return As / a, Cs, d, a
-
-
-def _clusters(lam, radius):
-    """Group eigenvalues whose rounding disks overlap (at most CLUSTER_LIMIT apart)."""
-    N = lam.size
-    parent = list(range(N))
-
-    def root(i):
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for i in range(N):
-        for j in range(i + 1, N):
-            gap = abs(lam[i] - lam[j])
-            if gap == 0.0 or gap <= min(radius[i] + radius[j], CLUSTER_LIMIT):
-                parent[root(i)] = root(j)
-    groups = {}
-    for i in range(N):
-        groups.setdefault(root(i), []).append(i)
-    return sorted(groups.values(), key=lambda g: g[0])
-
-
-def _null(M, tol, limit):
-    """Smallest right singular vectors of M with singular value <= tol (at most limit)."""
-    _, s, vh = scipy.linalg.svd(M)
-    s = np.concatenate([s, np.zeros(max(0, M.shape[1] - s.size))])
-    rank = int(np.sum(s > tol))
-    keep = min(M.shape[1] - rank, limit)
-    return rank, float(s[M.shape[1] - 1]), vh[M.shape[1] - keep:].conj().T
-
-
-def _orth(V):
-    """Orthonormal basis of the columns of V (real)."""
-    if V.shape[1] == 0:
-        return V
-    U, s, _ = scipy.linalg.svd(V, full_matrices=False)
-    return U[:, :int(np.sum(s > 1e-8 * s[0]))]
-
-
-def _structure(A, C, discrete, tol=None):
-    """Return the decision of this module for (A, C); see its docstring."""
-    n = A.shape[0]
-    if n == 0:
-        return _Structure((), (), (), np.zeros((0, 0)), np.eye(0))
-    As, Cs, d, a = _scaled(A, C)
-    p = Cs.shape[0]
-    lam, vl, vr = scipy.linalg.eig(As, left=True, right=True)
-    dots = np.abs(np.sum(vl.conj() * vr, axis=0))
-    kappa = 1.0 / np.maximum(dots, _EPS)
-    radius = EIG_BOUND_FACTOR * n * _EPS * kappa
-    _, bound = eigenvalue_bounds(A)
-    results, bases, failing = [], [], []
-    eye = np.eye(n)
-    for g in _clusters(lam, radius):
-        centre = complex(np.mean(lam[g]))
-        if abs(centre.imag) <= max(float(np.max(radius[g])), 1e-14 * abs(centre)):
-            centre = complex(centre.real, 0.0)
-        elif centre.imag < 0:
-            continue   # each conjugate pair once, by its member with Im > 0
-        k = len(g)
-        t = tol if tol is not None else \
-            PBH_TOL_FACTOR * (n + p) * _EPS * min(float(np.max(kappa[g])), _KAPPA_CAP)
-        M = As - centre * eye if centre.imag else As - centre.real * eye
-        rank, smin, basis = _null(np.vstack([M, Cs]), t, k)
-        while 0 < basis.shape[1] < k:
-            P = eye - basis @ basis.conj().T
-            _, _, wider = _null(np.vstack([P @ M, Cs]), t, k)
-            if wider.shape[1] <= basis.shape[1]:
-                break
-            basis = wider
-        value = centre * a
-        status = stability_status(value, float(np.max(bound[g])), discrete)
-        if basis.shape[1]:
-            failing.append(len(results))
-            bases.append(_orth_complex(basis * d[:, None]))
-        results.append(PBHResult(value, k, rank, n, basis.shape[1] == 0, status == 'stable',
-                                 smin, float(t), basis.shape[1], status))
-    parts = [np.hstack([b.real, b.imag]) if np.any(b.imag) else b.real for b in bases]
-    V = _orth(np.hstack(parts)) if parts else np.zeros((n, 0))
-    Qfull, _ = scipy.linalg.qr(V, mode='full') if V.shape[1] else (eye, None)
-    k = V.shape[1]
-    Q = np.hstack([Qfull[:, k:], Qfull[:, :k]])
-    return _Structure(tuple(results), tuple(bases), tuple(failing), Q[:, n - k:], Q)
-
-
-def _orth_complex(B):
-    """Orthonormal (complex) basis of the columns of B, in the original coordinates."""
-    U, s, _ = scipy.linalg.svd(B, full_matrices=False)
-    return U[:, :max(1, int(np.sum(s > 1e-8 * s[0])))]
-
-
 # ---------------------------------------------------------------- decompositions
 
 
 def _decompose(A, C, tol, discrete=False):
     """Q^T A Q = [[Ao, 0], [A21, Aobar]], C Q = [Co, 0]; the rank; the decision."""
-    s = _structure(A, C, discrete, tol)
+    s = pbh_decision(A, C, discrete, tol)
     Q = s.Q
     m = A.shape[0] - s.V.shape[1]
     Abar = Q.T @ A @ Q
@@ -501,7 +335,7 @@ def unobservable_eigenvalues(A, C, tol=None):
     """
     A = as_matrix(A, 'A', square=True)
     C = as_matrix(C, 'C', cols=A.shape[0])
-    return _hidden_eigenvalues(_structure(A, C, False, tol))
+    return hidden_eigenvalues(pbh_decision(A, C, False, tol))
 
 
 def uncontrollable_eigenvalues(A, B, tol=None):
@@ -525,76 +359,7 @@ def uncontrollable_eigenvalues(A, B, tol=None):
     """
     A = as_matrix(A, 'A', square=True)
     B = as_matrix(B, 'B', rows=A.shape[0])
-    return _hidden_eigenvalues(_structure(A.T, B.T, False, tol))
-
-
-def _hidden_eigenvalues(structure):
-    """Each failing eigenvalue once per dimension of its hidden part (pairs both ways)."""
-    out = []
-    for i in structure.failing:
-        res = structure.pbh[i]
-        z = complex(res.eigenvalue)
-        out += [z] * res.unobserved
-        if z.imag:
-            out += [z.conjugate()] * res.unobserved
-    return np.array(out, dtype=complex)
-
-
-# ---------------------------------------------------------------- PBH
-
-
-def pbh_test(A, C, discrete=False, tol=None):
-    """
-    PBH observability test: for each distinct eigenvalue, the rank of ``[A - lambda I; C]``.
-
-    Parameters
-    ----------
-    A : (n, n) array_like
-        State matrix.
-    C : (p, n) array_like
-        Output matrix.
-    discrete : bool
-        Classify stability in the z-plane.
-    tol : float, optional
-        Threshold on the scaled matrix; default the module's decision,
-        ``PBH_TOL_FACTOR (n + p) eps kappa(lambda)``.
-
-    Returns
-    -------
-    list of PBHResult
-        One per distinct eigenvalue (a complex pair appears once, with Im > 0);
-        eigenvalues within each other's rounding are one eigenvalue of higher
-        multiplicity, tested at their mean.
-
-    """
-    A = as_matrix(A, 'A', square=True)
-    C = as_matrix(C, 'C', cols=A.shape[0])
-    return list(_structure(A, C, discrete, tol).pbh)
-
-
-def pbh_test_controllability(A, B, discrete=False, tol=None):
-    """
-    PBH controllability test: for each distinct eigenvalue, the rank of ``[A - lambda I, B]``.
-
-    Parameters
-    ----------
-    A : (n, n) array_like
-        State matrix.
-    B : (n, m) array_like
-        Input matrix.
-    discrete : bool
-        Classify stability in the z-plane.
-    tol : float, optional
-        Threshold (see :func:`pbh_test`).
-
-    Returns
-    -------
-    list of PBHResult
-
-    """
-    A = as_matrix(A, 'A', square=True)
-    B = as_matrix(B, 'B', rows=A.shape[0])
-    return list(_structure(A.T, B.T, discrete, tol).pbh)
+    return hidden_eigenvalues(pbh_decision(A.T, B.T, False, tol))
 
 
 # ---------------------------------------------------------------- reports
@@ -719,7 +484,7 @@ def observability_report(A, C, state_names=None, discrete=False, tol=None):
     names = _names(state_names, n)
     _, _, _, m, s = _decompose(A, C, tol, discrete)
     modes = _modes(s, names)
-    ueigs = _hidden_eigenvalues(s)
+    ueigs = hidden_eigenvalues(s)
     detectable = all(md.stable for md in modes)
     return ObservabilityReport(n, m, m == n, detectable, bool(discrete), names, ueigs,
                                s.pbh, tuple(modes), tuple(md.describe() for md in modes))
