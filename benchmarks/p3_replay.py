@@ -61,6 +61,7 @@ CMD_EVERY = 10           # steps between commands (and true states)
 JITTER_NS = 300_000      # --jitter: every stamp moved by up to +-0.3 ms
 FORMAT = 2               # bump when the bag's content changes
 GEN_BLOCK = 65_540       # steps simulated and written at a time (a multiple of CMD_EVERY)
+WRITE_BLOCK = 4_100      # steps of a block serialised at a time (a multiple of CMD_EVERY)
 
 
 # ---------------------------------------------------------------- the synthetic bag
@@ -230,27 +231,35 @@ def generate(messages, seed=0, data=DATA, log=print, jitter_ns=0):
                     -jitter_ns, jitter_ns + 1, size=count)
             for name, values in (('stamp_ns', stamps), ('y', y), ('u_held', u_held)):
                 files[name].write(np.ascontiguousarray(values).tobytes())
-            imu_rows = _fill(imu_raw, count, stamps, imu_sec, imu_nsec, [(imu_off['y'], y)])
-            cmd_stamps = stamps[::CMD_EVERY]
-            cmds = commands[k0 // CMD_EVERY:k0 // CMD_EVERY + cmd_stamps.size]
-            st_rows = _fill(st_raw, cmd_stamps.size, cmd_stamps, st_sec, st_nsec,
-                            [(st_off[i], x_true[:, i]) for i in range(n)])
-            u_rows = _fill(u_raw, cmd_stamps.size, cmd_stamps, u_sec, u_nsec,
-                           [(u_off[i], cmds[:, i]) for i in range(m)])
-            if not checked:     # sanity: the templated bytes deserialise to the values
-                check = store.deserialize_cdr(imu_rows[count // 2].tobytes(), IMU)
-                assert getattr(getattr(check, field[0]), field[1]) == y[count // 2]
-                assert check.header.stamp.sec * 10**9 + check.header.stamp.nanosec == \
-                    stamps[count // 2]
-                checked = True
-            stamp_list = stamps.tolist()
-            for i in range(count):
-                ts = stamp_list[i]
-                if i % CMD_EVERY == 0:
-                    write(c_true, ts, st_rows[i // CMD_EVERY].tobytes())
-                write(c_imu, ts, imu_rows[i].tobytes())
-                if i % CMD_EVERY == 0:
-                    write(c_u, ts, u_rows[i // CMD_EVERY].tobytes())
+            cmds = commands[k0 // CMD_EVERY:k0 // CMD_EVERY + x_true.shape[0]]
+            # the messages' bytes a few thousand at a time (a multiple of CMD_EVERY): the
+            # templated rows of a whole block would be 25 MB
+            for s0 in range(0, count, WRITE_BLOCK):
+                s1 = min(count, s0 + WRITE_BLOCK)
+                st = stamps[s0:s1]
+                imu_rows = _fill(imu_raw, s1 - s0, st, imu_sec, imu_nsec,
+                                 [(imu_off['y'], y[s0:s1])])
+                c0, c1 = s0 // CMD_EVERY, -(-s1 // CMD_EVERY)
+                cmd_stamps = st[::CMD_EVERY]
+                st_rows = _fill(st_raw, c1 - c0, cmd_stamps, st_sec, st_nsec,
+                                [(st_off[i], x_true[c0:c1, i]) for i in range(n)])
+                u_rows = _fill(u_raw, c1 - c0, cmd_stamps, u_sec, u_nsec,
+                               [(u_off[i], cmds[c0:c1, i]) for i in range(m)])
+                if not checked:     # sanity: the templated bytes deserialise to the values
+                    half = (s1 - s0) // 2
+                    check = store.deserialize_cdr(imu_rows[half].tobytes(), IMU)
+                    assert getattr(getattr(check, field[0]), field[1]) == y[s0 + half]
+                    assert check.header.stamp.sec * 10**9 + check.header.stamp.nanosec == \
+                        st[half]
+                    checked = True
+                stamp_list = st.tolist()
+                for i in range(s1 - s0):
+                    ts = stamp_list[i]
+                    if i % CMD_EVERY == 0:
+                        write(c_true, ts, st_rows[i // CMD_EVERY].tobytes())
+                    write(c_imu, ts, imu_rows[i].tobytes())
+                    if i % CMD_EVERY == 0:
+                        write(c_u, ts, u_rows[i // CMD_EVERY].tobytes())
             if k0 and k0 % (16 * GEN_BLOCK) == 0:
                 log(f'  P3: {k0} of {messages} steps written')
     for f in files.values():

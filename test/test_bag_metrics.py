@@ -79,7 +79,7 @@ def _scoring_peak(rows, monkeypatch):
     vr = VariantResult('design', 'full', (), rep)
     # the errors and the residuals' whiteness only: the innovation health (per sensor,
     # core.innovation) is measured on its own
-    monkeypatch.setattr(metrics, 'innovation_health', lambda rep: {})
+    monkeypatch.setattr(metrics, 'innovation_health', lambda rep, spill=None: {})
     tracemalloc.start()
     try:
         tracemalloc.reset_peak()

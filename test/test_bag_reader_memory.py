@@ -5,7 +5,8 @@ The recording holds each message once, in narrow exact dtypes.
 Each stream's columns are filled in place, sized by the bag's index (grown when the bag
 has more messages than it says), so reading does not hold a stream twice; a message's
 bag position is int32; a message without a header shares its receive times as stamps.
-The streams are the same whichever way they are filled.
+The streams are the same whichever way they are filled, and the same in temporary files
+(``spill``), where reading keeps well under a byte per message.
 
 """
 
@@ -17,6 +18,7 @@ import numpy as np
 from numpy.testing import assert_array_equal
 from observer_ros.bag import reader as reader_mod
 from observer_ros.bag.reader import read_recording
+from observer_ros.bag.spill import SpilledColumn
 from observer_ros.vehicle import load_vehicle
 import pytest
 
@@ -81,3 +83,41 @@ def test_bag_reader_streams_do_not_depend_on_the_index_counts(name, monkeypatch)
             assert_array_equal(getattr(a, field), getattr(b, field), err_msg=f'{key} {field}')
         assert (a.first_error, a.bulk, a.has_header) == (b.first_error, b.bulk, b.has_header)
         assert a.seq.dtype == np.int64 and b.seq.dtype == np.int32
+
+
+@pytest.mark.parametrize('name', ['submarine', 'cart_pendulum', 'submarine_reduced'])
+def test_bag_reader_spilled_streams_equal_the_in_memory_ones(name, tmp_path):
+    veh = load_vehicle(CONFIG / f'{name}.yaml')
+    ref = read_recording(SAMPLES / name, veh)
+    got = read_recording(SAMPLES / name, veh, spill=tmp_path)
+    assert [k for k, _ in got.streams()] == [k for k, _ in ref.streams()]
+    for (key, a), (_, b) in zip(got.streams(), ref.streams()):
+        assert len(a) == len(b) > 1, key
+        for field in FIELDS:
+            have = getattr(a, field)
+            assert isinstance(have, SpilledColumn), f'{key} {field}'
+            assert have.dtype == getattr(b, field).dtype, f'{key} {field}'
+            assert_array_equal(np.asarray(have), getattr(b, field), err_msg=f'{key} {field}')
+        assert (a.first_error, a.bulk, a.has_header) == (b.first_error, b.bulk, b.has_header)
+    assert got.warnings == ref.warnings
+    assert list(tmp_path.iterdir()) == []          # the files have no name on disk
+
+
+def test_bag_reader_spilled_keeps_a_bounded_memory(tmp_path):
+    # in memory ~37 B per Imu message are kept (above); spilled, the columns are on disk
+    p3 = _p3()
+    veh = load_vehicle(CONFIG / 'submarine.yaml')
+    small = p3.generate(40_000, data=tmp_path, log=lambda *a: None)
+    large = p3.generate(120_000, data=tmp_path, log=lambda *a: None)
+    figures = []
+    for bag in (small, small, large):       # the first read's one-off allocations
+        tracemalloc.start()
+        rec = read_recording(bag, veh, spill=True)
+        figures.append(tracemalloc.get_traced_memory())
+        tracemalloc.stop()
+    assert len(rec.sensors['gyro']) == 120_000
+    kept = (figures[2][0] - figures[1][0]) / 80_000
+    peak = (figures[2][1] - figures[1][1]) / 80_000
+    print(f'spilled, per Imu message: {kept:.2f} B kept, {peak:.2f} B at the peak')
+    assert kept < 1.0, kept
+    assert peak < 2.0, peak

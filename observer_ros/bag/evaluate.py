@@ -46,9 +46,11 @@ from .metrics import (DEFAULT_TOLERANCE, score_variant, STEADY_FRACTION, toleran
 from .reader import read_recording
 from .report import BAG_MAX_MESSAGES, format_table, write_results
 from .results import EvalResult, jsonable, ScoredReplay, VariantResult
+from .spill import blocks, count_true, Sink
 from ..core.errors import error_text, ObserverError, quiet_on_closed_pipe
 from ..core.vehicle_design import design_vehicle
 from ..outputs.folders import check_output
+from ..replay.events import _epoch_cuts, epochs_from_cuts
 from ..replay.replay import (CLOCK_JUMP_AGREEMENT, CLOCK_JUMP_TOLERANCE, epochs_of,
                              live_replay, replay)
 
@@ -311,14 +313,10 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
             return None
         return lambda done, total: progress(label, done, total)
 
-    recording = read_recording(bag_path, base, namespace, progress=stage('reading'))
+    recording = read_recording(bag_path, base, namespace, progress=stage('reading'),
+                               spill=spill)
     warnings_out = list(recording.warnings)
-    truth = None
-    if recording.truth is not None and recording.truth.valid.any():
-        tr = recording.truth
-        sel = np.flatnonzero(tr.valid)
-        t_ns = tr.stamp_ns[sel]
-        truth = (t_ns, tr.values[sel], epochs_of(t_ns, clock_jump_tolerance))
+    truth = _truth(recording.truth, clock_jump_tolerance, spill)
     if tolerance is None:
         fraction, absolute = DEFAULT_TOLERANCE, None
     elif isinstance(tolerance, str):
@@ -350,11 +348,37 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
                 health)
         del rep
     if include_live:
-        live = live_replay(recording, base, clock_jump_tolerance)
+        live = live_replay(recording, base, clock_jump_tolerance, spill=spill)
         if live is not None:
             _scored(result, VariantResult('live', 'recorded', (), live), keep_rows, health)
     result.seconds = time.perf_counter() - start
     return result
+
+
+def _truth(tr, tolerance, spill):
+    """
+    Return the truth's valid rows as (stamps, values, epochs), or None when it has none.
+
+    With ``spill`` the columns stay in temporary files: the stream's own when every
+    message is valid, else the valid rows copied a block at a time.
+
+    """
+    if tr is None or not count_true(tr.valid):
+        return None
+    if spill is None:
+        sel = np.flatnonzero(tr.valid)
+        t_ns = tr.stamp_ns[sel]
+        return t_ns, tr.values[sel], epochs_of(t_ns, tolerance)
+    t_ns, values = tr.stamp_ns, tr.values
+    if count_true(tr.valid) < len(tr):
+        t_ns = Sink(np.int64, (), 0, spill)
+        values = Sink(np.float64, tr.values.shape[1:], 0, spill)
+        for lo, ok in blocks(tr.valid):
+            sel = np.flatnonzero(ok) + lo
+            t_ns.append(tr.stamp_ns[sel])
+            values.append(tr.values[sel])
+        t_ns, values = t_ns.result(), values.result()
+    return t_ns, values, epochs_from_cuts(_epoch_cuts(t_ns, tolerance), len(t_ns), spill)
 
 
 def _scored(result, vr, keep_rows, health=True):

@@ -11,7 +11,8 @@ import math
 import numpy as np
 
 from .running_metrics import BLOCK, blocked_state_metrics
-from ..core.innovation import ljung_box_acf
+from .spill import blocks, count_true, is_spilled, pairwise_sum, Sink, SortedColumn
+from ..core.innovation import ljung_box_acf, ljung_box_of_products
 from ..replay.replay import innovation_health
 
 __all__ = ['DEFAULT_TOLERANCE', 'STEADY_FRACTION', 'WHITENESS_LAGS', 'truth_at',
@@ -21,6 +22,7 @@ __all__ = ['DEFAULT_TOLERANCE', 'STEADY_FRACTION', 'WHITENESS_LAGS', 'truth_at',
 DEFAULT_TOLERANCE = 0.02        # fraction of each state's range in the true trajectory
 STEADY_FRACTION = 0.2           # the last 20 % of the run is the steady state
 WHITENESS_LAGS = 20             # autocorrelation lags 1..k of the residual
+WHITENESS_BLOCK = 1 << 20       # values: the whiteness takes this many at a time
 
 
 def truth_at(truth, stamp_ns, epoch, block=BLOCK):
@@ -37,21 +39,44 @@ def truth_at(truth, stamp_ns, epoch, block=BLOCK):
 
 
 class TruthAt:
-    """:func:`truth_at` for one truth, each epoch's truth sorted once for all calls."""
+    """
+    :func:`truth_at` for one truth, each epoch's truth sorted once for all calls.
+
+    A truth in temporary files (:class:`~observer_ros.bag.spill.SpilledColumn`) is not
+    copied: an epoch already in stamp order (a recording's truth) is searched where it
+    is (:class:`~observer_ros.bag.spill.SortedColumn`), reading the rows each block of
+    estimates needs; only an epoch out of stamp order is sorted in memory.
+
+    """
 
     def __init__(self, truth):
         self.truth = truth
         self.prepared = {}
+        self.ranges = _epoch_ranges(truth[2]) if is_spilled(truth[0]) else None
 
     def _epoch(self, e):
         if e not in self.prepared:
             t_ns, values, t_epoch = self.truth
+            if self.ranges is not None:
+                self.prepared[e] = self._spilled_epoch(e)
+                return self.prepared[e]
             tsel = np.flatnonzero(t_epoch == e)
             order = np.argsort(t_ns[tsel], kind='stable')
             tn = t_ns[tsel][order]
             self.prepared[e] = (tn, values[tsel][order],
                                 (tn - tn[0]).astype(np.float64) * 1e-9) if tsel.size else None
         return self.prepared[e]
+
+    def _spilled_epoch(self, e):
+        if e not in self.ranges:
+            return None
+        t_ns, values, _ = self.truth
+        lo, hi = self.ranges[e]
+        if _sorted(t_ns, lo, hi):
+            return (SortedColumn(t_ns, lo, hi),)
+        order = np.argsort(t_ns[lo:hi], kind='stable')      # out of order: in memory
+        tn = t_ns[lo:hi][order]
+        return tn, values[lo:hi][order], (tn - tn[0]).astype(np.float64) * 1e-9
 
     def __call__(self, stamp_ns, epoch, block=BLOCK):
         """Return the true state at these stamps (of these epochs), NaN where none."""
@@ -62,8 +87,58 @@ class TruthAt:
                 prepared = self._epoch(e)
                 if prepared is not None:
                     sel = lo + np.flatnonzero(eb == e)
-                    _truth_rows(out, sel, stamp_ns[sel], *prepared)
+                    if len(prepared) == 1:
+                        _spilled_truth_rows(out, sel, stamp_ns[sel], prepared[0],
+                                            self.truth[1])
+                    else:
+                        _truth_rows(out, sel, stamp_ns[sel], *prepared)
         return out
+
+
+def _epoch_ranges(epoch):
+    """Return ``{epoch: (first row, end)}`` of a column of contiguous epochs."""
+    ranges = {}
+    for lo, part in blocks(epoch):
+        cuts = np.flatnonzero(np.diff(part)) + 1
+        for start, end in zip([0, *cuts.tolist()], [*cuts.tolist(), part.size]):
+            e = int(part[start])
+            first = ranges.get(e, (lo + start,))[0]
+            ranges[e] = (first, lo + end)
+    return ranges
+
+
+def _sorted(column, lo, hi):
+    """Tell whether rows lo..hi-1 of a column are non-decreasing, a block at a time."""
+    for start in range(lo, hi, BLOCK):
+        part = column[start:min(hi, start + BLOCK + 1)]
+        if np.any(part[1:] < part[:-1]):
+            return False
+    return True
+
+
+def _spilled_truth_rows(out, sel, ns, found, values):
+    """
+    :func:`_truth_rows` on an epoch in stamp order where it is (``found`` searches it).
+
+    The same numbers: the same position of each stamp, the exact matches' values, and
+    ``np.interp`` over the two rows around each other stamp (those it interpolates
+    between in the whole epoch), with the same seconds since the epoch's first stamp.
+
+    """
+    t_ns = found.column
+    lo, hi = found.lo, found.hi
+    first, last = int(t_ns[lo]), int(t_ns[hi - 1])
+    pos = np.clip(found.searchsorted(ns), lo, hi - 1)
+    exact = t_ns[pos] == ns
+    out[sel[exact]] = values[pos[exact]]
+    rest = ~exact & (ns >= first) & (ns <= last)
+    if rest.any():
+        at = np.unique(np.concatenate([pos[rest] - 1, pos[rest]]))
+        x = (t_ns[at] - first).astype(np.float64) * 1e-9
+        tv = values[at]
+        q = (ns[rest] - first).astype(np.float64) * 1e-9
+        for i in range(tv.shape[1]):
+            out[sel[rest], i] = np.interp(q, x, tv[:, i])
 
 
 class StateError:
@@ -173,65 +248,120 @@ def whiteness(r, lags=WHITENESS_LAGS):
     out = {'samples': int(N), 'residual_rms': float(np.sqrt(np.mean(r * r))) if N else math.nan,
            'lags': 0, 'acf': [], 'ljung_box_q': math.nan, 'ljung_box_p': math.nan,
            'acf_outside': math.nan}
-    q, p, acf = ljung_box_acf(r, lags)          # the node's whiteness test (core.innovation)
-    if not acf.size:
-        return out
-    out.update(lags=int(acf.size), acf=acf.tolist(), ljung_box_q=q, ljung_box_p=p,
-               acf_outside=float(np.mean(np.abs(acf) > 1.96 / math.sqrt(N))))
+    # the node's whiteness test (core.innovation)
+    return _with_ljung_box(out, *ljung_box_acf(r, lags))
+
+
+def _with_ljung_box(out, q, p, acf):
+    """Add the Ljung-Box figures (:func:`whiteness`'s) to ``out``; return it."""
+    if acf.size:
+        out.update(lags=int(acf.size), acf=acf.tolist(), ljung_box_q=q, ljung_box_p=p,
+                   acf_outside=float(np.mean(np.abs(acf) > 1.96 / math.sqrt(out['samples']))))
     return out
 
 
 def tolerances(truth_values, names, fraction, absolute):
     """Return the settling band per state: ``absolute``, or ``fraction`` of its true range."""
     tol = {}
+    spilled = truth_values is not None and is_spilled(truth_values)
     for i, name in enumerate(names):
         if absolute is not None:
             tol[name] = float(absolute)
             continue
-        col = truth_values[:, i] if truth_values is not None else np.zeros(0)
-        col = col[np.isfinite(col)]
-        span = float(np.ptp(col)) if col.size else 0.0
-        if span <= 0.0:
-            span = float(np.max(np.abs(col))) if col.size else 0.0
+        if spilled:
+            span = _span(truth_values, i)
+        else:
+            col = truth_values[:, i] if truth_values is not None else np.zeros(0)
+            col = col[np.isfinite(col)]
+            span = float(np.ptp(col)) if col.size else 0.0
+            if span <= 0.0:
+                span = float(np.max(np.abs(col))) if col.size else 0.0
         if span <= 0.0:
             span = 1.0
         tol[name] = fraction * span
     return tol
 
 
-def _matched_norm2(error, block=BLOCK):
+def _span(values, i):
+    """Return the range of column i's finite values (their largest magnitude if 0), by blocks."""
+    low = high = None
+    for _, part in blocks(values):
+        col = part[:, i][np.isfinite(part[:, i])]
+        if col.size:
+            low = col.min() if low is None else min(low, col.min())
+            high = col.max() if high is None else max(high, col.max())
+    if low is None:
+        return 0.0
+    span = float(high - low)
+    return span if span > 0.0 else float(max(abs(low), abs(high)))
+
+
+def _matched_norm2(error, block=BLOCK, spill=None):
     """
     Return the rows of ``error`` with every state finite, and their squared norms.
 
     A block of rows at a time (each norm is summed over its own row, so the values do
     not depend on the block): no whole copies of the errors, the matched ones and
-    their squares.
+    their squares. With ``spill`` both columns are in temporary files.
 
     """
-    ok = np.zeros(len(error), dtype=bool)
-    norm2 = np.empty(ok.size)                   # the matched rows' first: no parts joined
-    done = 0
-    for lo in range(0, ok.size, block):
+    ok = Sink(bool, (), len(error), spill)
+    norm2 = Sink(np.float64, (), len(error), spill)     # the matched rows' only
+    for lo in range(0, len(error), block):
         e = error[lo:lo + block]
-        ok[lo:lo + e.shape[0]] = fine = np.all(np.isfinite(e), axis=1)
-        part = np.sum(e[fine] ** 2, axis=1)
-        norm2[done:done + part.size] = part
-        done += part.size
-    return ok, norm2[:done]
+        fine = np.all(np.isfinite(e), axis=1)
+        ok.append(fine)
+        norm2.append(np.sum(e[fine] ** 2, axis=1))
+    return ok.result(), norm2.result()
 
 
-def _finite_column(values, j, block=BLOCK):
+def _finite_column(values, j, block=BLOCK, spill=None):
     """Return the finite values of column j in order, read a block of rows at a time."""
-    blocks = range(0, len(values), block)
-    count = sum(int(np.count_nonzero(np.isfinite(values[lo:lo + block, j]))) for lo in blocks)
-    out = np.empty(count)
-    done = 0
-    for lo in blocks:
-        col = values[lo:lo + block, j]
-        col = col[np.isfinite(col)]
-        out[done:done + col.size] = col
-        done += col.size
-    return out
+    count = sum(int(np.count_nonzero(np.isfinite(part[:, j])))
+                for _, part in blocks(values, block))
+    out = Sink(np.float64, (), count, spill)
+    for _, part in blocks(values, block):
+        col = part[:, j]
+        out.append(col[np.isfinite(col)])
+    return out.result()
+
+
+def column_whiteness(values, j, lags=WHITENESS_LAGS, spill=None, block=WHITENESS_BLOCK):
+    """
+    :func:`whiteness` of the finite values of column j, in bounded memory.
+
+    Up to ``block`` values (2^20 by default, 16 MiB) the values are taken whole:
+    :func:`whiteness` itself. Beyond, they go to a temporary file with ``spill`` and are
+    read back a block at a time: the mean and the RMS are numpy's sums of the whole
+    sequence bit for bit (:func:`~observer_ros.bag.spill.pairwise_sum`), and the lagged
+    products are summed block by block, in memory or spilled alike (so the figures are
+    the same either way, and may differ from one product over the whole sequence in
+    the last digits).
+
+    """
+    r = _finite_column(values, j, spill=spill)
+    N = len(r)
+    if N <= block:
+        return whiteness(np.asarray(r), lags)
+    mean = pairwise_sum(r) / N                  # x.mean()
+    out = {'samples': int(N), 'residual_rms': float(np.sqrt(pairwise_sum(r, square=True) / N)),
+           'lags': 0, 'acf': [], 'ljung_box_q': math.nan, 'ljung_box_p': math.nan,
+           'acf_outside': math.nan}
+    k = min(int(lags), N // 4)
+    denom, lagged = 0.0, np.zeros(k)
+    tail = np.zeros(0)                          # the last k values of d so far
+    for _, part in blocks(r, block):
+        d = part - mean
+        denom += float(d @ d)
+        T = tail.size
+        for i in range(1, k + 1):
+            if i < d.size:                      # both values of a pair in this block
+                lagged[i - 1] += float(d[:-i] @ d[i:])
+            c0, c1 = max(0, i - T), min(i, d.size)  # the earlier value before it
+            if c1 > c0:
+                lagged[i - 1] += float(tail[T + c0 - i:T + c1 - i] @ d[c0:c1])
+        tail = (d[-k:] if d.size >= k else np.concatenate([tail, d])[-k:]).copy()
+    return _with_ljung_box(out, *ljung_box_of_products(lagged, denom, N))
 
 
 def score_variant(result, vr, health=True):
@@ -244,6 +374,8 @@ def score_variant(result, vr, health=True):
     """
     rep = vr.replay
     plant = result.vehicle.plant
+    # a replay whose rows are in temporary files: the per-row figures go there too
+    spill = (rep.x_hat.directory or True) if is_spilled(rep.x_hat) else None
     if result.truth is not None and len(rep):
         if getattr(result, 'truth_at', None) is None:  # one sorted truth for every variant
             result.truth_at = TruthAt(result.truth)
@@ -251,13 +383,13 @@ def score_variant(result, vr, health=True):
         tol = np.array([result.tolerance[s] for s in plant.state_names])
         metrics = state_metrics(_Seconds(rep.stamp_ns), vr.error, rep.epoch, tol)
         vr.states = dict(zip(plant.state_names, metrics))
-        ok, norm2 = _matched_norm2(vr.error)
+        ok, norm2 = _matched_norm2(vr.error, spill=spill)
         vr.matched = ok
-        vr.summary['matched'] = int(ok.sum())
-        vr.summary['error_rms'] = float(np.sqrt(np.mean(norm2))) if ok.any() else math.nan
+        vr.summary['matched'] = count_true(ok)
+        vr.summary['error_rms'] = float(np.sqrt(np.mean(norm2))) if len(norm2) else math.nan
         settles = [m['settling_time'] for m in metrics]
         vr.summary['settling_time'] = float(max(settles)) if settles else math.nan
     for j, name in enumerate(plant.output_names):
-        vr.outputs[name] = whiteness(_finite_column(rep.residual, j)) if len(rep) else \
+        vr.outputs[name] = column_whiteness(rep.residual, j, spill=spill) if len(rep) else \
             whiteness([])
-    vr.sensors = innovation_health(rep) if health else {}
+    vr.sensors = innovation_health(rep, spill) if health else {}

@@ -5,6 +5,8 @@ import math
 
 import numpy as np
 
+from .spill import decimated_rows
+
 __all__ = ['PLOT_MAX_POINTS', 'decimate', 'write_plots', 'plot_t0', 'plot_autocovariances',
            'plot_search']
 
@@ -61,8 +63,8 @@ def write_plots(result, out):
         for c, (name, vr) in enumerate(result.variants.items()):
             if vr.error is None:
                 continue
-            ok = np.flatnonzero(vr.matched)         # the matched rows, decimated first
-            ok = ok[decimate(ok.size, PLOT_MAX_POINTS)]
+            # the matched rows, decimated first (a block at a time)
+            ok = decimated_rows(len(vr.matched), PLOT_MAX_POINTS, vr.matched)
             norm = np.linalg.norm(vr.error[ok], axis=1)
             ts = (vr.replay.stamp_ns[ok] - t0) * 1e-9
             style = {'ls': '--', 'color': '0.4'} if name == 'live' else \
@@ -83,13 +85,14 @@ def write_plots(result, out):
     for c, (name, vr) in enumerate(result.variants.items()):
         rep = vr.replay
         for j, ax in enumerate(axes[:, 0]):
-            ok = np.isfinite(rep.residual[:, j])
-            if not ok.any():
+            # the rows with this output, decimated first (a block at a time)
+            ok = decimated_rows(len(rep), PLOT_MAX_POINTS,
+                                lambda lo, hi: np.isfinite(rep.residual[lo:hi, j]))
+            if not ok.size:
                 continue
-            d = decimate(int(ok.sum()), PLOT_MAX_POINTS)
             style = {'ls': '--', 'color': '0.4'} if name == 'live' else \
                 {'color': colors[c % len(colors)]}
-            ax.plot((rep.stamp_ns[ok][d] - t0) * 1e-9, rep.residual[ok, j][d], lw=0.8,
+            ax.plot((rep.stamp_ns[ok] - t0) * 1e-9, rep.residual[ok, j], lw=0.8,
                     label=name, **style)
     for j, ax in enumerate(axes[:, 0]):
         ax.set_ylabel(f'residual {outputs[j]}')

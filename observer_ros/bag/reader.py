@@ -4,7 +4,8 @@ Load a vehicle's topics from a ROS 2 bag (mcap or sqlite3) as numpy arrays.
 
 :func:`read_recording` opens the bag (:mod:`.bag_file`), finds the vehicle's topics
 (:mod:`.bag_topics`), decodes the sensor messages in bulk (:mod:`.cdr_decode`) and keeps
-each topic as a :class:`Stream` of arrays in bag order. Stamps stay integer
+each topic as a :class:`Stream` of arrays in bag order (with ``spill``, columns in
+temporary files: :class:`~observer_ros.bag.spill.SpilledColumn`). Stamps stay integer
 nanoseconds; seconds are ``ns * 1e-9`` exactly as
 :func:`observer_ros.timeutil.stamp_to_sec` computes them. The names of those modules
 are importable from here too.
@@ -22,6 +23,7 @@ from .bag_file import bag_info, BagInfo, BagReader, jazzy_typestore
 from .bag_topics import normalize_namespace, resolve_topics, TopicMap, VEHICLE_TOPICS
 from .cdr_decode import CLOCK, decode_messages, decode_packed, Decoded, FLOAT64, IMU, JOINT_STATE
 from .errors import BagToolError
+from .spill import count_true, spill_folder, SpilledColumn
 from ..core.estimators.admission import stamp_ns
 
 __all__ = ['IMU', 'JOINT_STATE', 'FLOAT64', 'CLOCK', 'VEHICLE_TOPICS', 'jazzy_typestore',
@@ -106,11 +108,12 @@ class _Accumulator:
     """
 
     def __init__(self, topic, msgtype, names, fields, mode, fallback, expected=0,
-                 seq_dtype=np.int64):
+                 seq_dtype=np.int64, spill=None):
         self.topic, self.msgtype, self.names = topic, msgtype, tuple(names)
         self.fields, self.mode, self.fallback = tuple(fields), mode, fallback
         self.raws, self.logs, self.seqs = [], [], []
         self.expected, self.seq_dtype = int(expected), seq_dtype
+        self.spill = spill          # None: in memory; else the columns in temporary files
         self.cols = None            # seq, log, stamp (None: no header), values, valid
         self.n = self.bulk = 0
         self.first_error = ''
@@ -142,7 +145,10 @@ class _Accumulator:
         if n and self.seq_dtype != np.int64 and seqs[-1] >= _INT32_LIMIT:   # bad index
             self.seq_dtype = np.int64
             if self.cols is not None:
-                self.cols[0] = self.cols[0].astype(np.int64)
+                self.cols[0] = _retyped(self.cols[0], np.int64)
+        if self.spill is not None:
+            self._append(seqs, logs, dec)
+            return
         if self.cols is None:
             size = max(self.expected, n)
             self.cols = [np.empty(size, dtype=self.seq_dtype), np.empty(size, dtype=np.int64),
@@ -159,6 +165,23 @@ class _Accumulator:
         self.bulk += dec.bulk
         self.first_error = self.first_error or dec.first_error
 
+    def _append(self, seqs, logs, dec):
+        """Append the decoded columns to their temporary files."""
+        if self.cols is None:
+            folder = spill_folder(self.spill)
+            self.cols = [SpilledColumn(self.seq_dtype, (), folder),
+                         SpilledColumn(np.int64, (), folder),
+                         None if dec.stamp_ns is None else SpilledColumn(np.int64, (), folder),
+                         SpilledColumn(np.float64, (len(self.fields),), folder),
+                         SpilledColumn(bool, (), folder)]
+        stamps = logs if self.cols[2] is None else dec.stamp_ns
+        for col, part in zip(self.cols, (seqs, logs, stamps, dec.values, dec.valid)):
+            if col is not None:
+                col.append(part)
+        self.n += len(seqs)
+        self.bulk += dec.bulk
+        self.first_error = self.first_error or dec.first_error
+
     def stream(self):
         self.flush()
         if self.cols is None:
@@ -167,13 +190,23 @@ class _Accumulator:
                           np.zeros((0, len(self.fields))), np.zeros(0, dtype=bool),
                           self.msgtype != FLOAT64)
         cols = [c if c is None or c.shape[0] == self.n else c[:self.n].copy()
-                for c in self.cols]
+                for c in self.cols]     # a spilled column holds its rows alone
         seq, log, stamp, values, valid = cols
         has_header = stamp is not None
         # without a header the stamp is the receive time: the same array, not a copy
         return Stream(self.topic, self.msgtype, self.names, seq, log,
                       stamp if has_header else log, values, valid, has_header,
                       self.first_error, self.bulk)
+
+
+def _retyped(col, dtype):
+    """Return a column (array or spilled) converted to ``dtype``."""
+    if not isinstance(col, SpilledColumn):
+        return col.astype(dtype)
+    out = SpilledColumn(dtype, col.row_shape, col.directory)
+    for lo in range(0, col.rows, 1 << 16):
+        out.append(col[lo:lo + (1 << 16)])
+    return out
 
 
 def _resized(col, size):
@@ -216,7 +249,7 @@ def _vector_fallback(bag, names, mode):
     return decode
 
 
-def read_recording(path, vehicle, namespace=None, progress=None, vectors=True):
+def read_recording(path, vehicle, namespace=None, progress=None, vectors=True, spill=None):
     """
     Load a vehicle's sensor, command and state topics from a bag.
 
@@ -233,6 +266,11 @@ def read_recording(path, vehicle, namespace=None, progress=None, vectors=True):
     vectors : bool
         Also load ``state/true``, ``state/estimate``, ``control/u`` and
         ``observer/residual`` when the bag has them.
+    spill : True or path, optional
+        Keep the decoded columns in temporary files (in this folder; True: the system's
+        temporary folder) instead of in memory: the streams' columns are then
+        :class:`~observer_ros.bag.spill.SpilledColumn` objects with the same values, and
+        the memory of reading does not grow with the bag.
 
     Returns
     -------
@@ -254,7 +292,7 @@ def read_recording(path, vehicle, namespace=None, progress=None, vectors=True):
         seq_dtype = np.int32 if info.message_count < _INT32_LIMIT else np.int64
 
         def sizes(topic):
-            return info.topics.get(topic, (None, 0))[1], seq_dtype
+            return info.topics.get(topic, (None, 0))[1], seq_dtype, spill
         accs = {}
         for sensor in vehicle.sensors:
             topic = topics.sensors[sensor.name]
@@ -297,7 +335,8 @@ def read_recording(path, vehicle, namespace=None, progress=None, vectors=True):
         warnings=list(info.warnings))
     for sensor in vehicle.sensors:
         stream = recording.sensors[sensor.name]
-        if len(stream) and not stream.valid.any():
+        good = count_true(stream.valid)
+        if len(stream) and not good:
             raise BagToolError(
                 f'{info.path}: none of the {len(stream)} messages on {stream.topic} gives '
                 f'the outputs {list(sensor.outputs)} of sensor {sensor.name!r} '
@@ -305,7 +344,7 @@ def read_recording(path, vehicle, namespace=None, progress=None, vectors=True):
         if len(stream) == 0:
             raise BagToolError(f'{info.path}: bag has no messages on {stream.topic} '
                                f'(sensor {sensor.name!r} of vehicle {vehicle.name})')
-        bad = int((~stream.valid).sum())
+        bad = len(stream) - good
         if bad:
             recording.warnings.append(
                 f'{stream.topic}: {bad} of {len(stream)} messages skipped '

@@ -13,8 +13,9 @@ import re
 import numpy as np
 
 from .metrics import WHITENESS_LAGS
-from .plots import decimate, write_plots
+from .plots import write_plots
 from .reader import jazzy_typestore
+from .spill import decimated_rows
 from ..core.innovation import WINDOW as INNOVATION_WINDOW
 from ..outputs.staging import StagedOutput
 from ..replay.replay import SKIPPED
@@ -259,12 +260,12 @@ def write_results_bag(result, path, limit):
         rep = vr.replay
         topics.append((f'/eval/{name}/state/estimate', rep.stamp_ns, rep.x_hat, names))
         if vr.error is not None:        # the matched rows, taken once decimated
-            ok = np.flatnonzero(vr.matched)
-            topics.append((f'/eval/{name}/state/error', rep.stamp_ns, vr.error, names, ok))
+            topics.append((f'/eval/{name}/state/error', rep.stamp_ns, vr.error, names,
+                           vr.matched))
     with CrcWriter(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        for topic, ns, values, comp, *rows in topics:
+        for topic, ns, values, comp, *matched in topics:
             conn = writer.add_connection(topic, js, typestore=store)
-            d = rows[0][decimate(rows[0].size, limit)] if rows else decimate(ns.size, limit)
+            d = decimated_rows(len(ns), limit, *matched)      # a block at a time
             ns, values = np.asarray(ns[d], dtype=np.int64), values[d]
             if not ns.size:
                 continue

@@ -54,6 +54,7 @@ from .whiteness import (component_level, critical_distance, periodogram_statisti
                         RUN_LEVEL, run_rule, run_verdict)
 
 __all__ = ['InnovationMonitor', 'SensorHealth', 'whiten', 'ljung_box', 'ljung_box_acf',
+           'ljung_box_of_products',
            'nis_bounds', 'sequence_health', 'sequence_health_blocks', 'transient_time',
            'WINDOW', 'LAGS', 'ALPHA', 'OTHER_MARGIN']
 
@@ -191,7 +192,28 @@ def ljung_box_acf(x, lags=LAGS):
     denom = float(d @ d)
     if k < 1 or not denom > 0.0 or not math.isfinite(denom):
         return math.nan, math.nan, np.zeros(0)
-    rho = np.array([float(d[:-j] @ d[j:]) / denom for j in range(1, k + 1)])
+    return ljung_box_of_products([float(d[:-j] @ d[j:]) for j in range(1, k + 1)], denom, N)
+
+
+def ljung_box_of_products(lagged, denom, N):
+    """
+    Return :func:`ljung_box_acf`'s q, p and acf from the sums of products it divides.
+
+    Parameters
+    ----------
+    lagged : (k,) array_like
+        ``sum_t d_t d_{t+j}``, j = 1..k, of the sequence d with its mean removed (summed
+        however the caller can, e.g. a block at a time).
+    denom : float
+        ``sum_t d_t^2``.
+    N : int
+        The length of the sequence.
+
+    """
+    k = len(lagged)
+    if k < 1 or not denom > 0.0 or not math.isfinite(denom):
+        return math.nan, math.nan, np.zeros(0)
+    rho = np.asarray(lagged, dtype=float) / denom
     q = float(N * (N + 2) * np.sum(rho ** 2 / (N - np.arange(1, k + 1))))
     return q, float(chdtrc(k, q)), rho
 
@@ -468,7 +490,7 @@ def sequence_health(name, E, kalman, window=WINDOW, lags=LAGS, alpha=ALPHA, sinc
 
 
 def sequence_health_blocks(name, blocks, kalman, window=WINDOW, lags=LAGS, alpha=ALPHA,
-                           transient=0.0, rows=None, level=RUN_LEVEL):
+                           transient=0.0, rows=None, level=RUN_LEVEL, nis=None):
     """
     Return :func:`sequence_health`'s figures of a run given a block of residuals at a time.
 
@@ -487,6 +509,10 @@ def sequence_health_blocks(name, blocks, kalman, window=WINDOW, lags=LAGS, alpha
     rows : int, optional
         At least the number of rows of all the blocks: the judged rows' NIS is kept in
         one array this long (8 bytes a row) instead of a list joined at the end.
+    nis : column, optional
+        Where the judged rows' NIS go instead, an object with ``append(values)`` and
+        ``mean()`` (numpy's mean of them): e.g. a column in a temporary file, so that a
+        long run's are not held in memory.
 
     Returns
     -------
@@ -496,7 +522,8 @@ def sequence_health_blocks(name, blocks, kalman, window=WINDOW, lags=LAGS, alpha
     """
     skipped = 0
     p = None
-    nis = np.empty(rows) if rows is not None else []
+    sink = nis
+    nis = np.empty(rows) if rows is not None and sink is None else []
     N = 0
     rest = None                 # judged rows not yet in a full window
     sums, worst = [], []        # per window: NIS sum, largest periodogram distance
@@ -513,7 +540,9 @@ def sequence_health_blocks(name, blocks, kalman, window=WINDOW, lags=LAGS, alpha
             p = E.shape[1] if E.ndim == 2 else 1
         if not E.shape[0]:
             continue
-        if rows is not None:
+        if sink is not None:
+            sink.append(np.sum(E * E, axis=1))
+        elif rows is not None:
             nis[N:N + E.shape[0]] = np.sum(E * E, axis=1)
         else:
             nis.append(np.sum(E * E, axis=1))
@@ -526,7 +555,10 @@ def sequence_health_blocks(name, blocks, kalman, window=WINDOW, lags=LAGS, alpha
             sums.append(s)
             worst.append(w)
         rest = E[full * window:].copy()
-    nis = nis[:N] if rows is not None else (np.concatenate(nis) if nis else np.zeros(0))
+    if sink is not None:
+        nis = sink
+    else:
+        nis = nis[:N] if rows is not None else (np.concatenate(nis) if nis else np.zeros(0))
     p = 1 if p is None else p
     a = _test_level(alpha)
     low, high = nis_bounds(window, p, 2.0 * a)

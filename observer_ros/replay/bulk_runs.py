@@ -17,6 +17,7 @@ import math
 import numpy as np
 
 from .events import _index_type
+from ..bag.spill import Sink
 from ..core.errors import ObserverError
 
 MIN_RUN = 64                   # steps: shorter stretches are replayed call by call
@@ -143,7 +144,8 @@ class _Runs:
         self.max_gap = max_gap
         self.pieces = {}
         block = block or RUN_BLOCK
-        mev = self.mev = _measurement_events(events.kind, block)
+        spill = getattr(events, 'spill', None)      # events in temporary files: these too
+        mev = self.mev = _measurement_events(events.kind, block, spill)
         M = mev.size
         if M < MIN_RUN + 1:
             return
@@ -199,17 +201,19 @@ class _Runs:
                 'commands': int(gap_cmds.sum()), 'last_event': int(mev[-1])}
 
 
-def _measurement_events(kind, block):
-    """Return the event indices of the measurements (kind >= 0), found a block at a time."""
+def _measurement_events(kind, block, spill=None):
+    """
+    Return the event indices of the measurements (kind >= 0), found a block at a time.
+
+    In memory, or with ``spill`` in a temporary file.
+
+    """
     blocks = range(0, kind.size, block)
     count = sum(int(np.count_nonzero(kind[e0:e0 + block] >= 0)) for e0 in blocks)
-    mev = np.empty(count, dtype=_index_type(kind.size))
-    done = 0
+    mev = Sink(_index_type(kind.size), (), count, spill)
     for e0 in blocks:
-        found = np.flatnonzero(kind[e0:e0 + block] >= 0)
-        mev[done:done + found.size] = found + e0
-        done += found.size
-    return mev
+        mev.append(np.flatnonzero(kind[e0:e0 + block] >= 0) + e0)
+    return mev.result()
 
 
 def _find_runs(events, streams, cmd, est, jump, future_tolerance, block=None,

@@ -10,6 +10,7 @@ over each sensor's whitened residuals, the initial transient of each epoch left 
 
 import numpy as np
 
+from ..bag.spill import spill_folder, SpilledColumn
 from ..core.innovation import sequence_health_blocks, transient_time
 from ..core.vehicle_design import design_vehicle
 
@@ -18,7 +19,7 @@ __all__ = ['innovation_health']
 HEALTH_BLOCK = 1 << 16        # estimates: the innovation health takes this many at a time
 
 
-def innovation_health(rep):
+def innovation_health(rep, spill=None):
     """
     Return the innovation health of each sensor of a replay, as the node judges it.
 
@@ -26,6 +27,8 @@ def innovation_health(rep):
     ----------
     rep : Replay
         From :func:`replay` (None figures for the live estimate).
+    spill : True or path, optional
+        Keep the judged rows' NIS (8 bytes a row, for its mean) in a temporary file.
 
     Returns
     -------
@@ -48,9 +51,10 @@ def innovation_health(rep):
     out = {}
     for k, s in enumerate(veh.sensors):
         cols = list(plant.output_rows(s.outputs))
+        nis = None if spill is None else SpilledColumn(np.float64, (), spill_folder(spill))
         out[s.name] = sequence_health_blocks(s.name, _health_blocks(rep, k, cols, starts, t0),
                                              rep.kalman, transient=transient,
-                                             rows=int(counts[k]))
+                                             rows=int(counts[k]), nis=nis)
     return out
 
 

@@ -49,10 +49,12 @@ import numpy as np
 from . import bulk_runs
 from .bulk_replay import _bulk_run, affine_scan
 from .bulk_runs import _find_runs, _has_late
-from .events import _Events, _index_type, _Rows, epochs_of
+from .events import (_epoch_cuts, _Events, _index_type, _Rows, epochs_from_cuts,
+                     epochs_of)
 from .health import innovation_health
 from .rows import ReplayOutputs
 from ..bag.errors import BagToolError
+from ..bag.spill import blocks, count_true, Sink, SortedColumn
 from ..core.errors import ObserverError
 from ..core.estimators import History, make_estimator
 from ..core.estimators.admission import (Admission, CLOCK_JUMP, CLOCK_JUMP_AGREEMENT,
@@ -205,7 +207,7 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
     counts = dict.fromkeys(COUNTERS, 0)
     events = _Events(recording, sensors, plant, counts,
                      lockstep=vehicle.simulator.mode == 'lockstep',
-                     clock_jump_tolerance=clock_jump_tolerance)
+                     clock_jump_tolerance=clock_jump_tolerance, spill=spill)
     est = make_estimator(plant, vehicle.observer)
     history = History(est, vehicle.observer.history_length)
     max_gap = max_prediction_gap(plant.A, vehicle.sample_time, plant.is_discrete)
@@ -225,11 +227,11 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
         cmd_t = cmd.stamp_ns
         cmd_u = cmd.values
         cmd_log = cmd.log_ns
-    n_meas = int(sum(int((events.kind == k).sum()) for k in range(len(streams))))
+    n_meas = events.measurements
     kalman = est.kind == 'kalman'
     # the narrowest exact types: epochs and bag positions fit the events' index type
     out = ReplayOutputs(n_meas, plant.n, plant.p, kalman, _index_type(len(events)),
-                        _index_type(int(events.seq.max()) + 1 if len(events) else 0),
+                        _index_type(events.seq_max + 1),
                         np.int8 if len(sensors) < 128 else np.int16, spill=spill,
                         ahead=bulk_runs.MAX_RUN + bulk_runs.MIN_RUN)
     runs = {}
@@ -393,7 +395,7 @@ def _whitened(residual, S):
         return None
 
 
-def live_replay(recording, vehicle, clock_jump_tolerance=CLOCK_JUMP_TOLERANCE):
+def live_replay(recording, vehicle, clock_jump_tolerance=CLOCK_JUMP_TOLERANCE, spill=None):
     """
     Return the live estimate recorded on ``state/estimate`` as a :class:`Replay`.
 
@@ -406,6 +408,8 @@ def live_replay(recording, vehicle, clock_jump_tolerance=CLOCK_JUMP_TOLERANCE):
     clock_jump_tolerance : float
         A step back of the estimate's stamp by more than this many seconds is a clock
         jump (a new epoch, see :func:`epochs_of`).
+    spill : True or path, optional
+        Keep the rows in temporary files (as :func:`replay`'s ``spill``).
 
     Returns
     -------
@@ -414,23 +418,47 @@ def live_replay(recording, vehicle, clock_jump_tolerance=CLOCK_JUMP_TOLERANCE):
 
     """
     est = recording.estimate
-    if est is None or not est.valid.any():
+    if est is None:
+        return None
+    count = count_true(est.valid)
+    if not count:
         return None
     plant = vehicle.plant
-    sel = np.flatnonzero(est.valid)
-    stamp = est.stamp_ns[sel]
-    residual = np.full((sel.size, plant.p), np.nan)
     res = recording.residual
-    if res is not None and res.valid.any():
-        # the residual published right after each estimate, matched by stamp and order
-        rsel = np.flatnonzero(res.valid)
-        pos = np.searchsorted(res.seq[rsel], est.seq[sel])
-        pos = np.clip(pos, 0, rsel.size - 1)
-        same = res.stamp_ns[rsel][pos] == stamp
-        residual[same] = res.values[rsel][pos[same]]
-    counts = {'measurements': int(sel.size), 'bad_messages': int((~est.valid).sum())}
-    epoch = epochs_of(stamp, clock_jump_tolerance)
-    counts['clock_jumps'] = int(epoch[-1]) if epoch.size else 0
-    return Replay(name='live', vehicle=vehicle, stamp_ns=stamp, x_hat=est.values[sel],
-                  residual=residual, epoch=epoch, seq=est.seq[sel],
-                  sensor=np.full(sel.size, -1, dtype=np.int64), counts=counts)
+    matched = None          # the residual published right after each estimate (by seq)
+    if res is not None and count_true(res.valid):
+        rows = Sink(np.int64, (), 0, spill)         # the valid residuals' rows, their seq
+        seqs = Sink(res.seq.dtype, (), 0, spill)
+        for lo, ok in blocks(res.valid):
+            sel = np.flatnonzero(ok) + lo
+            rows.append(sel)
+            seqs.append(res.seq[sel])
+        matched = rows.result(), SortedColumn(seqs.result())
+    cols = {'ns': Sink(np.int64, (), count, spill),
+            'x': Sink(np.float64, (plant.n,), count, spill),
+            'r': Sink(np.float64, (plant.p,), count, spill),
+            'seq': Sink(est.seq.dtype, (), count, spill)}
+    for lo, ok in blocks(est.valid):
+        sel = np.flatnonzero(ok) + lo
+        stamp = est.stamp_ns[sel]
+        residual = np.full((sel.size, plant.p), np.nan)
+        if matched is not None:
+            rows, found = matched
+            pos = np.clip(found.searchsorted(est.seq[sel]), 0, len(found) - 1)
+            at = rows[pos]
+            same = res.stamp_ns[at] == stamp
+            residual[same] = res.values[at[same]]
+        for name, part in (('ns', stamp), ('x', est.values[sel]), ('r', residual),
+                           ('seq', est.seq[sel])):
+            cols[name].append(part)
+    stamp = cols['ns'].result()
+    cuts = _epoch_cuts(stamp, clock_jump_tolerance)
+    epoch = epochs_from_cuts(cuts, count, spill)
+    sensor = Sink(np.int64, (), count, spill)
+    for lo in range(0, count, 1 << 16):
+        sensor.append(np.full(min(count, lo + (1 << 16)) - lo, -1, dtype=np.int64))
+    counts = {'measurements': count, 'bad_messages': len(est) - count,
+              'clock_jumps': len(cuts)}
+    return Replay(name='live', vehicle=vehicle, stamp_ns=stamp, x_hat=cols['x'].result(),
+                  residual=cols['r'].result(), epoch=epoch,
+                  seq=cols['seq'].result(), sensor=sensor.result(), counts=counts)

@@ -6,10 +6,11 @@ The rows a replay writes (stamp, estimate, residual, ...), kept in memory or on 
 With ``spill`` it keeps only a buffer of about :data:`SPILL_BLOCK` rows plus the longest
 bulk piece in memory and appends each full block to a temporary file per column, so a
 bag of 10^7 messages does not hold its ~50 bytes per estimate in memory. The columns of
-the finished replay are then :class:`SpilledColumn` objects: read-only arrays whose rows
-are read from the file when indexed (slices, index or boolean arrays, a column key), a
-block at a time, with the very values that were written (no conversion, so every figure
-computed from them is the in-memory one bit for bit).
+the finished replay are then :class:`~observer_ros.bag.spill.SpilledColumn` objects:
+read-only arrays whose rows are read from the file when indexed (slices, index or
+boolean arrays, a column key), a block at a time, with the very values that were
+written (no conversion, so every figure computed from them is the in-memory one bit for
+bit).
 
 A late measurement revises earlier rows (written in place, on disk if spilled) and puts
 the rows in stamp order at the end: a spilled replay with late measurements is read
@@ -17,169 +18,13 @@ back whole for that sort (the in-memory path's peak).
 
 """
 
-import tempfile
-
 import numpy as np
 
-from ..bag.errors import BagToolError
+from ..bag.spill import spill_folder, SpilledColumn
 
 __all__ = ['ReplayOutputs', 'SpilledColumn', 'SPILL_BLOCK']
 
 SPILL_BLOCK = 1 << 16            # rows: a spilled replay appends this many at a time
-READ_BLOCK = 1 << 16             # rows: a spilled column is read this many at a time
-
-
-class SpilledColumn:
-    """
-    A column of rows in a temporary file, indexed like a read-only numpy array.
-
-    ``column[rows]`` and ``column[rows, cols]`` read the rows asked for, a block of
-    :data:`READ_BLOCK` rows at a time; ``np.asarray(column)`` reads them all.
-
-    """
-
-    def __init__(self, dtype, row_shape=(), directory=None):
-        self.dtype = np.dtype(dtype)
-        self.row_shape = tuple(row_shape)
-        self.row_bytes = self.dtype.itemsize * int(np.prod(self.row_shape, dtype=np.int64))
-        self.directory = directory
-        try:
-            self.file = tempfile.TemporaryFile(prefix='observer_eval_', dir=directory)
-        except OSError as err:
-            where = directory or tempfile.gettempdir()
-            raise BagToolError(f"cannot write the replay's temporary files in {where}: "
-                               f'{err.strerror or err} (set TMPDIR to a writable folder, or '
-                               'keep them in memory: --in-memory)') from None
-        self.rows = 0
-
-    @property
-    def shape(self):
-        """Return ``(rows, *row_shape)``."""
-        return (self.rows, *self.row_shape)
-
-    @property
-    def ndim(self):
-        """Return the number of dimensions."""
-        return 1 + len(self.row_shape)
-
-    @property
-    def size(self):
-        """Return the number of elements."""
-        return self.rows * int(np.prod(self.row_shape, dtype=np.int64))
-
-    def __len__(self):
-        """Return the number of rows."""
-        return self.rows
-
-    def append(self, rows):
-        """Write rows after the last one."""
-        rows = np.ascontiguousarray(rows, dtype=self.dtype)
-        if not rows.size:
-            return
-        self._write(self.rows, rows)
-        self.rows += rows.shape[0]
-
-    def write_row(self, i, row):
-        """Overwrite row i (a revised estimate)."""
-        self._write(i, np.ascontiguousarray(row, dtype=self.dtype))
-
-    def _write(self, i, rows):
-        try:
-            self.file.seek(i * self.row_bytes)
-            self.file.write(rows.data.cast('B'))
-        except OSError as err:      # a full disk: said, not a traceback
-            raise BagToolError(f"cannot write the replay's temporary files in "
-                               f'{self.directory or tempfile.gettempdir()}: '
-                               f'{err.strerror or err} (about {self.row_bytes} bytes per '
-                               'estimate per column; set TMPDIR to a folder with room, or '
-                               'keep them in memory: --in-memory)') from None
-
-    def read(self, lo, hi):
-        """Return rows lo..hi-1 (up to the last row) as a new array."""
-        hi = max(lo, min(hi, self.rows))
-        out = np.empty((hi - lo, *self.row_shape), dtype=self.dtype)
-        if out.size:
-            self.file.seek(lo * self.row_bytes)
-            if self.file.readinto(out.data.cast('B')) != out.nbytes:
-                raise OSError(f'{self.file.name}: rows {lo}..{hi - 1} could not be read back')
-        return out
-
-    def __array__(self, dtype=None, copy=None):
-        whole = self.read(0, self.rows)
-        return whole if dtype is None else whole.astype(dtype)
-
-    def astype(self, dtype):
-        """Return every row converted to ``dtype`` (a new array)."""
-        return np.asarray(self).astype(dtype)
-
-    def min(self):  # noqa: A003 (numpy's name)
-        """Return the smallest element (read a block at a time)."""
-        return self._reduce(np.min)
-
-    def max(self):  # noqa: A003 (numpy's name)
-        """Return the largest element (read a block at a time)."""
-        return self._reduce(np.max)
-
-    def _reduce(self, func):
-        if not self.size:
-            raise ValueError('zero-size column has no minimum or maximum')
-        return func([func(self.read(lo, lo + READ_BLOCK))
-                     for lo in range(0, self.rows, READ_BLOCK)])
-
-    def __getitem__(self, key):
-        """Return the rows (and columns) asked for, as numpy indexing gives them."""
-        rest = ()
-        if isinstance(key, tuple):
-            key, rest = key[0], key[1:]
-        if isinstance(key, (int, np.integer)):
-            i = int(key) + (self.rows if key < 0 else 0)
-            if not 0 <= i < self.rows:
-                raise IndexError(f'row {int(key)} of {self.rows}')
-            return self.read(i, i + 1)[(0, *rest)]
-        if isinstance(key, slice):
-            start, stop, step = key.indices(self.rows)
-            if step == 1:
-                return self._gather_range(start, stop, rest)
-            idx = np.arange(start, stop, step)
-        else:
-            idx = np.asarray(key)
-            if idx.dtype == bool:
-                if idx.shape != (self.rows,):
-                    raise IndexError(f'boolean index of {idx.shape} for {self.rows} rows')
-                idx = np.flatnonzero(idx)
-            else:
-                idx = np.where(idx < 0, idx + self.rows, idx).astype(np.intp).reshape(-1)
-                if idx.size and (idx.min() < 0 or idx.max() >= self.rows):
-                    raise IndexError(f'row index out of range for {self.rows} rows')
-        return self._gather(idx, rest)
-
-    def _gather_range(self, start, stop, rest):
-        if not rest:
-            return self.read(start, stop)
-        parts = [self.read(lo, min(stop, lo + READ_BLOCK))[(slice(None), *rest)]
-                 for lo in range(start, stop, READ_BLOCK)]
-        return np.concatenate(parts) if parts else \
-            self.read(0, 0)[(slice(None), *rest)]
-
-    def _gather(self, idx, rest):
-        order = None
-        if idx.size > 1 and np.any(idx[1:] < idx[:-1]):
-            order = np.argsort(idx, kind='stable')
-            idx = idx[order]
-        parts = []
-        at = 0
-        while at < idx.size:
-            lo = int(idx[at])
-            hi = min(self.rows, lo + READ_BLOCK)
-            end = at + int(np.searchsorted(idx[at:], hi))
-            parts.append(self.read(lo, hi)[(idx[at:end] - lo, *rest)])
-            at = end
-        out = np.concatenate(parts) if parts else self.read(0, 0)[(slice(None), *rest)]
-        if order is not None:
-            unsorted = np.empty_like(out)
-            unsorted[order] = out
-            out = unsorted
-        return out
 
 
 class ReplayOutputs:
@@ -209,9 +54,9 @@ class ReplayOutputs:
         self.sensor = np.zeros(cap, dtype=sensor_type)
         self.files = None
         if spill is not None:
-            directory = None if spill is True else spill
             self.files = {name: SpilledColumn(getattr(self, name).dtype,
-                                              getattr(self, name).shape[1:], directory)
+                                              getattr(self, name).shape[1:],
+                                              spill_folder(spill))
                           for name in self.NAMES if getattr(self, name) is not None}
 
     def local(self, m):
