@@ -26,9 +26,9 @@ pays for importing numpy, scipy, python-control and rosbags (about 1 s here):
 Figures: eval / (a) and eval / (b), per round [median <= 1.0 each]; peak RSS of eval
 per message; the replay's CPU per message of a Kalman variant over the design's
 (pole placement), alternated in one process on the recording read once
-[median <= 2.0]. ``--big`` also writes a 10^7-message bag (about 3 GB, several minutes)
-and checks that observer-eval's peak RSS on it stays within 1 GiB, with the time
-and peak RSS of baseline (a) on the same bag. ``--jitter`` also evaluates the same
+[median <= 2.0]. ``--big`` also writes a 10^7-message bag (about 3.8 GB, half an hour)
+and checks that observer-eval's peak RSS on it is within 1.1x of the rounds' (10^6)
+and below 400 MiB, with the time and peak RSS of baseline (a) on the same bag. ``--jitter`` also evaluates the same
 simulation with every stamp moved by up to +-0.3 ms (seeded), once per round, against
 the regular bag's eval of that round [median <= 1.5]. Neither runs by default
 (minutes to hours); run them on demand.
@@ -41,6 +41,7 @@ round [median <= 1.0: no slower per message than that version], and its peak RSS
 """
 
 import json
+import math
 import os
 from pathlib import Path
 import shutil
@@ -451,7 +452,7 @@ def run(smoke=False, rounds=None, big=False, messages=None, log=print, jitter=Fa
     if jitter:
         data['jitter'] = _jitter(messages, rounds, smoke, results['eval'], figures, log)
     if big:
-        data['big'] = _big(figures, log, baseline)
+        data['big'] = _big(figures, log, baseline, rss, messages)
     return data
 
 
@@ -509,8 +510,14 @@ def _jitter(messages, rounds, smoke, regular, figures, log):
     return runs
 
 
-def _big(figures, log, baseline=None):
-    """observer-eval and rosbags (a) on the 10^7-message bag: time and peak RSS."""
+def _big(figures, log, baseline=None, small_rss=(), messages=None):
+    """
+    observer-eval and rosbags (a) on the 10^7-message bag: time and peak RSS.
+
+    ``small_rss``: the peak RSS of the rounds' evaluations of the ``messages`` bag, that
+    of 10^7 is compared with (its median).
+
+    """
     big_n = 10_000_000
     big_bag = generate(big_n, log=log)
     with tempfile.TemporaryDirectory(prefix='p3_big_') as tmp:
@@ -527,9 +534,14 @@ def _big(figures, log, baseline=None):
     base = _run_worker('a', big_bag)
     log(f'  P3 big: rosbags (a) of {big_n} msgs: {base["seconds"]:.1f} s, peak RSS '
         f'{base["maxrss_mib"]:.0f} MiB')
-    figures.append(ratio_line('P3', 'eval_peak_rss_1e7_msgs/1GiB',
-                              [res['maxrss_mib'] / 1024.0], '<=', 1.0,
-                              note=f'{res["maxrss_mib"]:.0f} MiB, {res["seconds"]:.1f} s'))
+    small = summary(small_rss)['median'] if small_rss else math.nan
+    figures.append(ratio_line('P3', f'eval_peak_rss_1e7/eval_peak_rss[{messages}]',
+                              [res['maxrss_mib'] / small], '<=', 1.1,
+                              note=f'{res["maxrss_mib"]:.0f} MiB against {small:.0f} MiB '
+                                   f'(median of the rounds), {res["seconds"]:.1f} s'))
+    figures.append(ratio_line('P3', 'eval_peak_rss_1e7/400MiB',
+                              [res['maxrss_mib'] / 400.0], '<=', 1.0,
+                              note=f'{res["maxrss_mib"]:.0f} MiB'))
     figures.append(ratio_line('P3', 'eval_1e7/rosbags_read_deserialise_1e7',
                               [res['seconds'] / base['seconds']], '<=', 1.0,
                               note=f'rosbags {base["seconds"]:.1f} s, '
@@ -551,7 +563,7 @@ def main(argv=None):
     parser.add_argument('--rounds', type=int, help='rounds of (eval, a, b); default 3')
     parser.add_argument('--messages', type=int, help='Imu messages in the bag (default 10^6)')
     parser.add_argument('--big', action='store_true',
-                        help='also the 10^7-message bag: peak RSS within 1 GiB')
+                        help='also the 10^7-message bag: peak RSS within 1.1x of 10^6, < 400 MiB')
     parser.add_argument('--jitter', action='store_true',
                         help='also the bag with jittered stamps: within 1.5x of regular')
     parser.add_argument('--baseline-pythonpath', metavar='DIR',
