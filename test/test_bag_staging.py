@@ -172,3 +172,26 @@ def test_the_current_folder_as_output(tmp_path, monkeypatch):
             s.commit([s.path / 'results.txt'])
         monkeypatch.chdir(out)
     assert (out / 'results.txt').read_text() == 'here' and not _stages(out)
+
+
+@pytest.mark.parametrize('odd', ['fifo', 'link', 'big'])
+def test_a_marker_that_is_not_a_small_regular_file_is_refused_not_waited_on(tmp_path, capsys,
+                                                                            odd):
+    out = tmp_path / 'eval'
+    out.mkdir()
+    marker = out / MARKER
+    if odd == 'fifo':       # before: --force opened it and waited for a writer forever
+        os.mkfifo(marker)
+    elif odd == 'link':
+        (tmp_path / 'elsewhere.json').write_text('{"tool": "observer-eval", "files": {}}')
+        marker.symlink_to(tmp_path / 'elsewhere.json')
+    else:
+        marker.write_text(' ' * (2 << 20))
+    start = time.monotonic()
+    assert eval_main(EVAL + ['--out', str(out), '--force']) == 2
+    assert time.monotonic() - start < WAIT
+    reason = {'fifo': 'not a regular file', 'link': 'is a link', 'big': 'more than'}[odd]
+    err = capsys.readouterr().err
+    assert err.count('\n') == 1 and f'{out} exists and is not an observer-eval output ' \
+        'folder (the marker ' in err and reason in err, err
+    assert sorted(p.name for p in out.iterdir()) == [MARKER]

@@ -17,14 +17,16 @@ after checking them all before anything is touched:
 
 """
 
+import errno
 import json
 import os
 from pathlib import Path
+import stat
 
 from ..bag.errors import BagToolError
 
 __all__ = ['MARKER', 'TOOL_FILES', 'check_output', 'prepare_output', 'seal_output',
-           'mark_output']
+           'mark_output', 'read_marker_text', 'MAX_MARKER_BYTES']
 
 MARKER = '.observer_ros_output.json'
 
@@ -40,13 +42,37 @@ TOOL_FILES = {
 }
 
 
+# a marker lists a folder's files: a few kB; more is not one of ours
+MAX_MARKER_BYTES = 1 << 20
+
+
+def read_marker_text(path):
+    """
+    Return a marker file's text; ValueError when it is not a regular file or too big.
+
+    Opened without following a link and without blocking (a FIFO named like a marker would
+    hold ``--force`` forever), then checked to be a regular file before it is read.
+    """
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOFOLLOW)
+    except OSError as err:
+        if err.errno == errno.ELOOP:
+            raise ValueError('the marker is a link') from None
+        raise
+    with os.fdopen(fd, 'rb') as f:
+        if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+            raise ValueError('the marker is not a regular file')
+        data = f.read(MAX_MARKER_BYTES + 1)
+    if len(data) > MAX_MARKER_BYTES:
+        raise ValueError(f'the marker has more than {MAX_MARKER_BYTES} bytes')
+    return data.decode('utf-8')
+
+
 def _read_marker(out, tool):
     """Return the marker's dict; raise BagToolError when the folder is not the tool's."""
     marker = out / MARKER
     try:
-        if marker.is_symlink():
-            raise ValueError('the marker is a link')
-        data = json.loads(marker.read_text())
+        data = json.loads(read_marker_text(marker))
         if data.get('tool') != tool or not isinstance(data.get('files'), dict):
             raise ValueError(f'the marker names {data.get("tool")!r}')
     except (OSError, ValueError, AttributeError) as err:

@@ -33,7 +33,7 @@ from pathlib import Path
 import secrets
 import signal
 
-from .folders import check_output, MARKER, seal_output
+from .folders import check_output, MARKER, read_marker_text, seal_output
 from ..bag.errors import BagToolError
 
 __all__ = ['StagedOutput', 'write_new_file', 'STAGE_MARKER']
@@ -98,7 +98,7 @@ def _stages(out, tool):
 
 def _read_json(path, key, default):
     try:
-        value = json.loads(path.read_text()).get(key, default)
+        value = json.loads(read_marker_text(path)).get(key, default)
     except (OSError, ValueError, AttributeError):
         return None
     return value
