@@ -1,4 +1,4 @@
-# Faults the loop must survive honestly (issue 16): restarts, pauses, divergence, overload.
+# Faults the loop must survive honestly: restarts, pauses, divergence, overload.
 """A restarted simulator, a paused observer, a diverging estimate and an overloaded observer."""
 
 import signal
@@ -119,24 +119,66 @@ def test_simulator_killed_and_restarted_converges_again(loop_of, vehicle):
     assert all(p.alive() for p in lp.procs.values())
 
 
-def test_paused_observer_loop_recovers_on_the_prediction(loop_of):
-    lp = loop_of('cart_pendulum')
+def paused_observer_run(lp, pause=3.0):
+    """
+    SIGSTOP the cart's observer for ``pause`` s (wall); return the true states meanwhile.
+
+    Returns ``(during, t_stop, t_cont)``: the true states stamped between the plant's
+    time at SIGSTOP and at SIGCONT, and those two times.
+    """
     lp.wait_converged(0, 6.0)
     obs = lp.procs['observer_node'].popen
+    t_stop = lp.true[-1][0]
     obs.send_signal(signal.SIGSTOP)
     try:
-        # the compensator goes stale and predicts (wait on its report, not on time)
-        lp.wait(lambda: lp.counter('compensator', 'safe_commands_predict') > 0,
-                'predict-and-hold commands')
         paused = time.monotonic()
-        lp.wait(lambda: time.monotonic() - paused > 3.0, '3 s of pause', 10.0)
+        lp.wait(lambda: time.monotonic() - paused > pause, f'{pause} s of pause', 10.0 * pause)
+        t_cont = lp.true[-1][0]
     finally:
         obs.send_signal(signal.SIGCONT)
+    return [x for t, x in lp.true if t_stop <= t <= t_cont], t_stop, t_cont
+
+
+def test_paused_observer_the_standby_holds_the_cart(loop_of):
+    """The observer stopped 3 s: the compensator's standby observer closes the loop."""
+    lp = loop_of('cart_pendulum')
+    during, t_stop, t_cont = paused_observer_run(lp)
+    assert t_cont - t_stop > 2.0 and len(during) > 150, (t_stop, t_cont, len(during))
+    theta = max(abs(x[0]) for x in during)
+    off = max(abs(x[1] - lp.x_d[1]) for x in during)
+    print(f'observer paused {t_cont - t_stop:.2f} s of plant time: max |theta| {theta:.3g} rad, '
+          f'max |x - x_d| {off:.3g} m')
+    assert theta < 0.3 and off < 0.2, (theta, off)
+    lp.wait(lambda: lp.counter('compensator', 'standby_commands') > 100,
+            'commands of the standby observer')
+    assert any(node == 'compensator' and 'standby observer closes the loop' in message
+               for node, _, message in lp.levels), lp.levels[-12:]
+    # back on the observer's estimates once they agree with the standby's: OK again
     since = len(lp.true)
-    t_resume = lp.true[-1][0]
     lp.wait(lambda: (s := lp.status.get('compensator')) is not None
-            and s.level == DiagnosticStatus.OK, 'the loop closed again')
-    lp.wait_converged(since, t_resume + 2.0)
+            and s.level == DiagnosticStatus.OK, 'the loop closed on the observer again')
+    lp.wait_converged(since, t_cont + 1.0)
+
+
+def test_a_second_observer_with_the_same_name_does_not_move_the_cart(loop_of):
+    """Two observers on state/estimate: the compensator follows one stream and says so."""
+    lp = loop_of('cart_pendulum')
+    lp.wait_converged(0, 6.0)
+    since = len(lp.true)
+    t_start = lp.true[-1][0]
+    second = Proc('observer_node', lp.file, *lp.params, log_dir=lp.tmp)
+    lp.procs['observer_node_2'] = second
+    lp.wait(lambda: lp.true[-1][0] > t_start + 10.0, '10 s with two observers')
+    off = max(abs(x[1] - lp.x_d[1]) for _, x in lp.true[since:])
+    theta = max(abs(x[0]) for _, x in lp.true[since:])
+    print(f'two observers for 10 s: max |x - x_d| {off:.3g} m, max |theta| {theta:.3g} rad, '
+          f'{lp.counter("compensator", "other_stream_estimates")} estimates of the other '
+          'stream ignored')
+    assert off < 0.2 and theta < 0.3, (off, theta)
+    assert any(node == 'compensator' and '/state/estimate (2 publishers)' in message
+               for node, _, message in lp.levels), lp.levels[-12:]
+    for proc in (lp.procs['observer_node'], second):
+        assert 'truth value of an array' not in proc.output()
 
 
 def test_compensator_predicts_a_late_estimate_to_when_its_command_applies(tmp_path):
@@ -175,15 +217,18 @@ def test_compensator_predicts_a_late_estimate_to_when_its_command_applies(tmp_pa
         expected = K @ (np.asarray(vehicle.controller.reference) - x_pred)
         np.testing.assert_allclose(msg.position, expected, rtol=1e-9)
         assert not np.allclose(expected, K @ (vehicle.controller.reference - x_hat), rtol=1e-3)
-        # an estimate later than observer.history_length (0.25 s): the safe command, ERROR
+        # the plant at 10.5 with no estimate since 10.0: the standby observer (its
+        # measurements since 10.05: warm after the observer's settling time, 0.4 s) answers
         plant_time_is(10.5)
+        listener.wait_counter('compensator', 'standby_commands', 1)
+        # an estimate later than observer.history_length (0.25 s): not used, ERROR
         est.publish(joint_state(names, x_hat, 10.1))
         listener.wait_counter('compensator', 'too_late_estimates', 1)
         probe.spin_until(lambda: any(
             s.name.endswith('compensator') and s.level == DiagnosticStatus.ERROR
             and 'later than observer.history_length' in s.message
+            and 'standby observer closes the loop' in s.message
             for a in listener.diagnostics for s in a.status), WAIT, 'the ERROR')
-        assert listener.counter('compensator', 'safe_commands_predict') >= 1
 
 
 def _set(probe, node, name, value):
@@ -256,7 +301,7 @@ def test_compensator_reports_divergence_and_sends_the_safe_command(
         (stamp_to_sec(m.header.stamp), m.position[0]) for m in last]
 
 
-def test_compensator_keeps_the_loop_closed_until_back_inside_after_an_outage(
+def test_after_an_outage_estimates_are_gated_and_the_loop_closes_again(
         compensator_setup):  # noqa: F811
     proc, probe, listener, est = compensator_setup
     names = ['theta', 'w', 'q']
@@ -268,26 +313,19 @@ def test_compensator_keeps_the_loop_closed_until_back_inside_after_an_outage(
     est.publish(joint_state(names, [0.1, 0.0, 0.0], 6.0))
     est.publish(joint_state(names, [0.1, 0.0, 0.0], 500.0))
     listener.wait_counter('compensator', 'resync_commands', 2)
-    # far beyond the envelope (theta bound 52 rad): shrinking once, then growing 6 times,
-    # as the cart's estimate swings while the loop brings it back. Check() lets the
-    # shrinking one pass; ending the recovery on it reopened the loop on the growth
-    for k, x in enumerate([1e4, 0.9e4, 1.0e4, 1.1e4, 1.2e4, 1.3e4, 1.4e4, 1.5e4]):
+    # far beyond the envelope (theta bound 52 rad) while recovering: refused, every one
+    for k, x in enumerate([1e4, 0.9e4, 1.0e4, 1.1e4, 1.2e4, 1.3e4]):
         est.publish(joint_state(names, [x, 0.0, 0.0], 500.05 + 0.05 * k))
-    listener.wait_counter('compensator', 'recovery_commands', 8)
-    assert listener.counter('compensator', 'divergence_safe_commands') == 0
-    status = listener.latest_status('compensator')
-    assert status.level == DiagnosticStatus.ERROR and 'recovering' in status.message
-    # back inside for an observer settling time (6.7 s of stamps): the loop is OK again
+    listener.wait_counter('compensator', 'divergence_safe_commands', 6)
+    probe.spin_until(lambda: (s := listener.latest_status('compensator')) is not None
+                     and s.level == DiagnosticStatus.ERROR and 'diverging' in s.message,
+                     WAIT, 'diverging reported')
+    # plausible again for an observer settling time (6.7 s of stamps): OK again
     est.publish(joint_state(names, [0.1, 0.0, 0.0], 600.0))
     est.publish(joint_state(names, [0.1, 0.0, 0.0], 607.0))
     probe.spin_until(lambda: (s := listener.latest_status('compensator')) is not None
                      and s.level == DiagnosticStatus.OK, WAIT, 'the compensator OK again')
-    # and the envelope is armed again: a growth now gives the divergence safe command
-    x = 0.1
-    for k in range(1, 9):
-        x *= 30.0
-        est.publish(joint_state(names, [x, 0.0, 0.0], 607.0 + 0.05 * k))
-    listener.wait_counter('compensator', 'divergence_safe_commands', 1)
+    assert listener.counter('compensator', 'commands') >= 3
 
 
 def test_overloaded_observer_says_so(observer_setup):  # noqa: F811

@@ -171,18 +171,21 @@ def test_command_gate():
 
 
 def test_the_compensator_sends_only_finite_commands_inside_the_limits(tmp_path):
-    """Row 5: an estimate whose u overflows gives the safe command and an ERROR, never inf."""
-    with _compensator(tmp_path) as (procs, probe, listener, est):
+    """Row 5: an estimate beyond the envelope is refused at once: the safe command, ERROR."""
+    with _compensator(tmp_path, ['controller.stale_timeout:=60.0']) as (procs, probe, listener,
+                                                                        est):
         est.publish(joint_state(STATES, [0.01, 0.0, 0.0], 5.0))
         first = _command_at(listener, probe, 5.0).position[0]
         assert first != 0.0
-        # no limits: K x_hat overflows to inf: not sent, the safe command (zero) instead
+        # no limits: 1e308 (K x_hat would overflow): refused the first time, the safe
+        # command (zero) instead
         est.publish(joint_state(STATES, [1e308, 1e308, 1e308], 5.2))
         assert _command_at(listener, probe, 5.2).position[0] == 0.0
-        listener.wait_counter('compensator', 'refused_commands', 1)
+        listener.wait_counter('compensator', 'implausible_estimates', 1)
         probe.spin_until(lambda: (s := listener.latest_status('compensator')) is not None
-                         and s.level == DiagnosticStatus.ERROR and 'not finite' in s.message,
-                         15.0, 'an ERROR naming the refused command')
+                         and s.level == DiagnosticStatus.ERROR and
+                         s.message.startswith('implausible: x_hat theta = 1e+308'),
+                         15.0, 'an ERROR naming the refused estimate')
         est.publish(joint_state(STATES, [0.01, 0.0, 0.0], 5.3))
         assert _command_at(listener, probe, 5.3).position[0] == first
         # a malformed estimate stamp: the safe command, counted
@@ -190,20 +193,22 @@ def test_the_compensator_sends_only_finite_commands_inside_the_limits(tmp_path):
         est.publish(bad)
         listener.wait_counter('compensator', 'bad_stamps', 1)
         values = [v for m in listener.commands for v in m.position]
-        assert values and all(np.isfinite(values))
-        assert listener.counter('compensator', 'refused_commands') == 1
+        assert values and all(np.isfinite(values)) and max(map(abs, values)) < 1.0
+        assert listener.counter('compensator', 'refused_commands') == 0
 
 
 def test_the_compensator_saturates_inside_the_limits(tmp_path):
     """Row 5: with controller.u_min/u_max every command sent lies inside them."""
     limits = ('controller.u_min:=[-0.3]', 'controller.u_max:=[0.3]')
     with _compensator(tmp_path, limits) as (procs, probe, listener, est):
-        for k, x in enumerate(([0.01, 0.0, 0.0], [100.0, 0.0, 0.0], [1e308, 1e308, 1e308],
-                               [-1e308, -1e308, -1e308])):
+        # 0.01 rad: inside the limits; +-10 rad: saturated at them; 1e308: refused (the
+        # envelope), the safe command (zero)
+        for k, x in enumerate(([0.01, 0.0, 0.0], [10.0, 0.0, 0.0], [-10.0, 0.0, 0.0],
+                               [1e308, 1e308, 1e308])):
             est.publish(joint_state(STATES, x, 6.0 + k))
             u = _command_at(listener, probe, 6.0 + k).position[0]
             assert np.isfinite(u) and -0.3 <= u <= 0.3
-            assert k == 0 or abs(u) == 0.3
+            assert abs(u) == [abs(u), 0.3, 0.3, 0.0][k], (k, u)
         assert listener.counter('compensator', 'refused_commands') == 0
 
 

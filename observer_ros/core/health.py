@@ -13,7 +13,8 @@ import time
 import numpy as np
 
 __all__ = ['ENVELOPE_FACTOR', 'ENVELOPE_LEARN_CAP', 'ENVELOPE_LEARN_S', 'ENVELOPE_PERSIST',
-           'Envelope',
+           'Envelope', 'state_scale', 'divergence_envelopes', 'WorkBudget',
+           'PARAMETER_SHARE', 'PARAMETER_WINDOW',
            'LoadMeter', 'max_prediction_gap', 'SettleCheck', 'pole_margin_problem',
            'settling_time', 'POLE_SLOWEST', 'POLE_FASTEST']
 
@@ -27,6 +28,10 @@ ENVELOPE_PERSIST = 5
 # What it learns is capped at this many times the file's scale (a divergence that starts
 # at once cannot teach it that a growing value is plausible).
 ENVELOPE_LEARN_CAP = 10.0
+# Parameter changes may take at most this share of a node's time over this window (s):
+# a redesign costs a node tenths of a second, and estimation comes first.
+PARAMETER_SHARE = 0.03
+PARAMETER_WINDOW = 10.0
 # Pole margins: no pole slower than the plant's slowest non-zero mode / POLE_SLOWEST, none
 # faster than POLE_FASTEST / sample time (exp(-5) per step: faster is not realised).
 POLE_SLOWEST = 100.0
@@ -104,6 +109,11 @@ class Envelope:
         Stricter than :meth:`check`, which lets a few values beyond the bound pass (a
         transient): for deciding that a loop closed again after an outage is back.
         """
+        fixed = self._fixed_bound
+        if fixed is not None:
+            # learnt: plain floats (a NaN fails <=)
+            values = value.tolist() if isinstance(value, np.ndarray) else value
+            return len(values) == len(fixed) and all(map(operator.le, map(abs, values), fixed))
         mag = np.abs(np.asarray(value, dtype=float))
         return bool(np.all(np.isfinite(mag)) and np.all(mag <= self.bound))
 
@@ -153,6 +163,40 @@ class Envelope:
         elif fixed is None and len(mag) == len(self.scale):
             self._fixed_bound = bound.tolist()
         return None
+
+
+def state_scale(vehicle, x_d=None):
+    """Return the plausible magnitude of each state from the file (initial values, x_d)."""
+    n = vehicle.plant.n
+    parts = [np.zeros(n)]
+    for v in (vehicle.simulator.initial_state, vehicle.observer.initial_estimate, x_d,
+              vehicle.controller.reference):
+        if v is not None:
+            parts.append(np.abs(np.asarray(v, dtype=float)))
+    return np.max(parts, axis=0)
+
+
+def divergence_envelopes(vehicle, K, x_d, Kd, persist=ENVELOPE_PERSIST):
+    """
+    Return the envelopes of the estimate and of the command (before its limits).
+
+    The state's scale is :func:`state_scale`'s (zeros take the largest, or 1). The
+    command's scale is the file's input limits where given, else ``|K|`` applied to the
+    states' scale plus ``|x_d|`` (and ``|Kd x_d|``): without limits, 100 times that
+    (:data:`ENVELOPE_FACTOR`) is the largest command the compensator sends. ``persist``:
+    see :class:`Envelope` (1: every value beyond the bound is reported).
+    """
+    plant = vehicle.plant
+    K, x_d, Kd = (np.asarray(a, dtype=float) for a in (K, x_d, Kd))
+    xs = Envelope(plant.state_names, state_scale(vehicle, x_d), 'x_hat', persist=persist)
+    x_scale = xs.scale
+    u_scale = np.abs(K) @ (x_scale + np.abs(x_d)) + np.abs(Kd @ x_d)
+    c = vehicle.controller
+    for limit in (c.u_min, c.u_max):
+        if limit is not None:
+            lim = np.abs(np.asarray(limit, dtype=float))
+            u_scale = np.where(np.isfinite(lim), np.maximum(u_scale, lim), u_scale)
+    return xs, Envelope(plant.input_names, u_scale, 'u', persist=persist)
 
 
 class LoadMeter:
@@ -232,6 +276,65 @@ class LoadMeter:
             self._start = self._last_end = self._cpu_start = None
             self._answered, self._missed = 0, 0
             self.overloaded = False
+
+
+class WorkBudget:
+    """
+    Admit a kind of work (a node's parameter changes) while it takes little of the time.
+
+    Each piece of work admitted is timed (:meth:`spent`); a new one is admitted while the
+    work of the last ``window`` seconds took less than ``share`` of them (the first one
+    after a quiet window always: one redesign may take longer than the share, and the next
+    waits until it has left the window). A refusal costs nothing but this check.
+
+    Parameters
+    ----------
+    share : float
+        Fraction of the time, 0 < share <= 1.
+    window : float
+        Seconds over which it is measured.
+
+    """
+
+    def __init__(self, share=PARAMETER_SHARE, window=PARAMETER_WINDOW):
+        self.share, self.window = float(share), float(window)
+        self._work = []             # (end, seconds), oldest first
+
+    def _forget(self, now):
+        work = self._work
+        while work and work[0][0] < now - self.window:
+            work.pop(0)
+
+    def used(self, now):
+        """Return the seconds of work within the window ending at ``now``."""
+        self._forget(now)
+        return sum(seconds for _, seconds in self._work)
+
+    def refuse(self, now):
+        """
+        Return why new work is refused at ``now`` (the reason), or None to admit it.
+
+        The reason names the time taken, the window, the share and when to try again.
+        """
+        used = self.used(now)
+        allowed = self.share * self.window
+        if used < allowed:
+            return None
+        # when enough of the oldest work has left the window
+        wait, left = 0.0, used
+        for end, seconds in self._work:
+            left -= seconds
+            wait = end + self.window - now
+            if left < allowed:
+                break
+        return (f'busy: parameter changes took {1e3 * used:.0f} ms of the last '
+                f"{self.window:g} s, at most {100 * self.share:g} % of the node's time "
+                f'(estimation and control first); try again in {max(wait, 0.0):.1f} s')
+
+    def spent(self, start, end):
+        """Note work that ran from ``start`` to ``end`` (monotonic seconds)."""
+        self._forget(end)
+        self._work.append((end, max(0.0, end - start)))
 
 
 class SettleCheck:

@@ -4,8 +4,10 @@ The safe-command policy: predict-and-hold for a bounded time, then the fallback.
 
 On an unstable plant a zero command is not safe: the cart's pendulum falls within a
 second. While the estimate is stale (or not trusted) the compensator keeps the loop closed
-on the model's prediction from the last trusted estimate, for ``predict_timeout`` seconds;
-then it sends the fallback (``zero``, or ``hold`` the last command sent).
+on the model's prediction from the last trusted estimate (one that passed every gate),
+for ``predict_timeout`` seconds; then it sends the fallback (``zero``, or ``hold`` the
+last command sent). A plant that cannot be held open loop for seconds has a standby
+observer in its compensator instead (:mod:`.standby`).
 
 """
 
@@ -28,7 +30,9 @@ class SafeCommand:
     plant : Plant
         The model (continuous: discretised with a zero-order hold on ``dt``).
     law : callable
-        ``law(x_hat) -> u``: the control law (with its limits) the prediction is closed by.
+        ``law(x_hat) -> u``: the control law (with its limits) the prediction is closed by;
+        a u that is not finite ends the prediction (the compensator's law returns NaN
+        where the prediction leaves the vehicle's envelope): the fallback from then on.
     dt : float
         Prediction step, s (the sample time; a discrete plant's own).
     fallback : str
@@ -90,6 +94,19 @@ class SafeCommand:
         self._trusted_t = self._t = float(t)
         self._x = x_hat
         self._u = self._last_u = u
+
+    def predict_from(self, x, steps):
+        """
+        Return x predicted ``steps`` sample times ahead, the last command sent held.
+
+        The model's prediction that tells whether an estimate continues the one before
+        it (the compensator's check of one estimate stream).
+        """
+        x = np.asarray(x, dtype=float)
+        held = np.asarray(self._last_u, dtype=float)
+        for _ in range(int(steps)):
+            x = self.Ad @ x + self.Bd @ held
+        return x
 
     def command(self, t):
         """

@@ -1,23 +1,19 @@
-# observer_ros.nodes.checks: run-time parameter checks and the nodes' divergence envelopes.
+# observer_ros.nodes.checks: run-time parameter checks.
 """
-What a node checks when a parameter changes, and the bounds of a plausible run.
+What a node checks when a parameter changes.
 
 ``own_parameter_problem`` refuses a node's own tolerances, periods and timeouts that are
 not finite or out of range (a negative ``future_tolerance`` silently stopped the
 observer); ``changed_pole_problem`` refuses poles without a stability margin on the
-plant's time scale (core.health.pole_margin_problem). ``divergence_envelopes`` sets the
-bounds of the estimate and the command from the vehicle file.
+plant's time scale (core.health.pole_margin_problem).
 
 """
 
 import math
 
-import numpy as np
-
-from ..core.health import Envelope
 from ..vehicle.schema import bound_problem, NODE_KEYS
 
-__all__ = ['own_parameter_problem', 'changed_pole_problem', 'divergence_envelopes']
+__all__ = ['own_parameter_problem', 'changed_pole_problem']
 
 
 def own_parameter_problem(params):
@@ -74,33 +70,3 @@ def changed_pole_problem(vehicle, prefix, names):
     plant = vehicle.plant
     return pole_margin_problem(spec.poles, plant.A, vehicle.sample_time, plant.is_discrete,
                                f'{prefix}.poles')
-
-
-def state_scale(vehicle, x_d=None):
-    """Return the plausible magnitude of each state from the file (initial values, x_d)."""
-    n = vehicle.plant.n
-    parts = [np.zeros(n)]
-    for v in (vehicle.simulator.initial_state, vehicle.observer.initial_estimate, x_d,
-              vehicle.controller.reference):
-        if v is not None:
-            parts.append(np.abs(np.asarray(v, dtype=float)))
-    return np.max(parts, axis=0)
-
-
-def divergence_envelopes(vehicle, K, x_d, Kd):
-    """
-    Return the envelopes of the estimate and of the command (before its limits).
-
-    The command's scale is the file's input limits where given, else what the control law
-    gives for the states' scale.
-    """
-    plant = vehicle.plant
-    xs = Envelope(plant.state_names, state_scale(vehicle, x_d), 'x_hat')
-    x_scale = xs.scale
-    u_scale = np.abs(K) @ (x_scale + np.abs(x_d)) + np.abs(Kd @ x_d)
-    c = vehicle.controller
-    for limit in (c.u_min, c.u_max):
-        if limit is not None:
-            lim = np.abs(np.asarray(limit, dtype=float))
-            u_scale = np.where(np.isfinite(lim), np.maximum(u_scale, lim), u_scale)
-    return xs, Envelope(plant.input_names, u_scale, 'u')

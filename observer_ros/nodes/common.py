@@ -222,20 +222,24 @@ class VehicleNode(Node):
         self.topic_watch = TopicWatch(self)
         self.callback_watch = CallbackWatch(self, self._publish_late, self._diagnostics_period)
 
-    def watched_subscription(self, msg_class, topic, callback, qos, shed=True, raw=False):
+    def watched_subscription(self, msg_class, topic, callback, qos, shed=True, raw=False,
+                             matched=None):
         """
         Create a subscription whose unheard publishers and floods are reported.
 
         Its publishers of another type or of an incompatible QoS are named on /diagnostics
         (:class:`~observer_ros.nodes.topic_watch.TopicWatch`); with ``shed`` its messages
         are dropped while a flood keeps the callbacks behind
-        (:class:`~observer_ros.nodes.callback_watch.CallbackWatch`).
+        (:class:`~observer_ros.nodes.callback_watch.CallbackWatch`). ``matched``, if given,
+        is called with each change of its matched publishers (rmw_matched_status_t).
         """
         entry = None
         if shed:
             entry, callback = self.callback_watch.guard(topic, callback)
+        events = self.topic_watch.event_callbacks(topic)
+        events.matched = matched
         sub = self.create_subscription(msg_class, topic, callback, qos, raw=raw,
-                                       event_callbacks=self.topic_watch.event_callbacks(topic))
+                                       event_callbacks=events)
         if entry is not None:
             entry.subscription = sub
         self.topic_watch.add(sub, msg_class, qos)

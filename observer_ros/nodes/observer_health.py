@@ -13,9 +13,9 @@ import math
 
 from diagnostic_msgs.msg import DiagnosticStatus
 
-from .checks import state_scale
 from .common import MESSAGE_CLASSES
-from ..core.health import Envelope, ENVELOPE_FACTOR, LoadMeter, max_prediction_gap
+from ..core.health import (Envelope, ENVELOPE_FACTOR, LoadMeter, max_prediction_gap,
+                           state_scale)
 
 __all__ = ['DIVERGENCE_HOLD', 'ObserverHealth']
 

@@ -25,10 +25,9 @@ import numpy as np
 
 from . import interrupt
 from ..core.errors import error_text, ObserverError, quiet_on_closed_pipe
-from ..core.health import Envelope, ENVELOPE_FACTOR
+from ..core.health import Envelope, ENVELOPE_FACTOR, state_scale
 from ..core.vehicle_design import design_vehicle
 from ..nodes import signals
-from ..nodes.checks import state_scale
 from ..outputs.folders import check_output, mark_output, MARKER, prepare_output, seal_output
 from ..outputs.staging import write_new_file
 from ..params_file import regular_file

@@ -1,0 +1,649 @@
+# observer_ros.core.loop_supervisor: which command the compensator sends, and why.
+"""
+The compensator's decisions, without ROS: one estimate in, one command (or none) out.
+
+:class:`LoopSupervisor` is a small state machine. Its modes:
+
+``waiting``
+    No estimate yet.
+``closed``
+    The loop closes on the estimates it follows: u = K (x_d - x_hat) - Kd x_d.
+``stale``
+    No usable estimate for ``controller.stale_timeout`` (wall clock), or, in realtime
+    with a standby, none within ``LAG_STEPS`` sample times of the plant's time. With a
+    standby observer (:mod:`.standby`; a plant that cannot be held open loop, realtime)
+    the loop closes on the standby's estimate, one command per measurement; without one,
+    the safe command (:mod:`.safe_command`: predict-and-hold from the last estimate that
+    passed, then ``controller.safe_command``) every sample time.
+``resync``
+    Estimates are back after an outage. With a standby: until ``RESYNC_AGREE`` of them in
+    a row agree with the standby's (``RESYNC_TOL`` of each state's scale), the standby
+    keeps closing the loop. Without: the prediction does, until the observer's estimates
+    follow the model step by step again (:class:`~.health.SettleCheck`, at most
+    ``RESYNC_SETTLINGS`` observer settling times).
+``recover``
+    Without a standby, after a resync: the loop closes on the estimates again, reported
+    as ERROR ``recovering`` for an observer settling time.
+
+Every estimate and every command passes gates first:
+
+- an estimate stamped at or before the last one answered is not answered again (a
+  repeat, or a second publisher answering the same measurements);
+- an estimate outside the vehicle's envelope (:class:`~.health.Envelope`: 100 times what
+  the file and the first seconds make plausible) is refused the first time: the safe
+  command instead, ERROR ``implausible``; ``ENVELOPE_PERSIST`` in a row are ``diverging``;
+- with two publishers on ``state/estimate`` (known from the subscription's matched
+  event and the graph), an estimate more than ``CONSISTENCY_TOL`` of a state's scale away
+  from the reference (the standby's estimate at the same stamp, else the model's
+  prediction from the last estimate followed) belongs to another stream: ignored,
+  counted (``other_stream_estimates``), and said on /diagnostics; an implausible one
+  is then ignored too (the stream followed answers);
+- a command must be finite, inside ``controller.u_min``/``u_max``, and without limits
+  inside the command envelope (100 times ``|K|`` applied to the file's state scale, the
+  bound ``observer-design`` prints), or the safe command is sent instead; the safe
+  command itself predicts only from the last estimate that passed, and its prediction
+  stops (the fallback) where it would leave the envelope.
+
+The node turns messages into numbers, calls these methods, and publishes the
+:class:`Command` they return; counters and log lines go through the callables it gives.
+
+"""
+
+import math
+
+import numpy as np
+
+from .control_law import ControlLaw
+from .delay_compensation import DelayCompensation
+from .health import divergence_envelopes, ENVELOPE_PERSIST, SettleCheck, settling_time
+from .safe_command import SafeCommand
+from .standby import StandbyObserver, unstable_plant
+
+__all__ = ['Command', 'LoopSupervisor', 'OK', 'WARN', 'ERROR', 'CONSISTENCY_TOL',
+           'RESYNC_AGREE', 'RESYNC_SETTLINGS']
+
+# diagnostic_msgs/DiagnosticStatus levels
+OK, WARN, ERROR = 0, 1, 2
+
+# After an outage, wait at most this many observer settling times for it to settle again.
+RESYNC_SETTLINGS = 10.0
+# An estimate this far (in units of each state's scale) from the reference belongs to
+# another stream; the observer's must come this close to the standby's to be followed.
+CONSISTENCY_TOL = 0.1
+# Estimates in a row that agree with the standby's (within RESYNC_TOL of each state's
+# scale: the command does not jump) before the loop follows them again.
+RESYNC_AGREE = 10
+RESYNC_TOL = 0.02
+# Longest gap, in steps, across which an estimate is compared with the model's prediction.
+CONSISTENCY_STEPS = 50
+# Realtime with a standby: the observer is silent once its newest estimate followed is
+# this many sample times (and at least LAG_MIN s) behind the newest measurement's stamp.
+LAG_STEPS = 3
+LAG_MIN = 0.02
+
+
+class Command:
+    """
+    A command to send: ``u`` (m floats), stamped ``t``.
+
+    ``answers``: it answers the estimate (or measurement) just given, so it carries that
+    message's stamp as it is; ``marked``: it answers nothing (a safe command for a stale
+    estimate; lock-step does not take it for an answer); ``source``: ``observer``,
+    ``standby`` or ``safe``.
+    """
+
+    __slots__ = ('u', 't', 'answers', 'marked', 'source')
+
+    def __init__(self, u, t, answers=False, marked=False, source='observer'):
+        self.u, self.t, self.answers, self.marked, self.source = u, t, answers, marked, source
+
+    def __repr__(self):
+        return (f'Command(u={list(self.u)}, t={self.t}, answers={self.answers}, '
+                f'marked={self.marked}, source={self.source!r})')
+
+
+def _nothing(*args, **kwargs):
+    return None
+
+
+class LoopSupervisor:
+    """
+    Decide each command of the compensator.
+
+    Parameters
+    ----------
+    vehicle : Vehicle
+        The vehicle file.
+    design : VehicleDesign
+        Its design (``K``, the observer poles).
+    lead_steps : int
+        ``command_lead_steps``: steps a delay-compensated command is stamped ahead.
+    jump_tolerance : float
+        ``clock_jump_tolerance``, s: an estimate this far back means the clock restarted.
+    standby : bool or None
+        Keep a standby observer: None (default) for a plant that cannot be held open
+        loop in realtime; False never.
+    count : callable, optional
+        ``count(key)``: a diagnostics counter.
+    log : callable, optional
+        ``log(level, text)``: a log line (``WARN`` or ``ERROR``), said once per change.
+    clock : callable, optional
+        ``clock()``: the time on the estimates' clock (ROS time, s), for a safe command
+        before any estimate gave a stamp.
+
+    """
+
+    def __init__(self, vehicle, design, lead_steps=3, jump_tolerance=0.5, standby=None,
+                 count=None, log=None, clock=None):
+        self._count = count or _nothing
+        self._log = log or _nothing
+        self._clock = clock or (lambda: 0.0)
+        self.jump_tolerance = float(jump_tolerance)
+        self.lead_steps = int(lead_steps)
+        self.mode = 'waiting'
+        self.safe = None
+        self.standby = None
+        self.apply(vehicle, design, standby)
+        self._last_wall = None          # wall time of the last estimate followed
+        self._last_stamp = None         # its stamp: the estimates' time base
+        self._answered = None           # the newest estimate's stamp answered
+        self._answer = None             # the command that answered it
+        self._followed = None           # (t, x) of the last estimate followed (floats)
+        self._refusals = 0              # envelope refusals in a row
+        self._problem = None            # the last refusal (a report), until one passes
+        self._refused_command = None    # why the last command was not sent (per report)
+        self._other = 0                 # estimates of another stream since the report
+        self._too_late = 0              # estimates too late to predict, since the report
+        self._max_steps = 0             # steps predicted (delay compensation), since then
+        self._agree = 0                 # resync: estimates in a row that agree
+        self._recover_since = None      # recover: stamp since when closed again
+        self._standby_wall = None       # wall time of the standby's last command
+        self._said_other = False        # another stream reported in the log
+        self.publishers = 1             # known publishers of the estimate topic
+        self.safe_mode = None           # how the last safe command was decided
+        self.plant_time = None          # realtime: the newest sensor stamp
+        self._sensor_time = {}
+
+    # ------------------------------------------------------------ set-up
+
+    def apply(self, vehicle, design, standby=None):
+        """Take a (re)designed vehicle: the law, the envelopes, the safe command."""
+        plant, c = vehicle.plant, vehicle.controller
+        n, m = plant.n, plant.m
+        self.vehicle, self.design = vehicle, design
+        self.K = np.asarray(design.K, dtype=float).reshape(m, n)
+        self.x_d = np.zeros(n) if c.reference is None else np.asarray(c.reference, float)
+        self.Kd = np.zeros((m, n)) if c.Kd is None else np.asarray(c.Kd, float).reshape(m, n)
+        self.u_min, self.u_max = c.u_min, c.u_max
+        self.law = ControlLaw(self.K, self.x_d, self.Kd, self.u_min, self.u_max)
+        self.x_envelope, self.u_envelope = divergence_envelopes(vehicle, self.K, self.x_d,
+                                                                self.Kd, persist=1)
+        self._scale = self.x_envelope.file_scale
+        last = self.safe
+        self.safe = SafeCommand(plant, self._safe_law, vehicle.sample_time, c.safe_command,
+                                c.predict_timeout)
+        if last is not None:
+            self.safe.sent(last.last_command)
+        self.dt = self.safe.dt
+        self.settle = settling_time(design.observer_poles, vehicle.sample_time,
+                                    plant.is_discrete)
+        self.settle_check = SettleCheck(self.safe.Ad, self.safe.Bd, self.dt, self._scale)
+        realtime = vehicle.simulator.mode == 'realtime'
+        self.time_rate = vehicle.simulator.realtime_factor if realtime else 1.0
+        self.delay = DelayCompensation(
+            self.safe.Ad, self.safe.Bd, self.dt, vehicle.observer.history_length,
+            self.lead_steps) if c.delay_compensation and realtime else None
+        wanted = realtime and unstable_plant(plant) if standby is None else \
+            bool(standby) and realtime
+        if wanted and self.standby is None:
+            self.standby = StandbyObserver(vehicle, warm_after=self.settle)
+        elif not wanted:
+            self.standby = None
+        # realtime with a standby: no estimate this far behind the plant's time is silence
+        self.lag_limit = max(LAG_STEPS * self.dt, LAG_MIN)
+
+    def set_lead_steps(self, steps):
+        """Change ``command_lead_steps``."""
+        self.lead_steps = int(steps)
+        if self.delay is not None:
+            self.delay.lead = self.lead_steps
+
+    @property
+    def stale(self):
+        """Return True while no usable estimate comes: the safe command or the standby."""
+        return self.mode == 'stale'
+
+    @property
+    def wants_sensors(self):
+        """Tell whether the node should pass its sensor messages (plant time, standby)."""
+        return self.delay is not None or self.standby is not None
+
+    @property
+    def wants_values(self):
+        """Tell whether the sensor messages' values are needed (a standby), not only stamps."""
+        return self.standby is not None
+
+    def _safe_law(self, x):
+        """Return the law on the safe command's prediction; NaN where it leaves the envelope."""
+        if not self.x_envelope.inside(x):
+            return [math.nan] * self.law.m
+        u = self.law(x.tolist())
+        return u if self.u_envelope.inside(u) or self.law.limited else [math.nan] * len(u)
+
+    # ------------------------------------------------------------ inputs
+
+    def estimate(self, t, x_hat, now):
+        """
+        Answer an estimate stamped t, its values x_hat (finite), received at wall time now.
+
+        Returns
+        -------
+        Command or None
+            None when the estimate is not answered (a repeat, another stream, or while
+            the standby closes the loop).
+
+        """
+        last = self._last_stamp
+        if last is not None and last - t > self.jump_tolerance:
+            self._clock_restarted(t)
+        elif self._answered is not None and t <= self._answered:
+            # a repeat (the observer answers a repeated measurement so; a simulator
+            # re-sends step 0 until a command answers it) gets the same command again,
+            # unchanged; an older one, or one from another publisher, none
+            self._count('repeated_estimates')
+            if self.publishers > 1:
+                self._other += 1
+            elif t == self._answered and self._answer is not None:
+                return self._answer
+            return None
+        steps = self._steps_late(t)
+        if steps is None:
+            # too late to predict from: the safe command (or the standby), ERROR
+            self._count('too_late_estimates')
+            self._too_late += 1
+            return None if self.standby is not None else \
+                self._safe_command(self._estimate_clock(now))
+        x_list = x_hat.tolist() if isinstance(x_hat, np.ndarray) else list(x_hat)
+        problem = self.x_envelope.check(t, x_list)
+        if problem is not None:
+            return self._refuse(t, problem, now)
+        if not self._consistent(t, x_list):
+            self._count('other_stream_estimates')
+            if not self._other and not self._said_other:
+                self._log(ERROR, 'state/estimate: an estimate that does not follow the stream '
+                          "followed (the standby observer's estimate, or the model from the "
+                          'last one): ignored, and the others like it')
+                self._said_other = True
+            self._other += 1
+            return None
+        self._last_wall, self._last_stamp = now, t
+        mode = self.mode
+        if mode != 'closed' and mode != 'recover':
+            command = self._back(t, x_list, now)
+            if command is not False:
+                return command
+        if mode == 'recover' and t - self._recover_since >= self.settle:
+            self.mode = 'closed'
+        return self._close(t, x_list, 'observer', steps)
+
+    def bad_estimate(self, now, t=None):
+        """Take an estimate that cannot be used (a malformed stamp: t None; bad values)."""
+        if self.standby is not None and self.mode == 'stale':
+            return None         # the standby answers the measurements
+        if t is None:
+            return self._safe_command(self._estimate_clock(now))
+        return self._safe_command(t, answers=True)
+
+    def measurement(self, sensor, t, y, now):
+        """
+        Take a sensor's stamp t (and its values y, for the standby) at wall time now.
+
+        Returns
+        -------
+        Command or None
+            The standby's command answering this measurement while the observer is
+            silent (realtime, with a standby); else None.
+
+        """
+        if t < self._sensor_time.get(sensor, t) - self.jump_tolerance:
+            self._sensor_time.clear()        # that sensor's clock started over
+            self.plant_time = None
+            if self.standby is not None:
+                self.standby.reset()
+        self._sensor_time[sensor] = t
+        if self.plant_time is None or t > self.plant_time:
+            self.plant_time = t
+        standby = self.standby
+        if standby is None or y is None:
+            return None
+        x = standby.measurement(sensor, t, y)
+        if x is None or t < self.plant_time:
+            return None
+        if self.mode in ('closed', 'recover', 'waiting') and self._last_stamp is not None and \
+                t - self._last_stamp > self.lag_limit:
+            self._go_stale(f"no estimate within {self.lag_limit:g} s of the plant's time")
+        if self.mode not in ('stale', 'resync'):
+            return None
+        return self._standby_command(t, x, now)
+
+    def watchdog(self, now):
+        """Check the estimate's age on the wall clock; return True when it just went stale."""
+        if self._last_wall is None or self.mode == 'stale':
+            return False
+        age = now - self._last_wall
+        if age <= self.vehicle.controller.stale_timeout:
+            return False
+        c = self.vehicle.controller
+        how = 'the standby observer closes the loop' if self.standby is not None else \
+            f'safe command (predict {c.predict_timeout:g} s, then {c.safe_command})'
+        self._go_stale(f'estimate stale ({age:.2f} s); {how}')
+        return True
+
+    def safe_tick(self, now):
+        """
+        Return the safe command of a sample time while stale (None when none is due).
+
+        With a standby that answered a measurement within the last two sample times,
+        none: the standby closes the loop.
+        """
+        if self.mode != 'stale':
+            return None
+        period = self.dt / self.time_rate
+        if self._standby_wall is not None and now - self._standby_wall < 2.0 * period:
+            return None
+        return self._safe_command(self._estimate_clock(now), marked=True)
+
+    def stop_command(self, now):
+        """
+        Return the command of a compensator that stops: ``controller.safe_command``.
+
+        Zero, or the last command held, clipped into the limits, stamped on the estimates'
+        time base and marked (it answers no estimate).
+        """
+        fallback = self.vehicle.controller.safe_command
+        u = self.safe.last_command if fallback == 'hold' else np.zeros(self.vehicle.plant.m)
+        if self.u_min is not None or self.u_max is not None:
+            u = np.clip(u, self.u_min, self.u_max)
+        u = u.tolist()
+        t = self._estimate_clock(now)
+        self._send(u, t)
+        return Command(u, t, marked=True, source='safe')
+
+    # ------------------------------------------------------------ decisions
+
+    def _close(self, t, x_list, source, steps):
+        """Return the law's command for an estimate that passed its gates (or the safe one)."""
+        t_apply, x_apply = t, x_list
+        if steps:
+            self._count('delay_compensated_commands')
+            self._max_steps = max(self._max_steps, steps)
+            t_apply = t + steps * self.dt
+            with np.errstate(all='ignore'):
+                x_apply = self.delay.predict(x_list, t, steps).tolist()
+        u_law = self.law.unclipped(x_list)
+        problem = self.u_envelope.check(t, u_law) if all(map(math.isfinite, u_law)) \
+            else None
+        if problem is not None:
+            return self._refuse(t, problem, None)
+        if x_apply is x_list:
+            u = self.law.clip(u_law)
+            # u is u_law inside the limits: the envelope's check above was its own
+            reason = self.law.problem(u)
+        else:
+            u = self.law(x_apply)
+            reason = self._command_problem(u)
+        if reason is not None:
+            self._count('refused_commands')
+            self._refused_command = f'command {reason}: safe command sent instead'
+            self._log(ERROR, self._refused_command)
+            return self._safe_command(t_apply, answers=not steps)
+        if self._problem is not None:
+            self._problem, self._refusals = None, 0
+        answered = self._answered
+        self._answered = t
+        self._followed = (t, x_list)
+        self._send(u, t_apply)
+        self.safe.trusted(t_apply, x_apply, u)
+        self._count('commands')
+        command = Command(u, t_apply, answers=not steps, source=source)
+        if source == 'standby':
+            self._count('standby_commands')
+            self._answered = answered
+        else:
+            self._answer = command
+        return command
+
+    def _command_problem(self, u):
+        """Why a command must not be sent (limits; without limits the envelope), or None."""
+        reason = self.law.problem(u)
+        if reason is None and not self.law.limited and not self.u_envelope.inside(u):
+            bound = self.u_envelope.bound
+            reason = (f'{list(u)} beyond the bound +-{bound.tolist()} (100 x K applied to '
+                      "the file's state scale; no controller.u_min/u_max)")
+        return reason
+
+    def _refuse(self, t, problem, now):
+        """Refuse an implausible estimate or command: the safe command, ERROR, once a change."""
+        self._refusals += 1
+        word = 'diverging' if self._refusals >= ENVELOPE_PERSIST else 'implausible'
+        text = f'{word}: {problem}'
+        if self._problem is None or word != self._problem.split(':', 1)[0]:
+            self._log(ERROR, f'{text}; refused, safe command')
+        self._problem = text
+        self._count('implausible_estimates')
+        if self._reference() or (self.standby is not None and self.mode == 'stale'):
+            # the stream followed (or the standby) answers: this one is ignored
+            return None
+        self._count('divergence_safe_commands')
+        if now is not None and self.standby is None:
+            # answered (by the safe command): no staleness on top of it
+            self._last_wall, self._last_stamp, self._answered = now, t, t
+            self._answer = self._safe_command(t, answers=True)
+            return self._answer
+        return self._safe_command(t, answers=True)
+
+    def _reference(self):
+        """Whether estimates are checked against a reference (a warm standby, a stream)."""
+        return (self.standby is not None and self.standby.warm) or \
+            (self.publishers > 1 and self._followed is not None)
+
+    def _consistent(self, t, x_list):
+        """Whether an estimate belongs to the stream followed (see the module's notes)."""
+        if self.publishers <= 1:
+            return True
+        ref = None
+        if self.standby is not None and self.standby.warm:
+            ref = self.standby.at(t)
+        if ref is None and self._followed is not None:
+            t0, x0 = self._followed
+            steps = int(round((t - t0) / self.dt))
+            if 0 < steps <= CONSISTENCY_STEPS:
+                ref = self.safe.predict_from(x0, steps)
+        if ref is None:
+            return True
+        return bool(np.max(np.abs(np.asarray(x_list) - ref) / self._scale) <= CONSISTENCY_TOL)
+
+    def _back(self, t, x_list, now):
+        """Estimates after an outage: resync; return a command, None, or False (close)."""
+        if self.mode == 'waiting':
+            self.mode = 'closed'
+            return False
+        if self.standby is not None:
+            if self.mode == 'stale':
+                self.mode, self._agree = 'resync', 0
+            ref = self.standby.at(t) if self.standby.warm else None
+            agree = ref is not None and bool(
+                np.max(np.abs(np.asarray(x_list) - ref) / self._scale) <= RESYNC_TOL)
+            self._agree = self._agree + 1 if agree else 0
+            if self._agree < RESYNC_AGREE:
+                self._count('resync_estimates')
+                return None         # the standby answers the measurements meanwhile
+            self.mode = 'closed'
+            self._log(WARN, f'estimates agree with the standby observer again ({RESYNC_AGREE}'
+                      ' in a row): closing the loop on them')
+            return False
+        if not np.isfinite(self.settle):
+            self.mode = 'closed'
+            return False
+        if self.mode == 'stale':
+            # the observer restarts or catches up; until it has settled (its estimates
+            # follow the model again; at most RESYNC_SETTLINGS of its settling times) the
+            # prediction keeps closing the loop
+            self.mode = 'resync'
+            self.settle_check.start(self._estimate_clock(now) + RESYNC_SETTLINGS * self.settle)
+        self._count('resync_commands')
+        command = self._safe_command(t, answers=True)
+        if self.settle_check.settled(t, np.asarray(x_list), self.safe.last_command):
+            self.mode, self._recover_since = 'recover', t
+        return command
+
+    def _standby_command(self, t, x, now):
+        """Return the standby's command for its estimate at a measurement's stamp t."""
+        self._standby_wall = now
+        if not self.standby.warm:       # not converged yet: the safe command
+            return self._safe_command(t)
+        x_list = x.tolist()
+        problem = self.x_envelope.check(t, x_list)
+        if problem is not None:
+            self._refuse(t, f'standby observer: {problem}', None)
+            return self._safe_command(t)
+        # stamped as the observer's would be: at the plant's time plus the lead, never
+        # before a command already sent (the plant would ignore it; the observers not)
+        steps = self._steps_late(t)
+        if steps is None:
+            return None
+        return self._close(t, x_list, 'standby', steps)
+
+    def _go_stale(self, why):
+        self.mode = 'stale'
+        self._log(ERROR, why)
+
+    def _safe_command(self, t, marked=False, answers=False):
+        """
+        Send the safe command for time t (SafeCommand), clipped into the limits.
+
+        With delay compensation it takes effect where the law's commands do (the plant's
+        time plus the lead), never before one already sent: the plant would ignore it.
+        """
+        if self.delay is not None and self.plant_time is not None:
+            steps = self.delay.steps_late(self.plant_time, t)
+            ahead = self.plant_time + self.delay.lead * self.dt if steps is None else \
+                t + steps * self.dt
+            if ahead > t:
+                t, answers = ahead, False
+        u, self.safe_mode = self.safe.command(t)
+        if self.u_min is not None or self.u_max is not None:
+            u = np.clip(u, self.u_min, self.u_max)
+        u = u.tolist()
+        self._send(u, t)
+        self._count('safe_commands')
+        self._count(f'safe_commands_{self.safe_mode}')
+        return Command(u, t, answers=answers, marked=marked, source='safe')
+
+    def _send(self, u, t):
+        """Note a command about to be sent: hold, delay compensation, standby."""
+        self.safe.sent(u)
+        if self.delay is not None:
+            self.delay.sent(t, u)
+        if self.standby is not None:
+            self.standby.command(t, u)
+
+    def _clock_restarted(self, t):
+        """Estimates from a clock that started over: forget the old run's commands."""
+        self._log(WARN, f'state/estimate: clock jumped back {self._last_stamp - t:.3f} s (a '
+                  'restarted simulator?); safe command and limits reset')
+        self._count('clock_jumps')
+        self.mode = 'closed'
+        self._answered = self._followed = self._answer = None
+        self._problem, self._refusals = None, 0
+        self.safe.reset()
+        if self.delay is not None:
+            self.delay.reset()
+        if self.standby is not None:
+            self.standby.reset()
+        self.x_envelope.reset()
+        self.u_envelope.reset()
+
+    def _steps_late(self, t):
+        """Return the steps the estimate stamped t is late (0 uncompensated; None: too late)."""
+        if self.delay is None:
+            return 0
+        return self.delay.steps_late(self.plant_time, t)
+
+    def _estimate_clock(self, now):
+        """
+        Now on the estimates' time base (their last stamp plus the time since).
+
+        With delay compensation: the plant's time (the newest sensor stamp) plus the lead,
+        when the command takes effect (a simulator slower than the wall clock would
+        otherwise get safe commands stamped ahead of it).
+        """
+        if self.delay is not None and self.plant_time is not None:
+            return self.plant_time + self.delay.lead * self.dt
+        if self._last_stamp is None:
+            return self._clock()
+        return self._last_stamp + (now - self._last_wall) * self.time_rate
+
+    # ------------------------------------------------------------ report
+
+    def status(self, duplicates=()):
+        """
+        Return ``(level, message, values)`` for /diagnostics, and start a new report.
+
+        Parameters
+        ----------
+        duplicates : sequence of str
+            ``"topic (N publishers)"`` for the node's topics with more than one.
+
+        """
+        values = {'u': np.array2string(np.asarray(self.safe.last_command, dtype=float)),
+                  'max_steps_predicted': self._max_steps, 'mode': self.mode}
+        if self.plant_time is not None:
+            values['plant_time'] = f'{self.plant_time:.6f}'
+        self._max_steps = 0
+        too_late, self._too_late = self._too_late, 0
+        other, self._other = self._other, 0
+        if not other:
+            self._said_other = False
+        refused, self._refused_command = self._refused_command, None
+        history = self.vehicle.observer.history_length
+        if duplicates:
+            level = ERROR
+            message = f'more than one publisher: {", ".join(duplicates)}'
+            if other:
+                message += (f'; following one estimate stream, {other} estimates of another '
+                            'ignored')
+        elif other:
+            level = ERROR
+            message = (f'{other} estimates ignored: they do not follow the stream followed '
+                       "(the standby observer's estimate, or the model from the last one)")
+        elif refused:
+            level, message = ERROR, refused
+        elif too_late:
+            level = ERROR
+            answer = 'the standby observer closes the loop' if self.standby is not None \
+                else f'safe command ({self.safe_mode})'
+            message = (f'{too_late} estimates later than observer.history_length '
+                       f'({history:g} s): {answer}')
+        elif self._problem is not None:
+            level, message = ERROR, self._problem
+        elif self.mode == 'stale':
+            level = ERROR
+            message = ('estimate stale: the standby observer closes the loop'
+                       if self.standby is not None else
+                       f'estimate stale: safe command ({self.safe_mode})')
+        elif self.mode == 'resync':
+            level = WARN if self.standby is not None else ERROR
+            message = ('estimates back, not yet agreeing with the standby observer: it '
+                       'closes the loop' if self.standby is not None else
+                       'estimates back, the observer settling: safe command '
+                       f'({self.safe_mode})')
+        elif self.mode == 'recover':
+            level = ERROR
+            message = (f'recovering after an outage: closing the loop again, OK after '
+                       f'{self.settle:g} s')
+        elif self.mode == 'waiting':
+            level, message = WARN, 'waiting for the estimate'
+        else:
+            level, message = OK, 'closing the loop'
+        return level, message, values

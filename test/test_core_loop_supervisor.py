@@ -1,0 +1,379 @@
+# test_core_loop_supervisor: the compensator's decisions, in process, without DDS.
+"""
+Tests of observer_ros.core.loop_supervisor and core.standby.
+
+The loops here are simulated in the test: the plant on its exact ZOH model, applying each
+command from its stamp as the realtime simulator does; an observer (the same History the
+observer node runs) fed with the measurements and the commands; the supervisor given
+both, with wall times equal to the stamps.
+"""
+
+import math
+import random
+
+import numpy as np
+from observer_ros.core.estimators import History, make_estimator
+from observer_ros.core.health import ENVELOPE_FACTOR, ENVELOPE_PERSIST
+from observer_ros.core.loop_supervisor import ERROR, LoopSupervisor, OK, RESYNC_AGREE
+from observer_ros.core.model import zoh_matrices
+from observer_ros.core.standby import unstable_plant
+from observer_ros.core.vehicle_design import design_vehicle
+from observer_ros.vehicle import load_vehicle
+import pytest
+from ros_helpers import CONFIG
+
+# One message in this many is delayed by up to the loop's ``jitter`` (see CartLoop).
+SPIKES = 100
+
+
+def supervisor(name, *overrides, **kwargs):
+    """Return a LoopSupervisor of a shipped vehicle, its counters and its log lines."""
+    v = load_vehicle(str(CONFIG / f'{name}.yaml'), overrides=list(overrides))
+    counts, logs = {}, []
+
+    def count(key, n=1):
+        counts[key] = counts.get(key, 0) + n
+    sup = LoopSupervisor(v, design_vehicle(v), count=count,
+                         log=lambda level, text: logs.append((level, text)), **kwargs)
+    return sup, counts, logs
+
+
+class CartLoop:
+    """
+    The realtime cart: plant, observer processes, the supervisor, and the time between.
+
+    Every message takes time: a measurement reaches the compensator and each observer
+    ``lag()`` s after its stamp, an estimate the compensator ``lag()`` s after the
+    observer took the measurement, a command the plant and the observers ``lag()`` s after
+    it was decided; ``lag`` draws from 0 to ``jitter`` s (a loaded host: several sample
+    times). The plant applies a command from its stamp, or from when it arrives if that
+    is later, and ignores one older than the newest it has (the realtime simulator).
+    """
+
+    def __init__(self, seed=0, jitter=0.0):
+        self.sup, self.counts, self.logs = supervisor('cart_pendulum',
+                                                      'simulator.mode:=realtime')
+        v = self.v = self.sup.vehicle
+        self.dt = v.sample_time
+        self.Ad, self.Bd = zoh_matrices(v.plant.A, v.plant.B, self.dt)
+        self.rng = np.random.default_rng(seed)
+        self.jitter = jitter
+        self.x = np.zeros(4)
+        self.u, self.newest = np.zeros(1), -math.inf
+        self.at_plant = []          # commands on their way: (arrival, stamp, u)
+        self.scheduled = []         # arrived, applied from: (time, u)
+        self.events = []            # (arrival, seq, what, payload)
+        self.observers = []         # [History, started at, paused (from, to)]
+        self.trace = []             # (t, x, mode)
+        self.commands = []
+
+    def lag(self):
+        """Half a millisecond and more (mean 1 ms); one in SPIKES up to ``jitter`` s."""
+        if not self.jitter:
+            return 0.0
+        lag = 0.0005 + float(self.rng.exponential(0.0005))
+        if self.rng.random() < 1.0 / SPIKES:
+            lag += float(self.rng.uniform(0.0, self.jitter))
+        return lag
+
+    def observer(self, start=0.0, pause=(math.inf, math.inf)):
+        obs = History(make_estimator(self.v.plant, self.v.observer),
+                      self.v.observer.history_length)
+        self.observers.append((obs, start, pause))
+
+    def _observe(self, obs, t, y):
+        """Step as the observer node does: a gap the model cannot bridge restarts at y."""
+        if obs.t is not None and t - obs.t > 1.0:
+            obs.reset(None, None)
+            x0, C = obs.estimator.x_hat, self.v.plant.C
+            obs.reset(x0 + np.linalg.pinv(C) @ (y - C @ x0), None)
+        return np.array(obs.correct(t, y, (0,)))
+
+    def _at(self, when, what, payload):
+        self.events.append((when, len(self.events), what, payload))
+
+    def _handle(self, now, what, payload, spike):
+        sup = self.sup
+        out = []
+        if what == 'measurement':
+            t, y = payload
+            out.append(sup.measurement('encoder', t, y, now))
+        elif what == 'observe':
+            k, t, y = payload
+            obs, start, (a, b) = self.observers[k]
+            # the node learns of a publisher from the match, before its first message
+            sup.publishers = max(1, sum(t >= o[1] for o in self.observers))
+            if t >= start and not a <= t < b and not a <= now < b:
+                x_hat = self._observe(obs, t, y)
+                if spike is not None and abs(t - spike) < 1e-9:
+                    x_hat = np.full(4, 1e304)
+                self._at(now + self.lag(), 'estimate', (t, x_hat))
+        elif what == 'estimate':
+            out.append(sup.estimate(*payload, now))
+        elif what == 'command':
+            k, stamp, u = payload
+            self.observers[k][0].set_input(stamp, u)
+        else:
+            out.append(sup.safe_tick(now))
+        for command in out:
+            if command is None:
+                continue
+            self.commands.append(command)
+            u = np.array(command.u, dtype=float)
+            self.at_plant.append((now + self.lag(), command.t, u))
+            for k in range(len(self.observers)):
+                self._at(now + self.lag(), 'command', (k, command.t, u))
+
+    def run(self, until, spike=None):
+        """Step the loop to the time ``until``."""
+        sup = self.sup
+        while True:
+            t = round(1.0 + len(self.trace) * self.dt, 9)
+            if t > until:
+                return
+            # the plant's command at t: those arrived by t, each from its stamp
+            for entry in sorted(e for e in self.at_plant if e[0] <= t + 1e-9):
+                self.at_plant.remove(entry)
+                if entry[1] >= self.newest - 0.25 * self.dt:
+                    self.newest = max(self.newest, entry[1])
+                    self.scheduled.append((max(entry[1], entry[0]), entry[2]))
+            for entry in sorted((e for e in self.scheduled if e[0] <= t + 1e-9),
+                                key=lambda e: e[0]):
+                self.u = entry[1]
+                self.scheduled.remove(entry)
+            y = self.v.plant.C @ self.x + 1e-5 * self.rng.standard_normal(1)
+            self._at(t + self.lag(), 'measurement', (t, y))
+            for k in range(len(self.observers)):
+                self._at(t + self.lag(), 'observe', (k, t, y))
+            # everything that arrives before the next step, in the order it arrives
+            end = t + self.dt
+            while True:
+                ready = sorted(e for e in self.events if e[0] < end)
+                if not ready:
+                    break
+                event = ready[0]
+                self.events.remove(event)
+                self._handle(event[0], event[2], event[3], spike)
+            sup.watchdog(end)
+            self._handle(end, 'tick', None, spike)
+            self.x = self.Ad @ self.x + self.Bd @ self.u
+            self.trace.append((t, self.x.copy(), sup.mode))
+
+    def worst(self, since, until=math.inf):
+        """Return max |theta| and max |x - x_d| between two times."""
+        states = [x for t, x, _ in self.trace if since <= t < until]
+        return max(abs(x[0]) for x in states), max(abs(x[1] - 1.0) for x in states)
+
+
+def test_plant_time_is_the_newest_sensor_stamp_started_over_on_a_clock_jump():
+    sup, _, _ = supervisor('cart_pendulum', 'simulator.mode:=realtime')
+    tolerance = sup.jump_tolerance
+    latest, plant = {}, None
+    rnd = random.Random(2)
+    clock = {'encoder': 10.0, 'imu': 10.0}
+    jumps = 0
+    for k in range(2000):
+        name = rnd.choice(sorted(clock))
+        if rnd.random() < 0.01:
+            clock[name] = rnd.uniform(1.0, 5.0)          # that sensor's clock restarts
+        clock[name] += rnd.uniform(-0.2, 0.3) * 0.01     # a little out of order at times
+        t = clock[name]
+        if t < latest.get(name, t) - tolerance:
+            latest.clear()
+            plant = None
+            jumps += 1
+        latest[name] = t
+        plant = t if plant is None else max(plant, t)
+        sup.measurement(name, t, None, float(k))
+        assert sup.plant_time == plant, (k, sup.plant_time, plant)
+        assert sup._steps_late(t - 0.05) == sup.delay.steps_late(plant, t - 0.05), k
+    assert jumps >= 5, jumps
+
+
+@pytest.mark.parametrize('name', ['submarine', 'cart_pendulum'])
+def test_one_absurd_estimate_never_becomes_a_command(name):
+    """1e304 on state/estimate: refused at once; the safe command never grows from it."""
+    sup, counts, logs = supervisor(name, 'simulator.mode:=realtime')
+    assert sup.u_min is None and sup.u_max is None          # every shipped file
+    n = sup.vehicle.plant.n
+    bound = np.array(sup.u_envelope.bound)
+    x = np.zeros(n)
+    first = sup.estimate(5.0, x, 0.0)
+    assert first.source == 'observer'
+    command = sup.estimate(5.05, np.full(n, 1e304), 0.05)
+    assert command.source == 'safe' and command.answers        # refused the first time
+    assert counts['implausible_estimates'] == 1
+    assert logs[-1][0] == ERROR and logs[-1][1].startswith('implausible:'), logs
+    level, message, _ = sup.status()
+    assert level == ERROR and 'implausible' in message and '1e+304' in message
+    # silent from here on: the safe command every sample time, predicted from the last
+    # estimate that passed (zero), then the fallback; never near 1e304
+    sent = [command]
+    now = 0.05
+    while len(sent) < 224:
+        now += sup.dt
+        sup.watchdog(now)
+        tick = sup.safe_tick(now)
+        if tick is not None:
+            sent.append(tick)
+    u = np.array([c.u for c in sent])
+    assert np.all(np.isfinite(u)) and np.all(np.abs(u) <= bound), np.max(np.abs(u))
+    assert np.max(np.abs(u)) < 1e-9 * max(1.0, float(np.max(bound))) or name == 'cart_pendulum'
+
+
+def test_without_limits_the_command_is_bounded_by_the_design():
+    sup, _, _ = supervisor('cart_pendulum')
+    scale = np.array(sup.x_envelope.file_scale)
+    want = ENVELOPE_FACTOR * (np.abs(sup.K) @ (scale + np.abs(sup.x_d)))
+    np.testing.assert_allclose(sup.u_envelope.bound, want)
+    assert sup._command_problem([0.5 * want[0]]) is None
+    reason = sup._command_problem([2.0 * want[0]])
+    assert 'beyond the bound' in reason and 'no controller.u_min/u_max' in reason
+    # with limits the limits decide (a command is clipped into them, never refused by K)
+    limited, _, _ = supervisor('cart_pendulum', 'controller.u_min:=[-50.0]',
+                               'controller.u_max:=[50.0]')
+    assert limited._command_problem([49.0]) is None
+    assert 'outside the limits' in limited._command_problem([51.0])
+
+
+def test_estimates_beyond_the_envelope_in_a_row_are_diverging():
+    sup, counts, logs = supervisor('submarine')
+    sup.estimate(5.0, np.zeros(3), 0.0)
+    x = 1.0
+    for k in range(1, ENVELOPE_PERSIST + 2):
+        x *= 30.0
+        command = sup.estimate(5.0 + 0.05 * k, np.array([x, 0.0, 0.0]), 0.05 * k)
+        if x > ENVELOPE_FACTOR * sup.x_envelope.file_scale[0]:
+            assert command.source == 'safe'
+    assert counts['implausible_estimates'] >= ENVELOPE_PERSIST
+    words = [text.split(':', 1)[0] for _, text in logs]
+    assert words[0] == 'implausible' and words[-1] == 'diverging', words
+    assert sup.status()[1].startswith('diverging: x_hat theta')
+    # a plausible estimate closes the loop again: OK
+    command = sup.estimate(6.0, np.zeros(3), 1.0)
+    assert command.source == 'observer' and sup.status()[0] == OK
+
+
+def test_a_repeated_stamp_gets_the_same_command_and_an_older_one_none():
+    sup, counts, _ = supervisor('submarine')
+    first = sup.estimate(5.0, np.array([0.1, 0.0, 0.0]), 0.0)
+    again = sup.estimate(5.0, np.array([0.2, 0.0, 0.0]), 0.001)    # a repeat: not redone
+    assert again is first and sup.safe.last_command.tolist() == list(first.u)
+    assert sup.estimate(4.95, np.zeros(3), 0.002) is None
+    assert counts['repeated_estimates'] == 2 and counts['commands'] == 1
+    sup.publishers = 2                      # from another publisher: nothing
+    assert sup.estimate(5.0, np.zeros(3), 0.003) is None
+
+
+def test_with_two_publishers_the_stream_followed_is_kept():
+    """Without a standby: the other stream is told by the model's prediction."""
+    sup, counts, logs = supervisor('submarine')
+    sup.publishers = 2
+    x = np.array([0.3, 0.0, 0.0])
+    followed = []
+    for k in range(40):
+        t = 5.0 + 0.05 * k
+        if k:       # the other stream's estimate arrives first (not at the first stamp)
+            assert sup.estimate(t, np.array([-0.4, 0.2, 0.1]), t) is None
+        command = sup.estimate(t, x, t + 0.001)
+        assert command is not None and command.source == 'observer'
+        followed.append(command.u)
+        x = sup.safe.predict_from(x, 1)
+    assert counts['other_stream_estimates'] == 40 - 1
+    level, message, _ = sup.status(['/state/estimate (2 publishers)'])
+    assert level == ERROR and 'following one estimate stream' in message
+    assert sum('does not follow the stream' in text for _, text in logs) == 1   # said once
+
+
+def test_the_standby_closes_the_loop_while_the_observer_is_paused():
+    """The cart, observer silent 3 s: held near x_d throughout, then back on the observer."""
+    assert unstable_plant(load_vehicle(str(CONFIG / 'cart_pendulum.yaml')).plant)
+    loop = CartLoop()
+    loop.observer(pause=(12.0, 15.0))
+    loop.run(20.0)
+    assert loop.sup.standby is not None
+    theta, dx = loop.worst(12.0, 15.0)
+    assert theta < 0.03 and dx < 0.05, (theta, dx)
+    modes = [m for t, _, m in loop.trace if 12.2 <= t < 15.0]
+    assert set(modes) == {'stale'}, set(modes)
+    assert loop.counts['standby_commands'] >= 250          # one per measurement
+    assert loop.trace[-1][2] == 'closed'
+    back = next(t for t, _, m in loop.trace if t > 15.0 and m == 'closed')
+    assert back < 16.0, back
+    assert loop.counts['resync_estimates'] >= RESYNC_AGREE - 1
+    assert loop.worst(15.0)[1] < 0.05
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_the_standby_holds_the_cart_when_messages_are_late(seed):
+    """
+    One message in SPIKES up to 30 ms late: the paused observer's cart stays near x_d.
+
+    The same loop without the standby (predict-and-hold, then hold) drops the pendulum.
+    """
+    loop = CartLoop(seed, jitter=0.03)
+    loop.observer(pause=(12.0, 15.0))
+    loop.run(17.0)
+    theta, dx = loop.worst(12.0, 15.0)
+    assert theta < 0.3 and dx < 0.2, (theta, dx)
+    assert loop.trace[-1][2] == 'closed'
+    bare = CartLoop(seed, jitter=0.03)
+    bare.sup.standby = None
+    bare.observer(pause=(12.0, 15.0))
+    bare.run(15.0)
+    assert bare.worst(12.0, 15.0)[0] > 1.0
+
+
+def test_a_second_observer_with_the_same_topic_does_not_move_the_cart():
+    loop = CartLoop(jitter=0.002)       # which observer's estimate comes first varies
+    loop.observer()
+    loop.observer(start=8.0)            # unconverged: x_hat(0) = 0 with the cart at 1 m
+    loop.run(12.0)
+    assert loop.worst(8.0)[1] < 0.05, loop.worst(8.0)
+    assert loop.counts['other_stream_estimates'] >= 5
+
+
+def test_an_absurd_estimate_in_the_cart_loop_moves_nothing():
+    loop = CartLoop()
+    loop.observer()
+    loop.run(12.0, spike=9.0)
+    assert loop.counts['implausible_estimates'] == 1
+    assert 'divergence_safe_commands' not in loop.counts    # the standby's reference: ignored
+    assert loop.worst(8.0)[1] < 0.05
+    assert max(max(abs(v) for v in c.u) for c in loop.commands) < 100.0
+
+
+def test_without_a_standby_stale_predicts_then_falls_back_then_resyncs():
+    sup, counts, logs = supervisor('submarine', 'simulator.mode:=realtime',
+                                   'controller.predict_timeout:=3.0',
+                                   'controller.safe_command:=hold')
+    assert sup.standby is None          # a stable plant can be held
+    x = np.array([0.1, 0.0, 0.0])
+    t = now = 5.0
+    for _ in range(10):
+        sup.estimate(t, x, now)
+        t += 0.05
+        now += 0.05
+    assert sup.watchdog(now + 1.0)
+    assert sup.stale and logs[-1][1].startswith('estimate stale')
+    modes = []
+    for k in range(60):
+        command = sup.safe_tick(now + 1.0 + 0.05 * k)
+        assert command.marked and command.source == 'safe'
+        modes.append(sup.safe_mode)
+    assert modes[0] == 'predict' and modes[-1] == 'hold'
+    # back: the prediction closes the loop until the observer's estimates follow the model
+    command = sup.estimate(t + 5.0, x, now + 5.0)
+    assert sup.mode == 'resync' and command.source == 'safe' and command.answers
+    assert counts['resync_commands'] == 1
+
+
+def test_a_restarted_clock_starts_the_loop_over():
+    sup, counts, _ = supervisor('cart_pendulum', 'simulator.mode:=realtime')
+    sup.measurement('encoder', 30.0, [1.0], 0.0)
+    sup.estimate(30.0, np.array([0.0, 1.0, 0.0, 0.0]), 0.0)
+    assert sup.standby.t == 30.0
+    command = sup.estimate(1.01, np.zeros(4), 0.01)
+    assert counts['clock_jumps'] == 1 and command.source == 'observer'
+    assert not sup.standby._recent              # the standby starts over with the clock
+    assert [stamp for stamp, _ in sup.delay._sent] == [command.t]   # the old run's forgotten
