@@ -27,6 +27,7 @@ from .design import (controller_gain, kalman_gain, lqr_gain, observer_gain,
 from .errors import (DesignError, DimensionError, NotDetectableError, ObserverDesignWarning,
                      ObserverError)
 from .estimators.sampled import check_sampled_observer, SampledCheck
+from .health import divergence_envelopes
 from .model import as_matrix, as_poles, as_vector
 from .verify import (PlacementCheck, stability_status, unstable_eigenvalues, verify_placement,
                      verify_stable)
@@ -456,6 +457,15 @@ def design_vehicle(vehicle):
                 'the reference is not tracked without steady-state error: '
                 f'(A_d - A + B Kd) x_d = {np.array2string(residual, precision=4)} is not '
                 'zero (seed 002 Eq. 5.117); choose Kd or a reachable x_d')
+        if ctrl_spec.u_min is None and ctrl_spec.u_max is None and \
+                unstable_eigenvalues(A, discrete):
+            # the compensator's command bound without limits (core/health.py)
+            bound = divergence_envelopes(vehicle, K, reference, Kd)[1].bound
+            messages.append(
+                'the plant is unstable and controller.u_min/u_max are not given: the '
+                "compensator bounds its commands by 100 x |K| applied to the file's state "
+                f'scale (+-{np.array2string(bound, precision=3)}), not by the actuator; '
+                "give the actuator's limits")
         if not ok:
             messages.append(f'separation check failed: the eigenvalues of the closed-loop '
                             f'matrix differ from eig(A - BK) and the observer poles by '
