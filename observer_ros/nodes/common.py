@@ -19,7 +19,7 @@ from std_msgs.msg import Float64
 
 from .callback_watch import CallbackWatch
 from .command_line import params_files
-from .parameters import declare_parameters, set_undeclared
+from .parameters import declare_parameters, GatedParameterService, set_undeclared
 from .topic_watch import level_rank, TopicWatch
 from ..core.errors import ObserverError
 from ..core.estimators.admission import check_stamp
@@ -189,7 +189,9 @@ class VehicleNode(Node):
     def __init__(self, node_name, own_parameters=(), load=True):
         # load: False for a managed node, which reads its vehicle when it is configured
         try:
-            super().__init__(node_name, automatically_declare_parameters_from_overrides=False)
+            # the parameter services are ours: set requests admitted by a work budget
+            super().__init__(node_name, automatically_declare_parameters_from_overrides=False,
+                             start_parameter_services=False)
         except ValueError as err:   # rclpy refuses some parameter values before we see them
             raise ObserverError(
                 f'parameters: {err} (an empty list [] has no type in ROS 2: remove the key '
@@ -208,6 +210,7 @@ class VehicleNode(Node):
                                 '--params-file config/<vehicle>.yaml (see --help)')
         self.vehicle = self.load_vehicle() if load else None
         self.add_on_set_parameters_callback(self._check_vehicle_change)
+        self._parameter_service = GatedParameterService(self)
         # set to an exit status by a node whose work is done (the simulator at the end of
         # its run): run_nodes stops spinning and the process exits with it
         self.exit_code = None

@@ -19,16 +19,22 @@ with a reason that names it.
 
 """
 
+import time
+
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 SetParametersResult)
+from rcl_interfaces.srv import SetParameters
 from rclpy.exceptions import InvalidParameterValueException
+from rclpy.parameter import Parameter
+from rclpy.parameter_service import ParameterService
 
 from ..core.errors import ObserverError
+from ..core.health import WorkBudget
 from ..vehicle.schema import (bound_problem, interval_text, known_keys, NODE_KEYS,
                               READ_ONLY_SECTIONS, ros_range)
 
 __all__ = ['READ_ONLY_SECTIONS', 'declare_parameters', 'describe', 'node_schema',
-           'set_undeclared']
+           'set_undeclared', 'GatedParameterService']
 
 _OPEN_NOTE = ' (Min value 5e-324, the least double above 0: ROS ranges are closed)'
 
@@ -189,3 +195,96 @@ def set_undeclared(node, parameters):
         except InvalidParameterValueException as err:
             return SetParametersResult(successful=False, reason=_reason(err, p.name))
     return SetParametersResult(successful=True)
+
+
+class GatedParameterService(ParameterService):
+    """
+    rclpy's parameter services, with the set requests admitted by a work budget.
+
+    A change of the observer's or controller's keys redesigns the node (tenths of a
+    second of its executor, where estimation and control run too); a client that sends
+    a thousand a second would leave it no time for anything else. Each SetParameters or
+    SetParametersAtomically request is answered at once, without running the node's
+    checks, when every writable parameter in it already has the value asked (``ros2 param
+    load`` of a dump; read-only ones are refused by rclpy as always), and refused at once
+    (``busy: ...``, counted ``parameter_changes_refused``) while the node's parameter work
+    of the last ``PARAMETER_WINDOW`` s took more than ``PARAMETER_SHARE`` of it
+    (core.health.WorkBudget); otherwise it is handled as rclpy handles it (SetParameters
+    one parameter at a time), and timed.
+    """
+
+    def __init__(self, node, budget=None):
+        self.budget = budget or WorkBudget()
+        super().__init__(node)
+
+    def _gate(self, request):
+        """Return (parameters to change, why they are refused or None)."""
+        node = self._get_node()
+        changed = [p for p in request.parameters if not _unchanged(node, p)]
+        if not changed or all(_read_only(node, p) for p in changed):
+            return changed, None            # rclpy refuses a read-only one at no cost
+        return changed, self.budget.refuse(time.monotonic())
+
+    def _timed(self, handle, request, response):
+        start = time.monotonic()
+        try:
+            return handle(request, response)
+        finally:
+            self.budget.spent(start, time.monotonic())
+
+    def _refused(self, reason):
+        node = self._get_node()
+        if hasattr(node, 'count'):
+            node.count('parameter_changes_refused')
+        return SetParametersResult(successful=False, reason=reason)
+
+    def _set_parameters_callback(self, request, response):
+        # one result per parameter, each set on its own (as rclpy's service does)
+        for p in request.parameters:
+            one = SetParameters.Request(parameters=[p])
+            changed, reason = self._gate(one)
+            if not changed:
+                response.results.append(SetParametersResult(successful=True))
+            elif reason is not None:
+                response.results.append(self._refused(reason))
+            else:
+                response.results.extend(self._timed(super()._set_parameters_callback, one,
+                                                    SetParameters.Response()).results)
+        return response
+
+    def _set_parameters_atomically_callback(self, request, response):
+        changed, reason = self._gate(request)
+        if not changed:
+            response.result = SetParametersResult(successful=True)
+            return response
+        if reason is not None:
+            response.result = self._refused(reason)
+            return response
+        return self._timed(super()._set_parameters_atomically_callback, request, response)
+
+
+def _read_only(node, msg):
+    """Tell whether a parameter message names a read-only parameter of the node."""
+    return node.has_parameter(msg.name) and node.describe_parameter(msg.name).read_only
+
+
+def _unchanged(node, msg):
+    """
+    Tell whether a parameter message asks for the value (and type) the node has.
+
+    Never for a read-only parameter: rclpy refuses a set of one, whatever its value, at
+    no cost (``ros2 param load`` reports them as not set).
+    """
+    if not node.has_parameter(msg.name) or _read_only(node, msg):
+        return False
+    current = node.get_parameter(msg.name)
+    try:
+        asked = Parameter.from_parameter_msg(msg)
+    except (TypeError, ValueError):
+        return False
+    if asked.type_ != current.type_:
+        return False
+    a, b = asked.value, current.value
+    if isinstance(a, (list, tuple)) or hasattr(a, 'tolist'):
+        return list(a) == list(b)
+    return a == b
