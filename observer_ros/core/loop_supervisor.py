@@ -18,9 +18,11 @@ The compensator's decisions, without ROS: one estimate in, one command (or none)
 ``resync``
     Estimates are back after an outage. With a standby: until ``RESYNC_AGREE`` of them in
     a row agree with the standby's (``RESYNC_TOL`` of each state's scale), the standby
-    keeps closing the loop. Without: the prediction does, until the observer's estimates
-    follow the model step by step again (:class:`~.health.SettleCheck`, at most
-    ``RESYNC_SETTLINGS`` observer settling times).
+    keeps closing the loop (a standby not yet warm, in its first settling time, is no
+    reference: the loop closes on the estimates again at once). Without: the prediction
+    does, until the observer's estimates follow the model step by step again
+    (:class:`~.health.SettleCheck`, at most ``RESYNC_SETTLINGS`` observer settling
+    times).
 ``recover``
     Without a standby, after a resync: the loop closes on the estimates again, reported
     as ERROR ``recovering`` for an observer settling time.
@@ -466,6 +468,11 @@ class LoopSupervisor:
     def _back(self, t, x_list, now):
         """Estimates after an outage: resync; return a command, None, or False (close)."""
         if self.mode == 'waiting':
+            self.mode = 'closed'
+            return False
+        if self.standby is not None and not self.standby.warm:
+            # nothing to compare them with yet (its first settling time): the observer's
+            # estimates are the best there is; the prediction ran open loop meanwhile
             self.mode = 'closed'
             return False
         if self.standby is not None:
