@@ -371,7 +371,7 @@ def worker_replay(bag, rounds):
 def worker_eval(bag, out):
     """observer-eval BAG --vehicle config/submarine.yaml --out OUT --no-plots."""
     t0 = time.perf_counter()
-    from observer_ros.bag.evaluate import main
+    from observer_ros.evaluation.evaluator import main
     import contextlib
     import io
     buf = io.StringIO()

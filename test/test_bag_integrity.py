@@ -17,9 +17,9 @@ from pathlib import Path
 from bag_synth import bag_file, CONFIG, simulate, STORE, write_bag
 import numpy as np
 from observer_ros.bag.errors import BagToolError
-from observer_ros.bag.evaluate import evaluate_bag, main
 from observer_ros.bag.integrity import chunk_crcs, CRC_OFFSET, CrcWriter
 from observer_ros.bag.reader import BagReader
+from observer_ros.evaluation.evaluator import evaluate_bag, main
 from observer_ros.vehicle import load_vehicle
 import pytest
 from rosbags.highlevel import AnyReader

@@ -1,6 +1,6 @@
 # test/test_bag_jobs.py: bag x variant jobs, serially and on a local Dask cluster.
 """
-The job layer (observer_ros/bag/jobs.py) and observer-eval-batch (bag/batch.py).
+The job layer (observer_ros/evaluation/jobs.py) and observer-eval-batch (evaluation/batch.py).
 
 A local Dask cluster of two worker processes runs the jobs of the three sample bags
 times two configurations and gives the serial path's rows exactly; a job's numbers are
@@ -17,10 +17,10 @@ from pathlib import Path
 import subprocess
 import sys
 
-from observer_ros.bag.batch import find_bags, main
 from observer_ros.bag.errors import BagToolError
-from observer_ros.bag.evaluate import evaluate_bag
-from observer_ros.bag.jobs import Job, make_jobs, run_job, run_jobs, summarize
+from observer_ros.evaluation.batch import find_bags, main
+from observer_ros.evaluation.evaluator import evaluate_bag
+from observer_ros.evaluation.jobs import Job, make_jobs, run_job, run_jobs, summarize
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -75,7 +75,7 @@ def test_a_jobs_numbers_are_observer_evals():
 
 
 def test_the_worker_path_imports_no_ros():
-    code = ('import sys; from observer_ros.bag.jobs import Job, run_job; '
+    code = ('import sys; from observer_ros.evaluation.jobs import Job, run_job; '
             f'row = run_job(Job({str(SAMPLES / "submarine")!r}, '
             f'{str(CONFIG / "submarine.yaml")!r})); '
             'assert row["error"] is None, row; '
@@ -146,7 +146,7 @@ def test_command_line_merged_table_summary_and_plot(tmp_path):
 
 def test_jobs_run_on_an_existing_cluster_named_by_the_environment(monkeypatch):
     from distributed import LocalCluster
-    from observer_ros.bag.jobs import SCHEDULER_ENV
+    from observer_ros.evaluation.jobs import SCHEDULER_ENV
     jobs = make_jobs([SAMPLES / 'submarine'], CONFIG / 'submarine.yaml',
                      {'openloop': OPEN_LOOP})
     serial = run_jobs(jobs, 'serial')
@@ -163,7 +163,7 @@ def test_jobs_run_on_an_existing_cluster_named_by_the_environment(monkeypatch):
 def test_a_local_cluster_listens_on_the_loopback_interface_only():
     import os
     import psutil
-    from observer_ros.bag.jobs import connect, workers_of
+    from observer_ros.evaluation.jobs import connect, workers_of
     client, cluster = connect(workers=1)
     try:
         assert cluster.scheduler_address.startswith('tcp://127.0.0.1:')
@@ -179,7 +179,7 @@ def test_a_local_cluster_listens_on_the_loopback_interface_only():
 
 
 def test_the_efficiency_line_says_when_serial_would_have_been_faster():
-    from observer_ros.bag.batch import _efficiency
+    from observer_ros.evaluation.batch import _efficiency
     rows = [{'cpu_seconds': 3.0}, {'cpu_seconds': 3.0}]
     line = _efficiency(rows, 4.0, 2)
     assert line.startswith('parallel efficiency 75%: speed-up 1.50x on 2 workers')

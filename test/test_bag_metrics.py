@@ -14,10 +14,10 @@ from types import SimpleNamespace
 from bag_synth import CONFIG
 import numpy as np
 from numpy.testing import assert_array_equal
-from observer_ros.bag import metrics
-from observer_ros.bag.metrics import score_variant, StateError, truth_at
-from observer_ros.bag.results import VariantResult
-from observer_ros.bag.running_metrics import blocked_state_metrics
+from observer_ros.evaluation import metrics
+from observer_ros.evaluation.metrics import score_variant, StateError, truth_at
+from observer_ros.evaluation.results import VariantResult
+from observer_ros.evaluation.running_metrics import blocked_state_metrics
 from observer_ros.replay.replay import epochs_of, Replay
 from observer_ros.vehicle import load_vehicle
 import pytest

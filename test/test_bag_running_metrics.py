@@ -7,9 +7,9 @@ import tracemalloc
 
 import numpy as np
 from numpy.testing import assert_array_equal
-from observer_ros.bag.evaluate import evaluate_bag
-from observer_ros.bag.metrics import STEADY_FRACTION, truth_at
-from observer_ros.bag.running_metrics import blocked_state_metrics
+from observer_ros.evaluation.evaluator import evaluate_bag
+from observer_ros.evaluation.metrics import STEADY_FRACTION, truth_at
+from observer_ros.evaluation.running_metrics import blocked_state_metrics
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]

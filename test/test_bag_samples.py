@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 from numpy.testing import assert_array_equal
-from observer_ros.bag.evaluate import evaluate_bag
 from observer_ros.bag.reader import jazzy_typestore, read_recording
 from observer_ros.core.vehicle_design import design_vehicle
+from observer_ros.evaluation.evaluator import evaluate_bag
 from observer_ros.replay.replay import live_replay, replay
 from observer_ros.vehicle import load_vehicle
 import pytest

@@ -19,10 +19,10 @@ import tracemalloc
 from bag_synth import CONFIG, simulate, write_bag
 import numpy as np
 from numpy.testing import assert_array_equal
-from observer_ros.bag import evaluate
 from observer_ros.bag import spill as spill_mod
 from observer_ros.bag.reader import read_recording
-from observer_ros.bag.report import write_results
+from observer_ros.evaluation import evaluator as evaluate
+from observer_ros.evaluation.report import write_results
 from observer_ros.replay import bulk_runs, health as replay_health, rows as replay_outputs
 from observer_ros.replay.replay import replay
 from observer_ros.replay.rows import SpilledColumn

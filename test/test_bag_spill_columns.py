@@ -13,10 +13,11 @@ spilled or in memory (and numpy's to round-off). Each on an array and on a
 
 import numpy as np
 from numpy.testing import assert_allclose, assert_array_equal
-from observer_ros.bag import metrics, spill
-from observer_ros.bag.plots import decimate
+from observer_ros.bag import spill
 from observer_ros.bag.spill import (count_true, decimated_rows, pairwise_sum, Sink,
                                     SortedColumn, SpilledColumn)
+from observer_ros.evaluation import metrics
+from observer_ros.evaluation.plots import decimate
 from observer_ros.replay.events import _epoch_cuts, epochs_from_cuts, epochs_of
 import pytest
 

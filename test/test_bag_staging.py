@@ -10,10 +10,11 @@ import subprocess
 import sys
 import time
 
-from observer_ros.bag import report as eval_report, tune_report
+from observer_ros.bag import tune_report
 from observer_ros.bag.errors import BagToolError
-from observer_ros.bag.evaluate import main as eval_main
 from observer_ros.bag.tune import main as tune_main
+from observer_ros.evaluation import report as eval_report
+from observer_ros.evaluation.evaluator import main as eval_main
 from observer_ros.outputs.folders import MARKER
 from observer_ros.outputs.staging import StagedOutput, write_new_file
 import pytest

@@ -20,7 +20,6 @@ from bag_synth import CONFIG, control_law, JOINT_STATE, vector_msg, write_bag
 import numpy as np
 from numpy.testing import assert_allclose
 from observer_ros.bag.errors import BagToolError
-from observer_ros.bag.evaluate import evaluate_bag, main as eval_main
 from observer_ros.bag.tune import identify, main, tune
 from observer_ros.core.als import (ALSError, identify_noise, model_autocovariances,
                                    predictor_innovations, process_noise_map,
@@ -28,6 +27,7 @@ from observer_ros.core.als import (ALSError, identify_noise, model_autocovarianc
 from observer_ros.core.design import kalman_gain, observer_gain
 from observer_ros.core.estimators import process_noise_covariance
 from observer_ros.core.model import map_poles_to_discrete, zoh_matrices
+from observer_ros.evaluation.evaluator import evaluate_bag, main as eval_main
 from observer_ros.vehicle import load_vehicle
 import pytest
 import yaml

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import irregular_bags as ib
 import numpy as np
-from observer_ros.bag.evaluate import evaluate_bag
 from observer_ros.bag.identify import identify
 from observer_ros.bag.tune import main
 from observer_ros.core.als import ALSError
+from observer_ros.evaluation.evaluator import evaluate_bag
 from observer_ros.vehicle import load_vehicle
 import pytest
 

@@ -15,10 +15,10 @@ from bag_synth import CONFIG, write_bag
 import numpy as np
 from numpy.testing import assert_allclose
 from observer_ros.bag.errors import BagToolError
-from observer_ros.bag.evaluate import evaluate_bag
 from observer_ros.bag.gain_search import gain_search
 from observer_ros.bag.pole_search import MARGIN, pole_set
 from observer_ros.bag.tune import main, tune
+from observer_ros.evaluation.evaluator import evaluate_bag
 from observer_ros.vehicle import load_vehicle
 import pytest
 from test_bag_tune import _true, simulate_noisy
@@ -173,7 +173,8 @@ def test_per_pole_search_refusals(two_bags, tmp_path, capsys):
 
 def test_the_same_filter_is_replayed_once(monkeypatch):
     """A Qd of zeros times every scale is one filter: one replay, one score for all."""
-    from observer_ros.bag import evaluate, gain_search as gs
+    from observer_ros.bag import gain_search as gs
+    from observer_ros.evaluation import evaluator as evaluate
     calls = []
     real = evaluate.replay
 

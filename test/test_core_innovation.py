@@ -4,10 +4,10 @@
 import late_sensors
 import numpy as np
 from numpy.testing import assert_allclose
-from observer_ros.bag.evaluate import whiteness
 from observer_ros.core.estimators import make_estimator
 from observer_ros.core.innovation import (InnovationMonitor, ljung_box, nis_bounds,
                                           sequence_health, whiten)
+from observer_ros.evaluation.evaluator import whiteness
 from observer_ros.timeutil import ns_to_sec
 import pytest
 import scipy.stats

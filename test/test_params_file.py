@@ -145,7 +145,7 @@ def test_devices_and_folders_are_refused_unopened(path, kind):
 
 @pytest.mark.parametrize('entry', [
     ['observer_ros.tools.design_report', '{}'],
-    ['observer_ros.bag.evaluate', str(SAMPLE), '--vehicle', '{}'],
+    ['observer_ros.evaluation.evaluator', str(SAMPLE), '--vehicle', '{}'],
     ['observer_ros.bag.tune', str(SAMPLE), '--vehicle', '{}'],
     ['observer_ros.tools.run_closed_loop', '{}'],
     ['observer_ros.nodes.observer_node', '--ros-args', '--params-file', '{}'],
@@ -186,7 +186,7 @@ def test_process_substitution_works_for_a_tool_and_a_node(tmp_path):
 
 
 def test_a_compare_file_may_be_a_pipe_and_a_fifo_without_a_writer_is_named_as_one(tmp_path):
-    from observer_ros.bag.evaluate import parse_compare
+    from observer_ros.evaluation.evaluator import parse_compare
     from observer_ros.core.errors import ObserverError
     path = _fifo(tmp_path)
     # it exists: not "no such file" (before), but what it is, once it is read
@@ -198,7 +198,7 @@ def test_a_compare_file_may_be_a_pipe_and_a_fifo_without_a_writer_is_named_as_on
         writer.wait(timeout=WAIT)
     with pytest.raises(ObserverError, match='--compare .*: no such file'):
         parse_compare(str(tmp_path / 'missing.yaml'))
-    result, _ = _run('observer_ros.bag.evaluate', str(SAMPLE), '--vehicle',
+    result, _ = _run('observer_ros.evaluation.evaluator', str(SAMPLE), '--vehicle',
                      str(CONFIG / 'submarine.yaml'), '--compare', str(tmp_path),
                      '--out', str(tmp_path / 'eval'))
     assert result.returncode == 2 and result.stderr.strip().splitlines() == [

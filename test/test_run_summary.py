@@ -2,8 +2,8 @@
 
 from bag_synth import CONFIG, simulate, write_bag
 import numpy as np
-from observer_ros.bag.evaluate import evaluate_bag
 from observer_ros.core.errors import DesignVerificationError
+from observer_ros.evaluation.evaluator import evaluate_bag
 from observer_ros.tools.run_closed_loop import (_print_summary, diverging, run_scale,
                                                 summarize_bag)
 from observer_ros.vehicle import load_vehicle

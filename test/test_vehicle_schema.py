@@ -7,8 +7,8 @@ import re
 import subprocess
 import sys
 
-from observer_ros.bag.report import format_table
 from observer_ros.core.errors import VehicleFileError
+from observer_ros.evaluation.report import format_table
 from observer_ros.vehicle import (apply_overrides, KNOWN_KEYS, load_parameters, load_vehicle,
                                   parameter_schema, parameters_to_yaml, SENSOR_KEYS,
                                   vehicle_from_parameters, vehicle_to_parameters)
@@ -245,7 +245,7 @@ def test_units_round_trip_through_a_written_file(tmp_path):
 
 def test_the_evaluation_report_shows_the_units(tmp_path):
     from bag_synth import simulate, write_bag
-    from observer_ros.bag.evaluate import evaluate_bag
+    from observer_ros.evaluation.evaluator import evaluate_bag
     vehicle = build({'simulator.duration': 2.0})
     bag = write_bag(tmp_path / 'bag', simulate(vehicle)['messages'])
     result = evaluate_bag(bag, vehicle)

@@ -32,7 +32,7 @@ import numpy as np
 import scipy.linalg
 
 from .errors import BagToolError
-from .evaluate import evaluate_bag
+from ..evaluation.evaluator import evaluate_bag
 
 __all__ = ['DEFAULT_SCALES', 'SearchResult', 'search_overrides', 'score_variants',
            'bag_keys', 'gain_search', 'model_errors']
@@ -139,7 +139,7 @@ def score_variants(bags, vehicle, overrides, ref, namespace=None, exact=False,
     ``overrides`` is a list of ``KEY:=VALUE`` lists, ``ref`` the index of the one the
     residual metric is relative to (see the module). In this process every bag is read
     once; with ``dask`` (``{'workers': N, 'scheduler': ADDRESS}``, a vehicle file path)
-    each bag x variant is a job of :mod:`observer_ros.bag.jobs` on a Dask cluster, with
+    each bag x variant is a job of :mod:`observer_ros.evaluation.jobs` on a Dask cluster, with
     the same numbers. ``spill``: :func:`evaluate_bag`'s (True: the replay's rows in
     temporary files; None: in memory); each variant's rows are dropped once scored.
     Variants with the same overrides are one observer, replayed once (a Qd of zeros
@@ -177,7 +177,7 @@ def score_variants(bags, vehicle, overrides, ref, namespace=None, exact=False,
 
 
 def _score_jobs(bags, vehicle, variants, ref, namespace, exact, progress, dask, spill):
-    from .jobs import Job, run_jobs
+    from ..evaluation.jobs import Job, run_jobs
     names = tuple(variants)
     jobs = [Job(str(bag), str(vehicle), n, tuple(variants[n]), namespace, None, bool(exact))
             for bag in bags for n in names]
@@ -316,7 +316,7 @@ def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exac
         when it is inside the grid); they join the table.
     dask : dict, optional
         ``{'workers': N, 'scheduler': ADDRESS}``: the grid's bag x scale evaluations as
-        jobs on Dask (:mod:`observer_ros.bag.jobs`; ``vehicle`` must be a file); the
+        jobs on Dask (:mod:`observer_ros.evaluation.jobs`; ``vehicle`` must be a file); the
         refinement runs in this process.
     spill : True or path or None
         Each replay's rows in temporary files (True: in TMPDIR) or in memory (None);
@@ -332,7 +332,7 @@ def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exac
     result : SearchResult
 
     """
-    from .evaluate import _load_vehicle
+    from ..evaluation.evaluator import _load_vehicle
     base = _load_vehicle(vehicle)
     scales = sorted(float(s) for s in scales)
     if not scales or any(not (s > 0 and math.isfinite(s)) for s in scales):

@@ -36,9 +36,7 @@ from typing import Dict, List
 import numpy as np
 
 from .errors import BagToolError
-from .evaluate import _load_vehicle
 from .reader import read_recording
-from .results import jsonable
 from .sampled import noise_input, reference_gain, sampled_data, sampled_model
 from ..core.als import (ALSError, choose_lags, DEFAULT_LAGS, identify_noise,
                         kalman_predictor_gain, predictor_blocks, predictor_innovations,
@@ -48,6 +46,8 @@ from ..core.als_stats import DECAYS
 from ..core.autocovariance import LaggedSums
 from ..core.innovation import ALPHA, WINDOW
 from ..core.whiteness import WindowWhiteness
+from ..evaluation.evaluator import _load_vehicle
+from ..evaluation.results import jsonable
 
 __all__ = ['BLOCK', 'TRANSIENT_DECAY', 'RATE_TOLERANCE', 'POOR_FIT', 'Identification',
            'identify', 'filter_Q', 'FILE_FLOOR', 'PASSES',

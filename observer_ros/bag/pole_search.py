@@ -194,7 +194,7 @@ def pole_search(bags, vehicle, scales=DEFAULT_SCALES, namespace=None, exact=Fals
 
     """
     from scipy.optimize import minimize
-    from .evaluate import _load_vehicle
+    from ..evaluation.evaluator import _load_vehicle
     base = _load_vehicle(vehicle)
     pole_set(base)                                       # refuse before any replay
     if int(evaluations) < 1:

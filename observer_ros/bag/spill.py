@@ -364,7 +364,7 @@ def decimated_rows(n, limit, mask=None, block=READ_BLOCK):
     """
     Return the rows kept when the rows of ``mask`` are decimated to about ``limit``.
 
-    Without ``mask``: the slice of :func:`observer_ros.bag.plots.decimate` over ``n``
+    Without ``mask``: the slice of :func:`observer_ros.evaluation.plots.decimate` over ``n``
     rows. With a boolean column ``mask`` (array or spilled), or a function
     ``mask(lo, hi)`` giving its rows lo..hi-1: the indices of the true rows, every
     ``ceil(count / limit)``-th of them from the first (``np.flatnonzero(mask)``

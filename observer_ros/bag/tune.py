@@ -42,15 +42,16 @@ import warnings
 import numpy as np
 
 from .errors import BagToolError
-from .evaluate import _load_vehicle, _Progress, IN_MEMORY_HELP, stop_on_sigterm, tool_error
 from .gain_search import DEFAULT_SCALES, gain_search, search_overrides
 from .identify import FILE_FLOOR, filter_Q, Identification, identify, PASSES
 from .pole_search import DEFAULT_EVALUATIONS, pole_search, pole_set
-from .results import jsonable
 from .tune_report import format_report, write_report
 from .tuned_vehicle import OBSERVER_KEYS, write_tuned_vehicle
 from ..core.als import DEFAULT_LAGS
 from ..core.errors import ObserverError, quiet_on_closed_pipe
+from ..evaluation.evaluator import (_load_vehicle, _Progress, IN_MEMORY_HELP, stop_on_sigterm,
+                                    tool_error)
+from ..evaluation.results import jsonable
 from ..outputs.folders import check_output
 from ..outputs.staging import StagedOutput
 
@@ -113,7 +114,7 @@ class TuneResult:
 
 def default_out(bag):
     """Return the default report folder: ``<bag>_tune`` next to the bag directory."""
-    from .evaluate import _default_out
+    from ..evaluation.evaluator import _default_out
     out = _default_out(bag)
     return out.with_name(out.name[:-len('_eval')] + '_tune')
 
@@ -163,7 +164,7 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
         ``each-pole``: most observers scored by scipy.optimize.minimize.
     dask : dict, optional
         ``{'workers': N, 'scheduler': ADDRESS}``: the search grid's bag x scale
-        evaluations as jobs on Dask (:mod:`observer_ros.bag.jobs`), same numbers.
+        evaluations as jobs on Dask (:mod:`observer_ros.evaluation.jobs`), same numbers.
     spill : True or path or None
         The search's replays' rows in temporary files (default) or in memory (None); each
         variant's rows are dropped once it is scored.

@@ -15,9 +15,9 @@ import math
 
 import numpy as np
 
-from .plots import plot_autocovariances, plot_search
-from .report import csv_cell, fmt, text_table
 from ..core.innovation import ALPHA as INNOVATION_ALPHA, WINDOW as INNOVATION_WINDOW
+from ..evaluation.plots import plot_autocovariances, plot_search
+from ..evaluation.report import csv_cell, fmt, text_table
 
 __all__ = ['format_report', 'write_report']
 

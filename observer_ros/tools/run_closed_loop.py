@@ -552,7 +552,7 @@ def _interrupted(err):
 
 def _evaluate(vehicle_path, vehicle, design, bag, summary, args):
     """Replay the bag through several observers, rerun with slow poles, print the lessons."""
-    from ..bag.evaluate import evaluate_bag, format_table, write_results
+    from ..evaluation.evaluator import evaluate_bag, format_table, write_results
     variants = comparison_variants(vehicle, design)
     result = evaluate_bag(bag, vehicle, variants, namespace=args.namespace)
     out = bag.parent / (bag.name + '_eval')

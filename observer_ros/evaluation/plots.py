@@ -1,11 +1,11 @@
-# observer_ros.bag.plots: PNG plots of an evaluation (matplotlib, Agg).
+# observer_ros.evaluation.plots: PNG plots of an evaluation (matplotlib, Agg).
 """Plots of an evaluation: states, error norm, residuals (one PNG each)."""
 
 import math
 
 import numpy as np
 
-from .spill import decimated_rows
+from ..bag.spill import decimated_rows
 
 __all__ = ['PLOT_MAX_POINTS', 'decimate', 'write_plots', 'plot_t0', 'plot_autocovariances',
            'plot_search']

@@ -1,10 +1,10 @@
-# observer_ros.bag.jobs: bag x variant evaluations as independent jobs, serially or on Dask.
+# observer_ros.evaluation.jobs: bag x variant evaluations as independent jobs, serially or on Dask.
 """
 The job layer: one job is one bag replayed through one observer configuration.
 
 A :class:`Job` names a bag, a vehicle file, a variant (its overrides of the vehicle file)
 and the evaluation's options; :func:`run_job` evaluates it with the code of
-``observer-eval`` (:func:`observer_ros.bag.evaluate.evaluate_bag` on the vehicle with the
+``observer-eval`` (:func:`observer_ros.evaluation.evaluator.evaluate_bag` on the vehicle with the
 variant's overrides applied) and returns one row of plain data (numbers, strings), so a
 job can run in any process: it reads the bag with rosbags and imports no ROS.
 
@@ -32,7 +32,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from .errors import BagToolError
+from ..bag.errors import BagToolError
 
 __all__ = ['Job', 'make_jobs', 'run_job', 'run_jobs', 'connect', 'summarize', 'job_dict',
            'workers_of', 'WorkersLost', 'SCHEDULER_ENV', 'LOST_TIMEOUT']
@@ -70,7 +70,7 @@ def make_jobs(bags, vehicle, variants=None, namespace=None, tolerance=None, exac
         ``{name: [override, ...]}`` as ``observer-eval --variant``; ``design`` (the file's
         own observer) always comes first.
     namespace, tolerance, exact
-        As :func:`~observer_ros.bag.evaluate.evaluate_bag`'s.
+        As :func:`~observer_ros.evaluation.evaluator.evaluate_bag`'s.
 
     """
     configs = [('design', ())] + [(name, tuple(ov)) for name, ov in (variants or {}).items()]
@@ -82,12 +82,12 @@ def run_job(job, spill=True):
     """
     Evaluate one job; return its row (plain data).
 
-    ``spill`` is :func:`~observer_ros.bag.evaluate.evaluate_bag`'s: True (default) keeps
+    ``spill`` is :func:`~observer_ros.evaluation.evaluator.evaluate_bag`'s: True (default) keeps
     the replay's rows in temporary files (in the worker's TMPDIR) while it runs, None in
     memory; the rows are dropped once scored, so the row is the same either way.
 
-    The row is :meth:`JobResult.to_dict() <observer_ros.bag.evaluate.JobResult>` of
-    :func:`~observer_ros.bag.evaluate.evaluate_job` (``bag``, ``variant``,
+    The row is :meth:`JobResult.to_dict() <observer_ros.evaluation.evaluator.JobResult>` of
+    :func:`~observer_ros.evaluation.evaluator.evaluate_job` (``bag``, ``variant``,
     ``observer_type``, ``estimates``, ``summary`` with ``error_rms`` and
     ``settling_time``, ``states`` and ``outputs`` with their metrics, ``warnings``,
     ``seconds``; inf and NaN as None) with ``error``: None, or why the job failed, in
@@ -95,7 +95,7 @@ def run_job(job, spill=True):
 
     """
     import warnings
-    from .evaluate import evaluate_job
+    from .evaluator import evaluate_job
     from ..core.errors import error_text, ObserverError
     start = time.perf_counter()
     cpu = time.process_time()

@@ -1,4 +1,4 @@
-# observer_ros.bag.metrics: errors against the truth and residual whiteness.
+# observer_ros.evaluation.metrics: errors against the truth and residual whiteness.
 """
 Metrics of replayed estimates: errors against ``state/true``, residual whiteness.
 
@@ -11,7 +11,7 @@ import math
 import numpy as np
 
 from .running_metrics import BLOCK, blocked_state_metrics
-from .spill import blocks, count_true, is_spilled, pairwise_sum, Sink, SortedColumn
+from ..bag.spill import blocks, count_true, is_spilled, pairwise_sum, Sink, SortedColumn
 from ..core.innovation import ljung_box_acf, ljung_box_of_products
 from ..replay.replay import innovation_health
 

@@ -1,8 +1,8 @@
-# observer_ros.bag.batch: observer-eval-batch, many bags x many variants as jobs (Dask).
+# observer_ros.evaluation.batch: observer-eval-batch, many bags x many variants as jobs (Dask).
 """
 ``observer-eval-batch``: evaluate many bags times many observer variants.
 
-Each bag x variant is one job of :mod:`observer_ros.bag.jobs`, run on a local Dask
+Each bag x variant is one job of :mod:`observer_ros.evaluation.jobs`, run on a local Dask
 cluster (``--workers N``), on an existing one (``--scheduler ADDRESS`` or
 ``$DASK_SCHEDULER_ADDRESS``) or in this process (``--serial``). The output folder holds
 one merged table (``results.csv``: one row per bag and variant), the summary across bags
@@ -32,12 +32,12 @@ import sys
 import time
 import warnings
 
-from .errors import BagToolError
-from .evaluate import _Progress, IN_MEMORY_HELP, parse_options
+from .evaluator import _Progress, IN_MEMORY_HELP, parse_options
 from .jobs import (connect, job_dict, LOST_TIMEOUT, make_jobs, run_jobs, SCHEDULER_ENV,
                    summarize, workers_of, WorkersLost)
 from .report import text_table
 from .results import jsonable
+from ..bag.errors import BagToolError
 from ..core.errors import error_text, ObserverError, quiet_on_closed_pipe
 from ..params_file import regular_file
 

@@ -1,4 +1,4 @@
-# observer_ros.bag.evaluate: `observer-eval BAG --vehicle V.yaml`: replay and compare.
+# observer_ros.evaluation.evaluator: `observer-eval BAG --vehicle V.yaml`: replay and compare.
 """
 Offline evaluation of estimators on a recorded bag.
 
@@ -18,12 +18,12 @@ residual RMS and its whiteness (normalised autocorrelation at lags 1..k, the Lju
 statistic and its p-value, the fraction of lags outside +-1.96/sqrt(N)).
 
 Python API: :func:`evaluate_bag` returns an :class:`EvalResult`;
-:func:`write_results` (:mod:`observer_ros.bag.report`) writes the table, ``results.csv``,
-``results.json``, PNG plots (:mod:`observer_ros.bag.plots`) and a results bag
+:func:`write_results` (:mod:`observer_ros.evaluation.report`) writes the table, ``results.csv``,
+``results.json``, PNG plots (:mod:`observer_ros.evaluation.plots`) and a results bag
 (``/eval/<variant>/state/estimate``, ``/eval/state/true``). :func:`evaluate_job` is one
 job, one bag x one variant, with a plain picklable :class:`JobResult` (no arrays, no
 open files): the unit to run serially or on many workers. The metrics are in
-:mod:`observer_ros.bag.metrics`.
+:mod:`observer_ros.evaluation.metrics`.
 
 """
 import argparse
@@ -40,13 +40,13 @@ import warnings
 
 import numpy as np
 
-from .errors import BagToolError
 from .metrics import (DEFAULT_TOLERANCE, score_variant, STEADY_FRACTION, tolerances,
                       whiteness, WHITENESS_LAGS)
-from .reader import read_recording
 from .report import BAG_MAX_MESSAGES, format_table, write_results
 from .results import EvalResult, jsonable, ScoredReplay, VariantResult
-from .spill import blocks, count_true, Sink
+from ..bag.errors import BagToolError
+from ..bag.reader import read_recording
+from ..bag.spill import blocks, count_true, Sink
 from ..core.errors import error_text, ObserverError, quiet_on_closed_pipe
 from ..core.vehicle_design import design_vehicle
 from ..outputs.folders import check_output
@@ -248,7 +248,7 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
     keep_rows : bool
         Keep each variant's rows (and errors) for the plots and the results bag. When
         False each variant is scored as soon as its replay ends and its rows are dropped
-        (its ``replay`` becomes a :class:`~observer_ros.bag.results.ScoredReplay`): the
+        (its ``replay`` becomes a :class:`~observer_ros.evaluation.results.ScoredReplay`): the
         memory of a search does not grow with the number of variants. Either way every
         variant is scored right after its replay, with the same figures.
     health : bool

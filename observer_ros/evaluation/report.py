@@ -1,8 +1,8 @@
-# observer_ros.bag.report: the evaluation's table, CSV, JSON and results bag.
+# observer_ros.evaluation.report: the evaluation's table, CSV, JSON and results bag.
 """
 Report files of an evaluation: table, CSV, JSON, plots and a results bag.
 
-The plots themselves are in :mod:`observer_ros.bag.plots`.
+The plots themselves are in :mod:`observer_ros.evaluation.plots`.
 
 """
 
@@ -14,8 +14,8 @@ import numpy as np
 
 from .metrics import WHITENESS_LAGS
 from .plots import write_plots
-from .reader import jazzy_typestore
-from .spill import decimated_rows
+from ..bag.reader import jazzy_typestore
+from ..bag.spill import decimated_rows
 from ..core.innovation import WINDOW as INNOVATION_WINDOW
 from ..outputs.staging import StagedOutput
 from ..replay.replay import SKIPPED
@@ -223,7 +223,7 @@ def write_results(result, out, force=False, plots=True, results_bag=True,
 
 def _joint_state_bytes(names, stamp_ns, values):
     """Serialize JointState messages (name, position) for many stamps at once."""
-    from .cdr_decode import _joint_state_layout   # the same layout rules as the decoder
+    from ..bag.cdr_decode import _joint_state_layout   # the same layout rules as the decoder
     store = jazzy_typestore()
     js = store.types['sensor_msgs/msg/JointState']
     hdr = store.types['std_msgs/msg/Header']
@@ -248,7 +248,7 @@ def write_results_bag(result, path, limit):
     """Write the truth, estimates and errors as JointState topics to a new mcap bag."""
     from rosbags.rosbag2 import StoragePlugin
 
-    from .integrity import CrcWriter
+    from ..bag.integrity import CrcWriter
     store = jazzy_typestore()
     js = 'sensor_msgs/msg/JointState'
     topics = []

@@ -1,4 +1,4 @@
-# observer_ros.bag.results: what an evaluation computed (one bag, its variants).
+# observer_ros.evaluation.results: what an evaluation computed (one bag, its variants).
 """
 The results of evaluating a bag: one :class:`VariantResult` per observer configuration.
 

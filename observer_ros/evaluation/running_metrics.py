@@ -1,8 +1,8 @@
-# observer_ros.bag.running_metrics: per-state error metrics fed block by block.
+# observer_ros.evaluation.running_metrics: per-state error metrics fed block by block.
 """
 Per-state error metrics computed from blocks of samples, in memory bounded by the block.
 
-:func:`observer_ros.bag.metrics.state_metrics` defines the metrics; this module computes
+:func:`observer_ros.evaluation.metrics.state_metrics` defines the metrics; this module computes
 the same ones without copies of the whole series (rows with a NaN left out, one epoch
 selected, the steady state selected), so a long bag can be scored block by block:
 
