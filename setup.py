@@ -39,7 +39,7 @@ setup(
             'observer_design = observer_ros.tools.design_report:main',
             'observer_eval = observer_ros.evaluation.evaluator:main',
             'observer_eval_batch = observer_ros.evaluation.batch:main',
-            'observer_tune = observer_ros.bag.tune:main',
+            'observer_tune = observer_ros.tuning.tune:main',
             'observer_play = observer_ros.bag.play:main',
             'observer_run = observer_ros.tools.run_closed_loop:main',
             'observer_bag_recover = observer_ros.bag.recover:main',

@@ -31,8 +31,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / 'test'))
 
 import irregular_bags as ib  # noqa: E402,I100
-from observer_ros.bag.tune import tune  # noqa: E402
 from observer_ros.evaluation.evaluator import evaluate_bag  # noqa: E402
+from observer_ros.tuning.tune import tune  # noqa: E402
 
 
 def _floats(values):

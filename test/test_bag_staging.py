@@ -10,13 +10,13 @@ import subprocess
 import sys
 import time
 
-from observer_ros.bag import tune_report
 from observer_ros.bag.errors import BagToolError
-from observer_ros.bag.tune import main as tune_main
 from observer_ros.evaluation import report as eval_report
 from observer_ros.evaluation.evaluator import main as eval_main
 from observer_ros.outputs.folders import MARKER
 from observer_ros.outputs.staging import StagedOutput, write_new_file
+from observer_ros.tuning import report as tune_report
+from observer_ros.tuning.tune import main as tune_main
 import pytest
 from ros_helpers import tmpfs, WAIT
 
@@ -55,12 +55,12 @@ def test_an_interrupted_tune_leaves_its_earlier_output_and_the_rerun_replaces_it
     def interrupted(result, folder, plots):         # Ctrl-C after the first file
         (folder / 'tune.txt').write_text('half')
         raise KeyboardInterrupt
-    monkeypatch.setattr('observer_ros.bag.tune.write_report', interrupted)
+    monkeypatch.setattr('observer_ros.tuning.tune.write_report', interrupted)
     assert tune_main(TUNE + ['--out', str(out), '--force']) == 130
     assert 'error: interrupted' in capsys.readouterr().err
     assert _tree(out) == before and not _stages(out)
     # the rerun recognises every file as its own (the tuned file too) and replaces them
-    monkeypatch.setattr('observer_ros.bag.tune.write_report', real)
+    monkeypatch.setattr('observer_ros.tuning.tune.write_report', real)
     assert tune_main(TUNE + ['--out', str(out), '--force']) == 0
     after = _tree(out)
     assert after['notes.txt'] == before['notes.txt']        # the same file, not a copy
@@ -73,7 +73,7 @@ def test_a_tool_terminated_while_writing_leaves_no_mix_and_no_stage(tmp_path):
     assert tune_main(TUNE + ['--out', str(out)]) == 0
     before = _tree(out)
     # SIGTERM (the default action: no clean-up) as soon as its stage exists
-    proc = subprocess.Popen([sys.executable, '-W', 'ignore', '-m', 'observer_ros.bag.tune',
+    proc = subprocess.Popen([sys.executable, '-W', 'ignore', '-m', 'observer_ros.tuning.tune',
                              *TUNE, '--out', str(out), '--force'],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + WAIT

@@ -20,7 +20,6 @@ from bag_synth import CONFIG, control_law, JOINT_STATE, vector_msg, write_bag
 import numpy as np
 from numpy.testing import assert_allclose
 from observer_ros.bag.errors import BagToolError
-from observer_ros.bag.tune import identify, main, tune
 from observer_ros.core.als import (ALSError, identify_noise, model_autocovariances,
                                    predictor_innovations, process_noise_map,
                                    sample_autocovariances)
@@ -28,6 +27,7 @@ from observer_ros.core.design import kalman_gain, observer_gain
 from observer_ros.core.estimators import process_noise_covariance
 from observer_ros.core.model import map_poles_to_discrete, zoh_matrices
 from observer_ros.evaluation.evaluator import evaluate_bag, main as eval_main
+from observer_ros.tuning.tune import identify, main, tune
 from observer_ros.vehicle import load_vehicle
 import pytest
 import yaml
@@ -177,7 +177,7 @@ def test_als_on_arrays_recovers_the_noise_and_refuses_what_it_cannot_identify():
 def test_als_discrete_vehicle_and_pooled_sequences():
     # a discrete model: Q is the covariance per sample on G's columns (G Q G^T), the
     # reference is the vehicle's z-plane poles; two halves pooled give the same Q, R
-    from observer_ros.bag.sampled import reference_gain
+    from observer_ros.tuning.sampled import reference_gain
     v = load_vehicle(CONFIG / 'submarine_discrete.yaml')
     A, B, C = (np.asarray(m, float) for m in (v.plant.A, v.plant.B, v.plant.C))
     q, r = 8e-3, 1e-6          # per sample: about the continuous tests' 0.02^2 / dt
@@ -323,7 +323,7 @@ def test_observer_tune_pole_search_without_identification(noisy_bags, tmp_path, 
 
 
 def test_gain_search_without_truth_scores_residuals(noisy_bags):
-    from observer_ros.bag.gain_search import gain_search
+    from observer_ros.tuning.gain_search import gain_search
     res = gain_search([noisy_bags['submarine_no_truth']], CONFIG / 'submarine.yaml', 'poles',
                       [0.25, 1.0, 4.0])
     assert res.metric.startswith('residual RMS')
@@ -363,7 +363,7 @@ def test_observer_tune_errors(noisy_bags, tmp_path, capsys):
 def test_observer_tune_entry_points_and_help(capsys):
     root = Path(__file__).resolve().parents[1]
     # one console script (ros2 run's name); the dash name is the venv's alias (Makefile)
-    assert "'observer_tune = observer_ros.bag.tune:main'" in (root / 'setup.py').read_text()
+    assert "'observer_tune = observer_ros.tuning.tune:main'" in (root / 'setup.py').read_text()
     assert 'observer_tune' in (root / 'Makefile').read_text()
     with pytest.raises(SystemExit) as done:
         main(['--help'])
@@ -379,7 +379,7 @@ def test_sampled_data_steps_are_the_stamps_of_measurements_and_command_changes()
     # commands are looked up a block at a time: any block gives the same arrays
     from types import SimpleNamespace
     from observer_ros.bag.reader import Stream
-    from observer_ros.bag.sampled import sampled_data
+    from observer_ros.tuning.sampled import sampled_data
     v = load_vehicle(CONFIG / 'submarine.yaml')
     rng = np.random.default_rng(3)
     N = 1001

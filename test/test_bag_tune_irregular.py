@@ -15,10 +15,10 @@ from pathlib import Path
 
 import irregular_bags as ib
 import numpy as np
-from observer_ros.bag.identify import identify
-from observer_ros.bag.tune import main
 from observer_ros.core.als import ALSError
 from observer_ros.evaluation.evaluator import evaluate_bag
+from observer_ros.tuning.identify import identify
+from observer_ros.tuning.tune import main
 from observer_ros.vehicle import load_vehicle
 import pytest
 
@@ -120,7 +120,7 @@ def _result(R, R_std, chi2, dof=100):
 
 
 def test_measurement_noise_not_positive_is_diagnosed():
-    from observer_ros.bag.identify import _diagnose
+    from observer_ros.tuning.identify import _diagnose
     zero = _result(0.0, 1e-7, 1.3)
     fits = [('every state', '--states theta,w,q', _result(1e-6, 1e-8, 1.0)),
             ('the inputs', '--input-noise', 'not identifiable (rank 1 of 2)')]

@@ -15,10 +15,10 @@ from bag_synth import CONFIG, write_bag
 import numpy as np
 from numpy.testing import assert_allclose
 from observer_ros.bag.errors import BagToolError
-from observer_ros.bag.gain_search import gain_search
-from observer_ros.bag.pole_search import MARGIN, pole_set
-from observer_ros.bag.tune import main, tune
 from observer_ros.evaluation.evaluator import evaluate_bag
+from observer_ros.tuning.gain_search import gain_search
+from observer_ros.tuning.pole_search import MARGIN, pole_set
+from observer_ros.tuning.tune import main, tune
 from observer_ros.vehicle import load_vehicle
 import pytest
 from test_bag_tune import _true, simulate_noisy
@@ -173,7 +173,7 @@ def test_per_pole_search_refusals(two_bags, tmp_path, capsys):
 
 def test_the_same_filter_is_replayed_once(monkeypatch):
     """A Qd of zeros times every scale is one filter: one replay, one score for all."""
-    from observer_ros.bag import gain_search as gs
+    from observer_ros.tuning import gain_search as gs
     from observer_ros.evaluation import evaluator as evaluate
     calls = []
     real = evaluate.replay
@@ -199,8 +199,8 @@ def test_the_same_filter_is_replayed_once(monkeypatch):
 
 def test_model_errors_are_least_at_the_true_covariances_and_match_a_simulation():
     """The model's predicted RMS error: least at scale 1, and what a long run measures."""
-    from observer_ros.bag.gain_search import model_errors
-    from observer_ros.bag.sampled import sampled_model
+    from observer_ros.tuning.gain_search import model_errors
+    from observer_ros.tuning.sampled import sampled_model
     from observer_ros.core.estimators import process_noise_covariance
     v, q, r = _true('submarine')
     Ad, _ = sampled_model(v, v.sample_time)
@@ -228,9 +228,9 @@ def test_model_errors_are_least_at_the_true_covariances_and_match_a_simulation()
 
 def test_the_kalman_search_replays_the_scales_around_the_models_best(two_bags, tmp_path,
                                                                      monkeypatch):
-    from observer_ros.bag import gain_search as gs
-    from observer_ros.bag.identify import identify
-    from observer_ros.bag.tuned_vehicle import write_tuned_vehicle
+    from observer_ros.tuning import gain_search as gs
+    from observer_ros.tuning.identify import identify
+    from observer_ros.tuning.tuned_vehicle import write_tuned_vehicle
     bags = two_bags['submarine'][:1]
     ident = identify(bags, CONFIG / 'submarine.yaml', input_noise=True)
     r = ident.result

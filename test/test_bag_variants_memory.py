@@ -15,11 +15,11 @@ flags). The metrics are the same whether the rows are kept, spilled or dropped, 
 import tracemalloc
 
 from bag_synth import CONFIG
-from observer_ros.bag.gain_search import score_variants, search_overrides
 from observer_ros.evaluation import batch, evaluator as evaluate
 from observer_ros.evaluation.jobs import make_jobs, run_jobs
 from observer_ros.evaluation.results import ScoredReplay
 from observer_ros.replay import bulk_runs, health as replay_health, rows as replay_outputs
+from observer_ros.tuning.gain_search import score_variants, search_overrides
 from observer_ros.vehicle import load_vehicle
 import pytest
 from test_bag_jobs import _numbers

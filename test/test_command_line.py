@@ -14,7 +14,7 @@ NODES = {'plant_simulator': 'observer_ros.nodes.plant_simulator',
          'container': 'observer_ros.nodes.container'}
 TOOLS = {'observer_design': 'observer_ros.tools.design_report',
          'observer_eval': 'observer_ros.evaluation.evaluator',
-         'observer_tune': 'observer_ros.bag.tune',
+         'observer_tune': 'observer_ros.tuning.tune',
          'observer_play': 'observer_ros.bag.play',
          'observer_run': 'observer_ros.tools.run_closed_loop',
          'observer_bag_recover': 'observer_ros.bag.recover'}

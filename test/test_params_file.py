@@ -146,7 +146,7 @@ def test_devices_and_folders_are_refused_unopened(path, kind):
 @pytest.mark.parametrize('entry', [
     ['observer_ros.tools.design_report', '{}'],
     ['observer_ros.evaluation.evaluator', str(SAMPLE), '--vehicle', '{}'],
-    ['observer_ros.bag.tune', str(SAMPLE), '--vehicle', '{}'],
+    ['observer_ros.tuning.tune', str(SAMPLE), '--vehicle', '{}'],
     ['observer_ros.tools.run_closed_loop', '{}'],
     ['observer_ros.nodes.observer_node', '--ros-args', '--params-file', '{}'],
     ['observer_ros.nodes.container', 'observer', 'compensator', '--ros-args',

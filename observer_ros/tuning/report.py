@@ -1,6 +1,6 @@
-# observer_ros.bag.tune_report: observer-tune's report (text, JSON, CSV, PNG).
+# observer_ros.tuning.report: observer-tune's report (text, JSON, CSV, PNG).
 """
-The report of :func:`observer_ros.bag.tune.tune`.
+The report of :func:`observer_ros.tuning.tune.tune`.
 
 ``tune.txt`` (what ``observer-tune`` prints: the identification, the whiteness verdicts, the
 search tables with a column per bag, their mean and each bag's best), ``tune.json``

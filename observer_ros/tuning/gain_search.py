@@ -1,4 +1,4 @@
-# observer_ros.bag.gain_search: choose an observer's poles or Kalman weights from bags.
+# observer_ros.tuning.gain_search: choose an observer's poles or Kalman weights from bags.
 """
 Gain search: replay bags through a family of observers and score each.
 
@@ -31,7 +31,7 @@ import warnings
 import numpy as np
 import scipy.linalg
 
-from .errors import BagToolError
+from ..bag.errors import BagToolError
 from ..evaluation.evaluator import evaluate_bag
 
 __all__ = ['DEFAULT_SCALES', 'SearchResult', 'search_overrides', 'score_variants',

@@ -1,8 +1,8 @@
-# observer_ros.bag.identify: noise covariances of a vehicle from bags (ALS).
+# observer_ros.tuning.identify: noise covariances of a vehicle from bags (ALS).
 """
 Identify a vehicle's process and measurement noise covariances from bags.
 
-The bags' outputs and commands at their steps (:mod:`observer_ros.bag.sampled`), the
+The bags' outputs and commands at their steps (:mod:`observer_ros.tuning.sampled`), the
 innovations of a stable reference predictor (the vehicle's own observer), the transient
 dropped, and autocovariance least squares (:mod:`observer_ros.core.als`), pooled over the
 bags. Data with every output at every sample and equal steps take the time-invariant
@@ -35,9 +35,9 @@ from typing import Dict, List
 
 import numpy as np
 
-from .errors import BagToolError
-from .reader import read_recording
 from .sampled import noise_input, reference_gain, sampled_data, sampled_model
+from ..bag.errors import BagToolError
+from ..bag.reader import read_recording
 from ..core.als import (ALSError, choose_lags, DEFAULT_LAGS, identify_noise,
                         kalman_predictor_gain, predictor_blocks, predictor_innovations,
                         process_noise_map)
@@ -377,7 +377,7 @@ def identify(bags, vehicle, namespace=None, lags=DEFAULT_LAGS, full=False, state
     Raises
     ------
     BagToolError
-        A bag cannot be used (see :func:`~observer_ros.bag.sampled.sampled_data`).
+        A bag cannot be used (see :func:`~observer_ros.tuning.sampled.sampled_data`).
     ALSError
         The noise is not identifiable with this model and these data, or the measurement
         noise comes out non-positive (the message names the likely cause).

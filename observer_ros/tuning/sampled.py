@@ -1,4 +1,4 @@
-# observer_ros.bag.sampled: a recording as regularly sampled arrays (y, u) for identification.
+# observer_ros.tuning.sampled: a recording as regularly sampled arrays (y, u) for identification.
 """
 A recording's measurements and commands at their stamps, and the sampled model.
 
@@ -22,7 +22,7 @@ from typing import Dict, List, Tuple
 
 import numpy as np
 
-from .errors import BagToolError
+from ..bag.errors import BagToolError
 from ..core.als import kalman_predictor_gain, process_noise_map
 from ..core.design import observer_gain
 from ..core.model import map_poles_to_discrete, zoh_matrices

@@ -1,8 +1,8 @@
-# observer_ros.bag.pole_search: choose each observer pole from bags (scipy.optimize).
+# observer_ros.tuning.pole_search: choose each observer pole from bags (scipy.optimize).
 """
 Per-pole search: every observer pole its own parameter, chosen by scipy.optimize.
 
-The common-scale search (:func:`~observer_ros.bag.gain_search.gain_search` of the poles)
+The common-scale search (:func:`~observer_ros.tuning.gain_search.gain_search` of the poles)
 runs first; from the vehicle's poles times its best scale, Nelder-Mead
 (``scipy.optimize.minimize``) moves each pole on its own: a real pole is one parameter,
 a conjugate pair two (its real part and ``|imag|``, so the pair stays a pair). In the
@@ -10,7 +10,7 @@ s-plane (a discrete vehicle's z-plane poles through ``s = log(z) / dt``) a pole'
 part is ``-(margin + exp(a))``, so every pole stays stable with a margin of
 :data:`MARGIN` times the slowest starting pole's ``|Re s|``; ``|imag| = exp(b)``. Each
 evaluation replays every bag through the candidate observer and scores it with the gain
-search's metric (:func:`~observer_ros.bag.gain_search.score_variants`: RMS estimation
+search's metric (:func:`~observer_ros.tuning.gain_search.score_variants`: RMS estimation
 error against ``state/true``, else residuals and whiteness relative to the vehicle's own
 poles), the mean over the bags; a candidate whose observer cannot be designed scores
 inf. The best evaluation (the start included, so never worse than the common scale's
@@ -24,9 +24,9 @@ from typing import Dict, List
 
 import numpy as np
 
-from .errors import BagToolError
 from .gain_search import (bag_keys, DEFAULT_SCALES, gain_search, metric_name,
                           score_variants)
+from ..bag.errors import BagToolError
 from ..core.errors import ObserverError
 
 __all__ = ['MARGIN', 'DEFAULT_EVALUATIONS', 'PoleSet', 'pole_set', 'PoleSearchResult',
@@ -183,7 +183,7 @@ def pole_search(bags, vehicle, scales=DEFAULT_SCALES, namespace=None, exact=Fals
     vehicle : str or Path or Vehicle
         The vehicle (file) whose observer poles are searched.
     scales, namespace, exact, progress, refine, dask, spill
-        The common-scale search's (:func:`~observer_ros.bag.gain_search.gain_search`;
+        The common-scale search's (:func:`~observer_ros.tuning.gain_search.gain_search`;
         the optimizer's evaluations, one after the other, run in this process).
     evaluations : int
         Most candidate observers scored (>= 1; the first is the start).

@@ -1,10 +1,10 @@
-# observer_ros.bag.tune: `observer-tune BAG... --vehicle V.yaml`: noise and gains from bags.
+# observer_ros.tuning.tune: `observer-tune BAG... --vehicle V.yaml`: noise and gains from bags.
 """
 Tune an observer from recorded data.
 
-1. Noise covariances by autocovariance least squares (:mod:`observer_ros.bag.identify`,
+1. Noise covariances by autocovariance least squares (:mod:`observer_ros.tuning.identify`,
    :mod:`observer_ros.core.als`): the bags' outputs and commands at their stamps
-   (:mod:`observer_ros.bag.sampled`; outputs missing at some samples and jittered stamps
+   (:mod:`observer_ros.tuning.sampled`; outputs missing at some samples and jittered stamps
    included), the innovations of a stable reference predictor (the vehicle's own
    observer) run at the actual stamps, the transient dropped, autocovariances over
    ``--lags`` lags (chosen from the plant by default; pooled over the bags), Q on the
@@ -18,10 +18,10 @@ Tune an observer from recorded data.
    from the identified covariances (:mod:`observer_ros.core.whiteness`, the test of the
    node and ``observer-eval``); a plot of the empirical autocovariances against the
    fitted ones, with +-2 sigma bands.
-3. A gain search (:mod:`observer_ros.bag.gain_search`) over a scale of the Kalman weights
+3. A gain search (:mod:`observer_ros.tuning.gain_search`) over a scale of the Kalman weights
    (``--search kalman``, the default) or of the vehicle's observer poles (``--search
    poles``, also without identification: ``--no-als``), or of each pole
-   (``--search each-pole``, :mod:`observer_ros.bag.pole_search`: the common scale, then
+   (``--search each-pole``, :mod:`observer_ros.tuning.pole_search`: the common scale, then
    scipy.optimize on every pole, conjugate pairs kept). Over many bags the metric is
    the mean of the per-bag metrics; the tables give each bag's.
 4. A new vehicle file with the tuned observer (never overwriting), and the report beside
@@ -41,12 +41,12 @@ import warnings
 
 import numpy as np
 
-from .errors import BagToolError
 from .gain_search import DEFAULT_SCALES, gain_search, search_overrides
 from .identify import FILE_FLOOR, filter_Q, Identification, identify, PASSES
 from .pole_search import DEFAULT_EVALUATIONS, pole_search, pole_set
-from .tune_report import format_report, write_report
+from .report import format_report, write_report
 from .tuned_vehicle import OBSERVER_KEYS, write_tuned_vehicle
+from ..bag.errors import BagToolError
 from ..core.als import DEFAULT_LAGS
 from ..core.errors import ObserverError, quiet_on_closed_pipe
 from ..evaluation.evaluator import (_load_vehicle, _Progress, IN_MEMORY_HELP, stop_on_sigterm,

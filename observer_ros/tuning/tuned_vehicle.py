@@ -1,4 +1,4 @@
-# observer_ros.bag.tuned_vehicle: write a new vehicle file with a tuned observer.
+# observer_ros.tuning.tuned_vehicle: write a new vehicle file with a tuned observer.
 """
 A new vehicle file: the original's parameters with the observer replaced.
 
@@ -11,7 +11,7 @@ numbers as a comment on the line before it. An existing file is never overwritte
 
 from pathlib import Path
 
-from .errors import BagToolError
+from ..bag.errors import BagToolError
 from ..outputs.staging import write_new_file
 from ..vehicle import load_parameters, load_vehicle, parameters_to_yaml
 
