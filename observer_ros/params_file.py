@@ -24,7 +24,7 @@ import yaml
 
 from .core.errors import VehicleFileError
 
-__all__ = ['MAX_FILE_BYTES', 'MAX_ARRAY_LENGTH', 'STREAM_TIMEOUT', 'read_text',
+__all__ = ['MAX_FILE_BYTES', 'MAX_ARRAY_LENGTH', 'MAX_NESTING', 'STREAM_TIMEOUT', 'read_text',
            'regular_file', 'check_parameters_file', 'yaml_load', 'flatten_parameters',
            'load_parameters']
 
@@ -35,6 +35,8 @@ MAX_FILE_BYTES = 1 << 18
 MAX_ARRAY_LENGTH = 10000
 # s: a pipe (a FIFO, process substitution) must give its whole text within this time
 STREAM_TIMEOUT = 5.0
+# levels of mappings, sequences and values a parameters file may nest (a vehicle file: 7)
+MAX_NESTING = 32
 
 
 def _kind(mode):
@@ -229,7 +231,7 @@ class _Loader(yaml.composer.Composer, _Parser, yaml.constructor.SafeConstructor,
         yaml.resolver.Resolver.__init__(self)
 
     def compose_node(self, parent, index):
-        """Refuse anchors, aliases and over-long arrays as soon as they are read."""
+        """Refuse anchors, aliases, over-long arrays and deep nesting as soon as they are read."""
         event = self.peek_event()
         if isinstance(event, yaml.AliasEvent) or getattr(event, 'anchor', None):
             raise yaml.composer.ComposerError(
@@ -239,7 +241,17 @@ class _Loader(yaml.composer.Composer, _Parser, yaml.constructor.SafeConstructor,
             raise yaml.composer.ComposerError(
                 None, None, f'an array of more than {MAX_ARRAY_LENGTH} entries '
                 '(MAX_ARRAY_LENGTH)', parent.start_mark)
-        return super().compose_node(parent, index)
+        # each level is a Python call (composing, building, flattening): {a: {a: ...}} 30000
+        # deep was a RecursionError traceback
+        self._depth = getattr(self, '_depth', 0) + 1
+        try:
+            if self._depth > MAX_NESTING:
+                raise yaml.composer.ComposerError(
+                    None, None, f'nested more than {MAX_NESTING} levels deep (MAX_NESTING)',
+                    event.start_mark)
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
 
 
 _Loader.yaml_implicit_resolvers = {

@@ -8,8 +8,8 @@ import sys
 import time
 
 from observer_ros.core.errors import VehicleFileError
-from observer_ros.params_file import (MAX_ARRAY_LENGTH, MAX_FILE_BYTES, regular_file,
-                                      STREAM_TIMEOUT)
+from observer_ros.params_file import (MAX_ARRAY_LENGTH, MAX_FILE_BYTES, MAX_NESTING,
+                                      regular_file, STREAM_TIMEOUT)
 from observer_ros.vehicle import load_parameters, load_vehicle
 import pytest
 from ros_helpers import CONFIG, ros_env, WAIT
@@ -60,6 +60,19 @@ def test_array_length_is_limited(tmp_path):
     # at the limit: read
     flat = load_parameters(_long_array(tmp_path / 'ok.yaml', MAX_ARRAY_LENGTH))
     assert len(flat['model.A']) == MAX_ARRAY_LENGTH
+
+
+@pytest.mark.parametrize('deep', [' {a: ' * 30000 + '1' + '}' * 30000,
+                                  ''.join(f'\n{"  " * (i + 4)}a:' for i in range(60)) + ' 1',
+                                  ' ' + '[' * 60 + ']' * 60])
+def test_deep_nesting_is_one_clear_error(tmp_path, deep):
+    # before: {a: {a: ...}} 30000 deep was a RecursionError traceback, exit 1
+    path = tmp_path / 'deep.yaml'
+    path.write_text(HEAD + '    vehicle:\n      name:' + deep + '\n')
+    with pytest.raises(VehicleFileError, match=r'deep.yaml: not valid YAML: nested more '
+                       f'than {MAX_NESTING} levels deep \\(MAX_NESTING\\)') as err:
+        load_parameters(path)
+    assert '\n' not in str(err.value)
 
 
 def test_non_utf8_is_one_clear_error(tmp_path):
