@@ -17,7 +17,8 @@ from observer_ros.core.errors import (DesignError, DimensionError, NotDetectable
 from observer_ros.core.model import Plant, zoh_matrices
 from observer_ros.core.spec import (ControllerSpec, ObserverSpec, SensorSpec, SimulatorSpec,
                                     Vehicle)
-from observer_ros.core.vehicle_design import design_vehicle, design_warnings, observer_noise_gain
+from observer_ros.core.vehicle_design import (design_vehicle, design_warnings,
+                                              measurement_intensity, observer_noise_gain)
 from observer_ros.core.vehicle_report import format_report, to_json_dict
 import pytest
 import scipy.linalg
@@ -341,9 +342,14 @@ def test_design_vehicle_open_loop_and_kalman():
                         controller=ControllerSpec(poles=np.array([-1.0, -2, -3, -4])))
     assert any('open-loop observer drifts' in w for w in design_vehicle(cart).warnings)
     kal = ObserverSpec('kalman', Qd=np.diag([1e-4, 1e-2, 1e-2]), Rd=np.array([[1e-4]]))
-    d = design_vehicle(make_vehicle(observer=kal))
+    v = make_vehicle(observer=kal)
+    d = design_vehicle(v)
     assert d.P is not None
-    assert_allclose(d.L, d.P @ SUB_C.T / 1e-4, rtol=1e-9)
+    # Rd is the covariance of each 10 ms sample, as the node's sampled filter uses it: the
+    # design reported is the Kalman-Bucy filter that filter tends to, intensity Rd h
+    h = v.sample_time
+    assert_allclose(measurement_intensity(v), [[1e-4 * h]])
+    assert_allclose(d.L, d.P @ SUB_C.T / (1e-4 * h), rtol=1e-9)
     assert 'P' in to_json_dict(d)
 
 

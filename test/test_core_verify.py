@@ -15,7 +15,7 @@ from observer_ros.core.errors import (DesignVerificationError, DimensionError, O
 from observer_ros.core.model import Plant
 from observer_ros.core.spec import (ControllerSpec, ObserverSpec, SensorSpec, SimulatorSpec,
                                     Vehicle)
-from observer_ros.core.vehicle_design import design_vehicle
+from observer_ros.core.vehicle_design import design_vehicle, measurement_intensity
 from observer_ros.core.vehicle_report import to_json_dict
 from observer_ros.core.verify import eigenvalue_bounds, stability_status, unstable_eigenvalues
 from observer_ros.tools import design_report
@@ -103,10 +103,11 @@ def test_finding2_kalman_with_noise_input_matrix():
     Bd = np.random.default_rng(4).standard_normal((4, 2))
     Qd = np.array([[2.0, 0.3], [0.3 + 1e-13, 1.0]])        # asymmetric by round-off
     Rd = np.diag([0.01, 0.02])
-    d = design_quietly(vehicle(A, B, C, ObserverSpec('kalman', Qd=Qd, Rd=Rd, Bd=Bd),
-                               ControllerSpec()))
+    v = vehicle(A, B, C, ObserverSpec('kalman', Qd=Qd, Rd=Rd, Bd=Bd), ControllerSpec())
+    d = design_quietly(v)
     Qn = Bd @ ((Qd + Qd.T) / 2) @ Bd.T
-    L_ref, P_ref, _ = control.lqe(A, np.eye(4), C, (Qn + Qn.T) / 2, Rd)
+    # Rd per sample: the continuous design sees the intensity Rd h (vehicle_design)
+    L_ref, P_ref, _ = control.lqe(A, np.eye(4), C, (Qn + Qn.T) / 2, Rd * v.sample_time)
     assert_allclose(d.L, L_ref, rtol=1e-9, atol=1e-12)
     assert_allclose(d.P, P_ref, rtol=1e-9, atol=1e-12)
 
@@ -254,7 +255,8 @@ def test_property_every_accepted_design_is_verified(v):
             M = kalman_update_gain(d.P, C, Rd)
             assert_allclose(A @ M, L_ref, rtol=1e-9, atol=1e-9)     # predictor = A M
         else:
-            L_ref, P_ref, _ = control.lqe(A, np.eye(A.shape[0]), C, v.observer.Qd, Rd)
+            L_ref, P_ref, _ = control.lqe(A, np.eye(A.shape[0]), C, v.observer.Qd,
+                                          measurement_intensity(v))
         assert_allclose(d.L, L_ref, rtol=1e-9, atol=1e-9)
     n = A.shape[0]
     observer_order = d.L.shape[0] if d.reduced is not None else n
@@ -293,7 +295,10 @@ def test_sensors_cart_pendulum_x_suffices_theta_does_not(tmp_path, capsys):
     v = _cart_two_sensors()
     subsets = sensor_subsets(v)
     by = {s.outputs: s for s in subsets}
-    assert subsets[0].outputs == ('x',)                   # smallest observable first
+    # observable first, then by the least Ms any controller reaches: with x alone the
+    # unstable pole 3.28 and the zero 3.13 force Ms >= 42; theta as well removes the zero
+    assert [s.outputs for s in subsets[:2]] == [('x', 'theta'), ('x',)]
+    assert by[('x', 'theta')].ms_bound == 1.0 and 41.5 < by[('x',)].ms_bound < 42.5
     assert by[('x',)].observable and by[('x', 'theta')].observable
     assert not by[('theta',)].observable and not by[('theta',)].detectable
     assert any('x' in m for m in by[('theta',)].unobservable_modes)
@@ -303,8 +308,9 @@ def test_sensors_cart_pendulum_x_suffices_theta_does_not(tmp_path, capsys):
     rc, out, err = run_tool(tmp_path, capsys, v, '--sensors', '--json')
     assert rc == 0, err
     data = json.loads(out)['sensor_subsets']
-    assert data[0]['outputs'] == ['x'] and data[0]['observable']
-    assert set(data[0]['kalman_error_variance']) == set(v.plant.state_names)
+    assert data[0]['outputs'] == ['x', 'theta'] and data[0]['observable']
+    assert data[1]['outputs'] == ['x'] and round(data[1]['ms_bound']) == 42
+    assert set(data[1]['kalman_error_variance']) == set(v.plant.state_names)
 
 
 def test_sensors_example_515_names_the_unobservable_mode(tmp_path, capsys):

@@ -33,6 +33,7 @@ from .verify import (PlacementCheck, stability_status, unstable_eigenvalues, ver
                      verify_stable)
 
 __all__ = ['observer_noise_gain', 'design_warnings', 'VehicleDesign', 'design_vehicle',
+           'measurement_intensity',
            'SPEED_RATIO', 'NOISE_GAIN_LIMIT']
 
 #: Seed 000's rule of thumb: observer poles "twice as negative" as the controller's.
@@ -105,7 +106,7 @@ def observer_noise_gain(A, C, L, noise_std, sample_time=None, discrete=False):
         return np.full(p, np.inf), np.full((n, n), np.inf)
     Q = L @ R @ L.T
     if discrete:
-        P = scipy.linalg.solve_discrete_lyapunov(Phi, Q)
+        P = _discrete_lyapunov(Phi, Q)
     else:
         P = scipy.linalg.solve_continuous_lyapunov(Phi, -Q)
     P = (P + P.T) / 2.0
@@ -113,6 +114,29 @@ def observer_noise_gain(A, C, L, noise_std, sample_time=None, discrete=False):
     with np.errstate(divide='ignore', invalid='ignore'):
         ratio = np.where(sigma > 0, out_std / np.where(sigma > 0, sigma, 1.0), np.nan)
     return ratio, P
+
+
+def _discrete_lyapunov(Phi, Q):
+    """
+    Return P = sum_k Phi^k Q Phi^kT for a stable Phi.
+
+    scipy's direct solver, or, when it warns of an ill-conditioned system (a deadbeat
+    Phi: nilpotent and far from normal), Smith's doubling ``P <- P + Phi_j P Phi_j^T``,
+    ``Phi_j <- Phi_j^2``, which sums the same series.
+
+    """
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter('always')
+        P = scipy.linalg.solve_discrete_lyapunov(Phi, Q)
+    if not caught and np.all(np.isfinite(P)):
+        return P
+    P, Pk = Q.copy(), Phi.copy()
+    for _ in range(64):
+        P = P + Pk @ P @ Pk.T
+        Pk = Pk @ Pk
+        if not np.any(Pk) or np.linalg.norm(Pk, 1) < 1e-17:
+            break
+    return P
 
 
 def design_warnings(A, B, C, K, L, D=None, discrete=False, noise_std=None,
@@ -303,6 +327,34 @@ def _noise_per_output(vehicle):
     return sigma, dt
 
 
+def measurement_intensity(vehicle):
+    """
+    Return the measurement noise of a Kalman observer as its continuous design sees it.
+
+    ``observer.Rd`` is the covariance of each sample, as the observer node's sampled filter
+    uses it. For a continuous plant that filter tends, as the samples come faster, to the
+    Kalman-Bucy filter whose measurement noise has the intensity ``Rd`` scaled by the
+    sample periods (``h_i h_j Rd_ij / sqrt(h_i h_j)``, h_i the period of output i's
+    sensor): that is the design reported. A discrete plant's Rd is used as it is.
+
+    Parameters
+    ----------
+    vehicle : observer_ros.core.spec.Vehicle
+        A vehicle with a kalman observer.
+
+    Returns
+    -------
+    (p, p) ndarray
+
+    """
+    Rd = np.asarray(vehicle.observer.Rd, dtype=float)
+    if vehicle.plant.is_discrete:
+        return Rd
+    _, dt = _noise_per_output(vehicle)
+    h = np.sqrt(np.where(np.isfinite(dt), dt, vehicle.sample_time))
+    return Rd * h[:, None] * h[None, :]
+
+
 def design_vehicle(vehicle):
     """
     Design the observer and controller a vehicle file asks for, and check them.
@@ -394,7 +446,8 @@ def design_vehicle(vehicle):
             if obs_spec.Qd is None or obs_spec.Rd is None:
                 raise DesignError('observer: a kalman observer needs observer.Qd and '
                                   'observer.Rd')
-            L, P, observer_poles = kalman_gain(A, C, obs_spec.Qd, obs_spec.Rd, obs_spec.Bd,
+            L, P, observer_poles = kalman_gain(A, C, obs_spec.Qd,
+                                               measurement_intensity(vehicle), obs_spec.Bd,
                                                discrete, names)
             verify_stable(A - L @ C, 'the Kalman gain of observer.Qd and observer.Rd',
                           'eig(A - L C)', discrete)

@@ -111,6 +111,11 @@ def _poles_line(poles):
     return ', '.join(format_complex(z, 6) for z in order)
 
 
+def _rate(rate):
+    """Return a decay rate (ln of the spectral radius per s, negative) as said: 0.6/s."""
+    return 'deadbeat' if rate == -float('inf') else f'{-rate:.3g}/s'
+
+
 def _placement_lines(check):
     if check is None or not check.requested.size:
         return []
@@ -143,7 +148,7 @@ def _delay_margin_lines(design, vehicle):
     return lines
 
 
-def format_report(design, vehicle=None):
+def format_report(design, vehicle=None, review=None):
     """
     Console report of a VehicleDesign (what ``observer-design`` prints).
 
@@ -153,6 +158,9 @@ def format_report(design, vehicle=None):
         The design.
     vehicle : observer_ros.core.spec.Vehicle, optional
         Adds the vehicle's name, description and source.
+    review : DesignReview, optional
+        Adds its robustness section (``core/design_review.py``, which then gives the
+        delay margins) and its warnings.
 
     Returns
     -------
@@ -184,8 +192,8 @@ def format_report(design, vehicle=None):
         sc = design.sampled
         lines.append(f' sampled gains (sensors {list(sc.sensors)}, period {sc.period:.6g} s, '
                      f'{len(sc.corrections)} corrections): verified; error map over one period '
-                     f'has spectral radius {sc.spectral_radius:.4g} (decay {sc.decay_rate:.3g}/s, '
-                     f'designed {sc.designed_rate:.3g}/s)')
+                     f'has spectral radius {sc.spectral_radius:.4g} (decays at '
+                     f'{_rate(sc.decay_rate)}, designed {_rate(sc.designed_rate)})')
     if design.reduced is not None:
         r = design.reduced
         est = [design.state_names[i] for i in r.rest]
@@ -223,8 +231,16 @@ def format_report(design, vehicle=None):
                      + ('ok' if design.separation_ok else 'FAILED')
                      + f' (closed-loop matrix off by {design.separation_error:.2g}; '
                      f'rounding allows {design.separation_allowed:.2g})')
+        sens = None if review is None else review.sensitivity
+        if sens is not None and sens.poles.size:
+            lines.append(f'  one rounding of the closed-loop matrix moves its pole '
+                         f'{format_complex(sens.poles[sens.worst], 5)} by up to '
+                         f'{sens.rounding_move[sens.worst]:.2g} (relative '
+                         f'{sens.relative_move:.2g}; condition number '
+                         f'{sens.condition[sens.worst]:.3g})')
         lines.append(f'Compensator poles: {_poles_line(design.compensator_poles)}')
-        lines.extend(_delay_margin_lines(design, vehicle))
+        if review is None:
+            lines.extend(_delay_margin_lines(design, vehicle))
         lines.append('Compensator D(s), u = -D(s) y:' if not design.discrete else
                      'Compensator D(z), u = -D(z) y:')
         try:
@@ -235,9 +251,13 @@ def format_report(design, vehicle=None):
         except Exception:   # noqa: BLE001 - the report must not fail on the printout
             lines.append('  (transfer function not available)')
     lines.append('')
-    if design.warnings:
+    if review is not None and vehicle is not None:
+        lines.extend(review.lines(design, vehicle.sample_time))
+        lines.append('')
+    warns = list(design.warnings) + (list(review.warnings) if review is not None else [])
+    if warns:
         lines.append('Warnings:')
-        lines.extend(f'  - {w}' for w in design.warnings)
+        lines.extend(f'  - {w}' for w in warns)
     else:
         lines.append('Warnings: none')
     return '\n'.join(lines)
