@@ -1,17 +1,23 @@
 # How a simulated run ends, and who owns /clock when several vehicles share a graph.
-"""The simulator ends a realtime run cleanly; peers then report stale data; one /clock."""
+"""The simulator ends a realtime run cleanly; peers then stand by, silent; one /clock."""
 
 from diagnostic_msgs.msg import DiagnosticStatus
+from observer_ros.nodes.common import STATE_QOS
 from ros_helpers import CONFIG, Listener, Probe, Proc, WAIT
 from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
 
 # long enough for the loop to close on a loaded machine (DDS matching can take seconds)
 REALTIME = ('simulator.mode:=realtime', 'simulator.duration:=5.0', 'diagnostics_period:=0.2')
 
 
-def test_realtime_run_ends_cleanly_and_peers_report_stale_data(tmp_path):
+def test_realtime_run_ends_cleanly_and_peers_stand_by(tmp_path):
     probe = Probe()
     listener = Listener(probe)
+    commands, estimates = [], []
+    probe.node.create_subscription(JointState, '/end/control/u', commands.append, STATE_QOS)
+    probe.node.create_subscription(JointState, '/end/state/estimate', estimates.append,
+                                   STATE_QOS)
     peers = [Proc(node, CONFIG / 'submarine.yaml', *REALTIME, 'use_sim_time:=true',
                   namespace='/end', log_dir=tmp_path)
              for node in ('observer_node', 'compensator')]
@@ -31,22 +37,39 @@ def test_realtime_run_ends_cleanly_and_peers_report_stale_data(tmp_path):
         out = sim.output()
         assert 'run complete at t=' in out, out
         assert 'FATAL' not in out and 'Traceback' not in out, out
-        # the observer names the (resolved) silent topic; the compensator's estimate is stale
+        # the observer names the (resolved) silent topic; the compensator knows the run is
+        # over (simulator/run_complete) and sends nothing more
         probe.spin_until(
             lambda: (s := listener.latest_status('/end/observer')) is not None and
             s.level == DiagnosticStatus.WARN and 'no data on /end/imu/data' in s.message,
             WAIT, 'the observer reporting /end/imu/data silent')
         probe.spin_until(
             lambda: (s := listener.latest_status('/end/compensator')) is not None and
-            s.level == DiagnosticStatus.ERROR and 'estimate stale' in s.message and
-            '/end/state/estimate' in s.message,
-            WAIT, 'the compensator reporting a stale estimate')
+            s.level == DiagnosticStatus.OK and 'run complete' in s.message,
+            WAIT, 'the compensator standing by')
+        sent = len(commands)
+        assert sent and estimates, 'no command or estimate heard during the run'
+        reports = _reports(listener, '/end/compensator')
+        # longer than controller.stale_timeout (0.5 s): five more reports 0.2 s apart
+        probe.spin_until(lambda: _reports(listener, '/end/compensator') >= reports + 5, WAIT,
+                         'five more compensator reports')
+        assert len(commands) == sent, 'commands after the run'
+        # one frame for the estimates: the vehicle's base_frame (the submarine's FRD body)
+        assert {m.header.frame_id for m in estimates} == {'base_link_frd'}
     finally:
         probe.close()
         codes = {p.log_path.name: p.stop() for p in peers}
         if sim is not None:
             sim.stop()
     assert set(codes.values()) == {0}, codes
+    for peer in peers:      # nothing to warn about once the run is over
+        assert 'ahead of the clock' not in peer.output(), peer.output()
+
+
+def _reports(listener, node_name):
+    """Return how many /diagnostics reports of a node the listener heard."""
+    return sum(1 for array in listener.diagnostics for status in array.status
+               if status.name == node_name)
 
 
 def test_zero_duration_runs_until_stopped(tmp_path):

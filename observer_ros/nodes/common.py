@@ -72,6 +72,7 @@ TOPICS = {
     'command': 'control/u',
     'command_array': 'control/u_array',
     'reference': 'control/reference',
+    'run_complete': 'simulator/run_complete',
 }
 
 

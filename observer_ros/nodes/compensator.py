@@ -23,6 +23,9 @@ cannot be held open loop (the cart) has a standby observer in this node
 (core/standby.py): the vehicle's observer run on the sensor topics, which closes the loop
 while ``state/estimate`` is silent.
 
+Once the simulator says its run is over (``simulator/run_complete``, latched), a silent
+estimate is the end of the run, not a fault: no safe command, OK on /diagnostics.
+
 """
 
 import time
@@ -31,7 +34,7 @@ from diagnostic_msgs.msg import DiagnosticStatus
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.duration import Duration
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Bool, Float64MultiArray
 
 from .checks import changed_pole_problem, own_parameter_problem
 from .common import (checked_stamp, joint_state, LATCHED_QOS, MESSAGE_CLASSES,
@@ -41,7 +44,7 @@ from .managed import ManagedVehicleNode
 from .runner import run_node
 from ..core.control_law import command_problem, control_law
 from ..core.errors import ObserverError
-from ..core.loop_supervisor import ERROR, LoopSupervisor
+from ..core.loop_supervisor import ERROR, LoopSupervisor, OK
 from ..core.vehicle_design import design_vehicle
 from ..sensors import extract_measurement
 
@@ -63,6 +66,7 @@ class CompensatorNode(ManagedVehicleNode):
         self.design = None
         self._logged = {}
         self._safe_timer = None
+        self._run_complete = False
         super().__init__('compensator', own_parameters=(
             'publish_array', 'diagnostics_period', 'clock_jump_tolerance',
             'command_lead_steps'))
@@ -104,6 +108,10 @@ class CompensatorNode(ManagedVehicleNode):
         self._sub = self.watched_subscription(
             JointState, TOPICS['estimate'], self._on_estimate, STATE_QOS,
             matched=self._on_matched)
+        # the simulator's run is over: no safe commands to a plant that no longer runs
+        self._run_complete = False
+        self._complete_sub = self.watched_subscription(
+            Bool, TOPICS['run_complete'], self._on_run_complete, LATCHED_QOS, shed=False)
         period = min(self.vehicle.controller.stale_timeout / 2.0, 0.1)
         self._watchdog = self.wall_timer(period, self._on_watchdog)
         self._diag_timer = self.wall_timer(self.param('diagnostics_period'),
@@ -213,7 +221,17 @@ class CompensatorNode(ManagedVehicleNode):
             self.destroy_timer(self._safe_timer)
             self._safe_timer = None
 
+    def _on_run_complete(self, msg):
+        complete = bool(msg.data)
+        if complete and not self._run_complete:
+            self.get_logger().info('the simulator completed its run: no commands while no '
+                                   'estimate comes')
+            self._stop_safe_timer()
+        self._run_complete = complete
+
     def _on_watchdog(self):
+        if self._run_complete:      # a silent estimate is the end of the run, not a fault
+            return
         if self.loop.watchdog(self.wall_now()):
             # a safe command every sample time while stale (the prediction's step)
             self._stop_safe_timer()
@@ -222,7 +240,7 @@ class CompensatorNode(ManagedVehicleNode):
             self._on_safe_tick()
 
     def _on_safe_tick(self):
-        if not self.loop.stale:
+        if not self.loop.stale or self._run_complete:
             self._stop_safe_timer()
             return
         # no estimate behind it: marked, so that lock-step does not take it for one
@@ -269,7 +287,10 @@ class CompensatorNode(ManagedVehicleNode):
         duplicates = self.duplicate_publishers((TOPICS['command'], TOPICS['estimate']))
         self.loop.publishers = max(1, self.count_publishers(TOPICS['estimate']))
         level, message, values = self.loop.status(duplicates)
-        if self.loop.mode == 'waiting' and not duplicates:
+        if self._run_complete and not duplicates:
+            level, message = OK, \
+                "run complete (the simulator's): no commands until estimates come again"
+        elif self.loop.mode == 'waiting' and not duplicates:
             message = f'waiting for {self.resolve_topic_name(TOPICS["estimate"])}'
         elif message.startswith('estimate stale'):
             message += f' ({self.resolve_topic_name(TOPICS["estimate"])})'

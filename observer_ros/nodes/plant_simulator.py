@@ -22,7 +22,10 @@ start). Measurement noise comes from ``simulator.seed``. Two modes:
   plant held the previous command longer than its stamp says, which the observer cannot
   know. Steps without a fresh command are counted (``late_commands``).
 
-Simulated time starts at ``start_time`` (1.0 s: ROS reads a zero stamp as unset).
+Simulated time starts at ``start_time`` (1.0 s: ROS reads a zero stamp as unset). The end
+of the run (``simulator.duration``) is published, latched, on ``simulator/run_complete``
+(``std_msgs/Bool``: false while the run goes on, true once it is over): the compensator
+then stops commanding a plant that no longer runs.
 
 One time base per ROS graph: a simulator with ``simulator.publish_clock: false`` (a second
 vehicle, the first one owns /clock) follows /clock once one is published
@@ -44,6 +47,7 @@ import time
 from diagnostic_msgs.msg import DiagnosticStatus
 import numpy as np
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.duration import Duration
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool
@@ -65,6 +69,8 @@ FUTURE_COMMAND = 2.0
 # realtime: how many command_timeouts to wait for a matched command publisher at start
 # (and a /clock follower for the first /clock)
 READY_WAIT = 10.0
+# s: how long the end of the run may take to reach its readers before the process exits
+RUN_COMPLETE_ACK_WAIT = 1.0
 
 
 class PlantSimulatorNode(VehicleNode):
@@ -99,6 +105,10 @@ class PlantSimulatorNode(VehicleNode):
             (s, self.create_publisher(MESSAGE_CLASSES[s.msg_type], s.topic, SENSOR_QOS),
              plant.output_rows(s.outputs)) for s in v.sensors]
         self._state_pub = self.create_publisher(JointState, TOPICS['true_state'], STATE_PUB_QOS)
+        # latched: false while the run goes on (a restarted simulator replaces an old true),
+        # true once it is complete (the compensator then stands by instead of commanding)
+        self._complete_pub = self.create_publisher(Bool, TOPICS['run_complete'], LATCHED_QOS)
+        self._complete_pub.publish(Bool(data=False))
         self._clock_pub = None
         if v.simulator.publish_clock:
             self._clock_pub = self.create_publisher(Clock, '/clock', 10)
@@ -350,6 +360,9 @@ class PlantSimulatorNode(VehicleNode):
             self._step_timer.cancel()
         self.get_logger().info(f'run complete at t={self.t:.3f} s; x = {self.x.tolist()}')
         self.publish_diagnostics(DiagnosticStatus.OK, 'run complete')
+        self._complete_pub.publish(Bool(data=True))
+        # received before the process ends (exit_when_done): a latched sample goes with it
+        self._complete_pub.wait_for_all_acked(Duration(seconds=RUN_COMPLETE_ACK_WAIT))
         if self.param('exit_when_done'):
             self.exit_code = 0      # run_nodes stops spinning: a clean exit, no exception
 
@@ -397,7 +410,8 @@ class PlantSimulatorNode(VehicleNode):
             if self._follower is not None and self._follower.t0_at(self.k) is not None:
                 # a follower: the plant waited at step 0 while /clock went on
                 self.t0 = self._follower.t0_at(self.k)
-            self.get_logger().info(f'{self.vehicle.name}: realtime run of {self.steps} '
+            self.get_logger().info(f'{self.vehicle.name}: realtime run of '
+                                   f'{self.steps or "unlimited"} '
                                    f'steps of {self.dt} s')
         if self._started:
             due = self._steps_due()
