@@ -23,6 +23,7 @@ import numpy as np
 from numpy.testing import assert_allclose, assert_array_equal
 from observer_ros.bag.errors import BagToolError
 from observer_ros.bag.reader import bag_info, decode_messages, read_recording
+from observer_ros.bag.report import format_table
 from observer_ros.core.errors import ObserverError
 from observer_ros.evaluation.evaluator import (evaluate_bag, evaluate_job, main, parse_tolerance,
                                                parse_variant, whiteness, write_results)
@@ -434,6 +435,12 @@ def test_bag_metrics_design_beats_open_loop_on_the_unstable_cart(runs, bags):
     # noise-free: the design converges to round-off, the open loop diverges
     assert design.states['theta']['ss_std'] < 1e-9
     assert openloop.summary['settling_time'] == np.inf
+    # printed 'never' (not the bag's length, nor inf) where the error never settles
+    settle = [line.split()[5] for line in format_table(result).splitlines()
+              if line.startswith('openloop ') and line.split()[1] in vehicle.plant.state_names]
+    settle = settle[:vehicle.plant.n]               # the states' table comes first
+    assert 'never' in settle, settle
+    assert all(s == 'never' or np.isfinite(float(s)) for s in settle), settle
     # the live estimate is the design's
     for state in vehicle.plant.state_names:
         assert result.variants['live'].states[state]['rmse'] == pytest.approx(
