@@ -349,7 +349,10 @@ def worker_replay(bag, rounds):
     """Time the replay alone: the design (poles) and a Kalman variant, alternated (us/msg)."""
     import numpy as np  # noqa: F401
     from observer_ros.bag.reader import read_recording
-    from observer_ros.replay.replay import replay
+    try:
+        from observer_ros.replay.replay import replay
+    except ImportError:         # a version before the replay package: bag/replay.py
+        from observer_ros.bag.replay import replay
     from observer_ros.vehicle import load_vehicle
     design = load_vehicle(VEHICLE)
     kalman = load_vehicle(VEHICLE, overrides=KALMAN)
