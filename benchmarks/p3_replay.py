@@ -374,7 +374,10 @@ def worker_replay(bag, rounds):
 def worker_eval(bag, out):
     """observer-eval BAG --vehicle config/submarine.yaml --out OUT --no-plots."""
     t0 = time.perf_counter()
-    from observer_ros.evaluation.evaluator import main
+    try:
+        from observer_ros.evaluation.evaluator import main
+    except ImportError:         # a version before the evaluation package: bag/evaluate.py
+        from observer_ros.bag.evaluate import main
     import contextlib
     import io
     buf = io.StringIO()

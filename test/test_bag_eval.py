@@ -23,10 +23,10 @@ import numpy as np
 from numpy.testing import assert_allclose, assert_array_equal
 from observer_ros.bag.errors import BagToolError
 from observer_ros.bag.reader import bag_info, decode_messages, read_recording
-from observer_ros.bag.report import format_table
 from observer_ros.core.errors import ObserverError
 from observer_ros.evaluation.evaluator import (evaluate_bag, evaluate_job, main, parse_tolerance,
                                                parse_variant, whiteness, write_results)
+from observer_ros.evaluation.report import format_table
 from observer_ros.replay.replay import affine_scan, epochs_of, live_replay, replay
 from observer_ros.sensors import extract_measurement
 from observer_ros.timeutil import stamp_to_sec
