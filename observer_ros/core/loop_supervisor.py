@@ -10,7 +10,7 @@ The compensator's decisions, without ROS: one estimate in, one command (or none)
     The loop closes on the estimates it follows: u = K (x_d - x_hat) - Kd x_d.
 ``stale``
     No usable estimate for ``controller.stale_timeout`` (wall clock), or, in realtime
-    with a standby, none within ``LAG_STEPS`` sample times of the plant's time. With a
+    with a warm standby, none within ``LAG_LIMIT`` s of the plant's time. With a
     standby observer (:mod:`.standby`; a plant that cannot be held open loop, realtime)
     the loop closes on the standby's estimate, one command per measurement; without one,
     the safe command (:mod:`.safe_command`: predict-and-hold from the last estimate that
@@ -79,9 +79,11 @@ RESYNC_TOL = 0.02
 # Longest gap, in steps, across which an estimate is compared with the model's prediction.
 CONSISTENCY_STEPS = 50
 # Realtime with a standby: the observer is silent once its newest estimate followed is
-# this many sample times (and at least LAG_MIN s) behind the newest measurement's stamp.
+# LAG_LIMIT s (at least LAG_STEPS sample times) behind the newest measurement's stamp.
+# Estimates a few sample times late (a loaded host) stay followed, the plant holding the
+# last command meanwhile: the standby is for a silence, not for each delay.
+LAG_LIMIT = 0.1
 LAG_STEPS = 3
-LAG_MIN = 0.02
 
 
 class Command:
@@ -202,7 +204,7 @@ class LoopSupervisor:
         elif not wanted:
             self.standby = None
         # realtime with a standby: no estimate this far behind the plant's time is silence
-        self.lag_limit = max(LAG_STEPS * self.dt, LAG_MIN)
+        self.lag_limit = max(LAG_STEPS * self.dt, LAG_LIMIT)
 
     def set_lead_steps(self, steps):
         """Change ``command_lead_steps``."""
@@ -321,8 +323,8 @@ class LoopSupervisor:
         x = standby.measurement(sensor, t, y)
         if x is None or t < self.plant_time:
             return None
-        if self.mode in ('closed', 'recover', 'waiting') and self._last_stamp is not None and \
-                t - self._last_stamp > self.lag_limit:
+        if standby.warm and self.mode in ('closed', 'recover', 'waiting') and \
+                self._last_stamp is not None and t - self._last_stamp > self.lag_limit:
             self._go_stale(f"no estimate within {self.lag_limit:g} s of the plant's time")
         if self.mode not in ('stale', 'resync'):
             return None
