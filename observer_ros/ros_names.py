@@ -21,8 +21,8 @@ MAX_DOMAIN_ID = 232
 _PARAMETER_NAME = re.compile(r'^(?:[A-Za-z_][A-Za-z0-9_]*:)?[A-Za-z_][A-Za-z0-9_]*'
                              r'(?:[./][A-Za-z_][A-Za-z0-9_]*)*$')
 
-__all__ = ['check_namespace', 'check_topic_name', 'check_parameter_override', 'check_domain_id',
-           'MAX_DOMAIN_ID']
+__all__ = ['check_namespace', 'check_topic_name', 'check_parameter_override', 'check_remap',
+           'check_ros_arguments', 'check_domain_id', 'MAX_DOMAIN_ID']
 
 
 def _one_line(err, what, name):
@@ -106,6 +106,61 @@ def check_parameter_override(text, what='-p'):
         raise ObserverError(f'{what} {text!r}: rcl cannot parse this parameter override '
                             f'({reason})') from None
     return text
+
+
+def check_remap(rule, what='-r'):
+    """
+    Return ``rule`` (``FROM:=TO``) if ROS accepts the names it gives a node.
+
+    ``__ns:=`` is checked as a namespace, ``__node:=`` (``__name:=``) as a node name, the
+    same with a ``node:`` prefix; other remaps are left to rcl. rcl's own refusal of a bad
+    namespace is a lexer's ("Expected lexeme type (1) not found, search ended at index 8").
+
+    Raises
+    ------
+    ObserverError
+        One line naming the option, the name, the rule and the offending character.
+
+    """
+    from rclpy.exceptions import NameValidationException
+    from rclpy.validate_node_name import validate_node_name
+    name, sep, value = rule.partition(':=')
+    key = name.rpartition(':')[2]
+    if sep and key == '__ns':
+        check_namespace(value, f'{what} {name}:=')
+    elif sep and key in ('__node', '__name'):
+        try:
+            validate_node_name(value)
+        except NameValidationException as err:
+            raise ObserverError(_one_line(err, f'{what} {name}:=', value)) from None
+    return rule
+
+
+def check_ros_arguments(argv):
+    """
+    Check a node's ``--ros-args``: each ``-p`` override and each ``-r`` remap of a name.
+
+    What rcl would refuse at ``rclpy.init`` with its lexer's words (and log lines) is one
+    ``error:`` line naming the argument instead (:func:`check_parameter_override`,
+    :func:`check_remap`).
+
+    Raises
+    ------
+    ObserverError
+        The first argument ROS would refuse.
+
+    """
+    inside = False
+    for i, arg in enumerate(argv):
+        if arg == '--ros-args':
+            inside = True
+        elif arg == '--':
+            inside = False
+        elif inside and i + 1 < len(argv):
+            if arg in ('-p', '--param'):
+                check_parameter_override(argv[i + 1], arg)
+            elif arg in ('-r', '--remap'):
+                check_remap(argv[i + 1], arg)
 
 
 def check_domain_id(environ=None):

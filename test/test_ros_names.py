@@ -7,7 +7,8 @@ import sys
 
 from observer_ros.core.errors import ObserverError
 from observer_ros.ros_names import (check_domain_id, check_namespace,
-                                    check_parameter_override, check_topic_name, MAX_DOMAIN_ID)
+                                    check_parameter_override, check_ros_arguments,
+                                    check_topic_name, MAX_DOMAIN_ID)
 import pytest
 from ros_helpers import CONFIG, ros_env
 
@@ -86,3 +87,36 @@ def test_observer_run_refuses_an_override_rcl_cannot_parse_before_any_process(tm
         "error: -p 'observer.0x:=1.0': 'observer.0x' is not a parameter name rcl reads (parts "
         'separated by ".", each a letter or _ followed by letters, digits or _)']
     assert not (tmp_path / 'runs').exists()
+
+
+def test_a_nodes_ros_arguments_are_checked_by_ros_rules():
+    good = ['--ros-args', '--params-file', 'v.yaml', '-p', 'simulator.mode:=realtime',
+            '-r', '__ns:=/sub1', '-r', '__node:=observer_2', '-r', 'imu/data:=/robot/imu',
+            '--remap', 'observer:__ns:=/sub2', '--log-level', 'debug']
+    check_ros_arguments(good)
+    check_ros_arguments(['-p', 'x.0y:=1'])          # not a ROS argument: the node's own
+    for args, words in [
+            (['-r', '__ns:=/véhicule_1'], "-r __ns:= '/véhicule_1': namespace must not "
+             "contain characters other than alphanumerics, '_', or '/' (character 3, 'é')"),
+            (['--remap', 'observer:__ns:=/a//b'], "--remap observer:__ns:= '/a//b': "
+             "namespace must not contain repeated '/' (character 4, '/')"),
+            (['-r', '__node:=obs-1'], "-r __node:= 'obs-1': node name must not contain "
+             "characters other than alphanumerics or '_' (character 4, '-')"),
+            (['--param', 'observer.0x:=1.0'], "--param 'observer.0x:=1.0': 'observer.0x' is "
+             'not a parameter name rcl reads')]:
+        with pytest.raises(ObserverError) as err:
+            check_ros_arguments(['--ros-args', *args])
+        assert str(err.value).startswith(words), str(err.value)
+
+
+def test_a_node_refuses_a_namespace_ros_refuses_in_one_line():
+    # before: rcl's WARN and ERROR log lines, then "Couldn't parse remap rule ... Expected
+    # lexeme type (1) not found, search ended at index 8, at /project/src/rcl/lexer..."
+    done = subprocess.run([sys.executable, '-W', 'ignore', '-m',
+                           'observer_ros.nodes.observer_node', '--ros-args', '--params-file',
+                           str(CONFIG / 'submarine.yaml'), '-r', '__ns:=/véhicule_1'],
+                          env=ros_env(), capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2, done.stderr
+    assert (done.stdout + done.stderr).strip().splitlines() == [
+        "error: -r __ns:= '/véhicule_1': namespace must not contain characters other than "
+        "alphanumerics, '_', or '/' (character 3, 'é')"], done.stderr

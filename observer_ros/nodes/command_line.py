@@ -8,7 +8,9 @@ package's loader first (observer_ros.params_file: size and array-length limits, 
 UTF-8), so that a node refuses a file exactly as the offline tools do, as quickly, with one
 ``error:`` line and exit status 2, instead of rclpy's RCLError traceback. A pipe given as
 a params file (process substitution) is read once and handed to rclpy as a regular copy;
-a FIFO without a writer, a folder or a device is refused without waiting.
+a FIFO without a writer, a folder or a device is refused without waiting. The ``-p``
+overrides and the ``-r`` remaps of the namespace or the node name are checked by ROS's
+rules first too (observer_ros.ros_names), naming the argument and the character.
 
 """
 
@@ -17,6 +19,7 @@ import sys
 
 from ..core.errors import ObserverError
 from ..params_file import check_parameters_file, regular_file
+from ..ros_names import check_ros_arguments
 
 __all__ = ['usage', 'params_files', 'check_command_line', 'regular_params_files',
            'program_name']
@@ -61,6 +64,7 @@ def check_command_line(argv, prog, module, doc):
         print(usage(prog, module, doc))
         return 0
     try:
+        check_ros_arguments(argv)
         for path in params_files(argv):
             check_parameters_file(path)
     except ObserverError as err:
