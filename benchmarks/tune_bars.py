@@ -9,8 +9,8 @@ step, known noise. For each system and seed: ``observer-tune`` (identification o
 then ``observer-eval`` of the tuned vehicle file beside the Kalman filter of the true
 covariances. Printed per system: Rd / true, the fraction of Qd entries within their
 stated +-2 sigma, the RMSE of the tuned filter / the true-covariance one (median and
-worst), and how often ``observer-eval`` called the true-covariance filter WARN against
-the level it states.
+worst; and the steady-state ratio that one run's scatters around), and how often
+``observer-eval`` called the true-covariance filter WARN against the level it states.
 
 Run: ``.venv/bin/python benchmarks/tune_bars.py [--seeds 10] [--steps 10000]
 [--systems chain,submarine,submarine_input] [--out DIR]``.
@@ -26,17 +26,48 @@ import tempfile
 import time
 
 import numpy as np
+import scipy.linalg
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / 'test'))
 
 import irregular_bags as ib  # noqa: E402,I100
 from observer_ros.evaluation.evaluator import evaluate_bag  # noqa: E402
+from observer_ros.tuning.identify import FILE_FLOOR, filter_Q  # noqa: E402
 from observer_ros.tuning.tune import tune  # noqa: E402
 
 
 def _floats(values):
     return '[' + ', '.join(repr(float(x)) for x in np.ravel(values)) + ']'
+
+
+def steady_rms(sysm, Qc, R, Qc_true, R_true):
+    """
+    Return the steady-state RMS error of the Kalman filter of (Qc, R) under the true noise.
+
+    At the nominal step with every measurement present: the filter's gain from the
+    discrete Riccati equation of (Qc, R), its error covariance under (Qc_true, R_true)
+    from a Lyapunov equation (the expected figure that one run's RMSE scatters around).
+
+    """
+    n = sysm.A.shape[0]
+
+    def discrete(q):
+        M = np.zeros((2 * n, 2 * n))
+        M[:n, :n], M[n:, n:] = -sysm.A, sysm.A.T
+        M[:n, n:] = sysm.Gw @ np.diag(q) @ sysm.Gw.T
+        F = scipy.linalg.expm(M * sysm.h)
+        Ad = F[n:, n:].T
+        Qd = Ad @ F[:n, n:]
+        return Ad, 0.5 * (Qd + Qd.T)
+    Ad, Qd = discrete(Qc)
+    C = sysm.C
+    P = scipy.linalg.solve_discrete_are(Ad.T, C.T, Qd, np.diag(R))
+    K = P @ C.T @ np.linalg.inv(C @ P @ C.T + np.diag(R))
+    _, Qd_true = discrete(Qc_true)
+    J = np.eye(n) - K @ C
+    W = J @ Qd_true @ J.T + K @ np.diag(R_true) @ K.T
+    return float(np.sqrt(np.trace(scipy.linalg.solve_discrete_lyapunov(J @ Ad, W))))
 
 
 def system(name, root):
@@ -79,12 +110,16 @@ def one(name, seed, steps, root, passes=None):
     ev = evaluate_bag(bag, vehicle, {'truekf': true}, compare={'tuned': res.vehicle_file},
                       include_live=False, include_design=False)
     rmse = {n: ev.variants[n].summary['error_rms'] for n in ('truekf', 'tuned')}
+    written = np.diag(filter_Q(ident.result, FILE_FLOOR))      # the tuned file's Qd
+    expected = steady_rms(sysm, written, np.diag(ident.result.R), Qc, R) / \
+        steady_rms(sysm, Qc, R, Qc, R)
     health = ev.variants['truekf'].sensors
     return {'seed': seed, 'seconds': seconds, 'lags': [p.lags for p in ident.passes],
             'Rd_ratio': r,
             'Qd': [{'value': v, 'std': s, 'true': t, 'inside': abs(v - t) <= 2 * s}
                    for v, s, t in q],
             'rmse_ratio': rmse['tuned'] / rmse['truekf'],
+            'expected_rmse_ratio': expected,
             'states_ratio': {st: ev.variants['tuned'].states[st]['rmse'] /
                              ev.variants['truekf'].states[st]['rmse']
                              for st in ev.variants['truekf'].states},
@@ -122,6 +157,9 @@ def main(argv=None):
               f'({sum(inside) / len(inside):.0%})')
         print(f'  RMSE tuned / true covariances: median {np.median(ratio):.4f}, '
               f'{min(ratio):.4f} .. {max(ratio):.4f}')
+        expected = [row['expected_rmse_ratio'] for row in rows]
+        print(f'  steady-state RMS error tuned / true covariances (Lyapunov, nominal step): '
+              f'{min(expected):.4f} .. {max(expected):.4f}')
         print(f'  true-covariance filter WARN: {sum(warn)} of {len(warn)} sensor verdicts '
               f'(stated false-alarm probability {np.mean(level):.3g} each)')
         print(f'  identification seconds: median {np.median([r["seconds"] for r in rows]):.1f}')

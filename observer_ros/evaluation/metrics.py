@@ -248,7 +248,7 @@ def whiteness(r, lags=WHITENESS_LAGS):
     out = {'samples': int(N), 'residual_rms': float(np.sqrt(np.mean(r * r))) if N else math.nan,
            'lags': 0, 'acf': [], 'ljung_box_q': math.nan, 'ljung_box_p': math.nan,
            'acf_outside': math.nan}
-    # the node's whiteness test (core.innovation)
+    # figures (Ljung-Box); the verdicts are core.whiteness's
     return _with_ljung_box(out, *ljung_box_acf(r, lags))
 
 
