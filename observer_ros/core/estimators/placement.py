@@ -6,6 +6,8 @@ Also the detectability check the observers run on (A, C) when they are built.
 
 """
 
+import warnings
+
 import numpy as np
 
 from ..analysis import is_stable_eigenvalue, observable_decomposition, stability_margin
@@ -121,8 +123,22 @@ def _ackermann(A, C, z):
 
 
 def _place_poles(A, C, z):
+    """
+    Return scipy's Tits-Yang gain; its 'Convergence was not reached' is not passed on.
+
+    The caller measures the gain's placement error and, when it is not accurate, runs the
+    full design (which says a placement that did not converge in its own words); the
+    warning, printed in a node's log at a step, said nothing that check does not.
+
+    """
     import scipy.signal
-    return scipy.signal.place_poles(A.T, C.T, z, method='YT').gain_matrix.T
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter('always')
+        gain = scipy.signal.place_poles(A.T, C.T, z, method='YT').gain_matrix.T
+    for w in caught:
+        if not str(w.message).startswith('Convergence was not reached'):
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return gain
 
 
 def _attempt(formula, A, C, z):
