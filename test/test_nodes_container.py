@@ -60,3 +60,23 @@ def test_stop_signals_are_recorded_never_raised():
         for sig, handler in old.items():
             signal.signal(sig, handler)
         signals.RECEIVED.clear()
+
+
+@pytest.mark.parametrize('when', ['during', 'before'])
+def test_a_stop_while_the_modules_import_ends_the_process_at_once(when):
+    """Nothing is open while a node's modules import: a stop signal exits with status 0."""
+    # 'before': received while blocked (observer-run starts nodes so), taken at install
+    signal_first = 'os.kill(os.getpid(), signal.SIGINT); ' if when == 'before' else ''
+    script = (
+        'import os, signal\n'
+        'from observer_ros.nodes import signals\n'
+        'signal.pthread_sigmask(signal.SIG_BLOCK, signals.STOP_SIGNALS)\n'
+        f'{signal_first}signals.exit_while_importing(True)\n'
+        'signals.install()\n'
+        'os.kill(os.getpid(), signal.SIGTERM)\n'
+        'import numpy, scipy.linalg\n'      # a stand-in for the node's imports
+        'print("imported")\n')
+    result = subprocess.run([sys.executable, '-c', script], capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert 'imported' not in result.stdout and not result.stderr, result.stdout + result.stderr

@@ -4,7 +4,8 @@ Entry points of the node executables (``ros2 run observer_ros observer``, ...).
 
 Each installs the stop-signal handlers (:mod:`observer_ros.nodes.signals`) first and only
 then imports its node's module (rclpy, numpy, scipy, python-control: seconds on a loaded
-machine), so that a Ctrl-C at any moment of the start-up ends the process cleanly.
+machine), so that a Ctrl-C at any moment of the start-up ends the process cleanly: at
+once (status 0) while those modules are imported, as a node stops once it runs.
 ``python -m observer_ros.nodes.entry NODE ARGS...`` does the same (``observer-run``).
 
 """
@@ -32,9 +33,11 @@ MODULES = {
 
 def run(name, args=None):
     """Install the signal handlers, import the node's module, run its main(); the status."""
+    signals.exit_while_importing(True)     # a stop now ends the process at once
     signals.install()
     try:
         module = importlib.import_module(MODULES[name])
+        signals.exit_while_importing(False)
         code = module.main(args)
     finally:
         # the process only exits now: a signal must not kill it while the interpreter
