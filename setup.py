@@ -37,7 +37,7 @@ setup(
             'recorder = observer_ros.nodes.entry:recorder',
             'container = observer_ros.nodes.entry:container',
             'observer_design = observer_ros.tools.design_report:main',
-            'observer_eval = observer_ros.evaluation.evaluator:main',
+            'observer_eval = observer_ros.evaluation.evaluate:main',
             'observer_eval_batch = observer_ros.evaluation.batch:main',
             'observer_tune = observer_ros.tuning.tune:main',
             'observer_play = observer_ros.bag.play:main',

@@ -28,10 +28,10 @@ per message; the replay's CPU per message of a Kalman variant over the design's
 (pole placement), alternated in one process on the recording read once
 [median <= 2.0]. ``--big`` also writes a 10^7-message bag (about 3.8 GB, half an hour)
 and checks that observer-eval's peak RSS on it is within 1.1x of the rounds' (10^6)
-and below 400 MiB, with the time and peak RSS of baseline (a) on the same bag. ``--jitter`` also evaluates the same
-simulation with every stamp moved by up to +-0.3 ms (seeded), once per round, against
-the regular bag's eval of that round [median <= 1.5]. Neither runs by default
-(minutes to hours); run them on demand.
+and below 400 MiB, with the time and peak RSS of baseline (a) on the same bag.
+``--jitter`` also evaluates the same simulation with every stamp moved by up to +-0.3 ms
+(seeded), once per round, against the regular bag's eval of that round [median <= 1.5].
+Neither runs by default (minutes to hours); run them on demand.
 
 ``--baseline-pythonpath DIR`` (a checkout of an earlier version, e.g. ``git archive``)
 also runs that version's observer-eval in each round, right after this version's, on
@@ -375,9 +375,12 @@ def worker_eval(bag, out):
     """observer-eval BAG --vehicle config/submarine.yaml --out OUT --no-plots."""
     t0 = time.perf_counter()
     try:
-        from observer_ros.evaluation.evaluator import main
-    except ImportError:         # a version before the evaluation package: bag/evaluate.py
-        from observer_ros.bag.evaluate import main
+        from observer_ros.evaluation.evaluate import main
+    except ImportError:         # an earlier version: evaluation/evaluator.py, bag/evaluate.py
+        try:
+            from observer_ros.evaluation.evaluator import main
+        except ImportError:
+            from observer_ros.bag.evaluate import main
     import contextlib
     import io
     buf = io.StringIO()

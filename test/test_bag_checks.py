@@ -13,7 +13,7 @@ from observer_ros.bag.bag_checks import hold_recording_lock, MAX_METADATA_BYTES
 from observer_ros.bag.errors import BagRecoveryError, BagToolError
 from observer_ros.bag.reader import BagReader
 from observer_ros.bag.recover import main as recover_main, recover_bag
-from observer_ros.evaluation.evaluator import main as eval_main
+from observer_ros.evaluation.evaluate import main as eval_main
 from observer_ros.vehicle import load_vehicle
 import pytest
 import yaml

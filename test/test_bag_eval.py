@@ -24,7 +24,8 @@ from numpy.testing import assert_allclose, assert_array_equal
 from observer_ros.bag.errors import BagToolError
 from observer_ros.bag.reader import bag_info, decode_messages, read_recording
 from observer_ros.core.errors import ObserverError
-from observer_ros.evaluation.evaluator import (evaluate_bag, evaluate_job, main, parse_tolerance,
+from observer_ros.evaluation.evaluate import main
+from observer_ros.evaluation.evaluator import (evaluate_bag, evaluate_job, parse_tolerance,
                                                parse_variant, whiteness, write_results)
 from observer_ros.evaluation.report import format_table
 from observer_ros.replay.replay import affine_scan, epochs_of, live_replay, replay
@@ -803,6 +804,6 @@ def test_bag_observer_eval_console_script(bags, tmp_path):
 
 
 def test_bag_tools_do_not_import_rclpy():
-    code = ('import sys; import observer_ros.evaluation.evaluator, observer_ros.bag.reader; '
+    code = ('import sys; import observer_ros.evaluation.evaluate, observer_ros.bag.reader; '
             'sys.exit(1 if "rclpy" in sys.modules else 0)')
     assert subprocess.run([sys.executable, '-c', code]).returncode == 0

@@ -19,7 +19,8 @@ import numpy as np
 from observer_ros.bag.errors import BagToolError
 from observer_ros.bag.integrity import chunk_crcs, CRC_OFFSET, CrcWriter
 from observer_ros.bag.reader import BagReader
-from observer_ros.evaluation.evaluator import evaluate_bag, main
+from observer_ros.evaluation.evaluate import main
+from observer_ros.evaluation.evaluator import evaluate_bag
 from observer_ros.vehicle import load_vehicle
 import pytest
 from rosbags.highlevel import AnyReader

@@ -9,7 +9,7 @@ import late_sensors
 import numpy as np
 from numpy.testing import assert_allclose, assert_array_equal
 from observer_ros.bag.reader import read_recording
-from observer_ros.evaluation.evaluator import main as eval_main
+from observer_ros.evaluation.evaluate import main as eval_main
 from observer_ros.replay.replay import replay
 from observer_ros.sensors import fill_measurement
 from observer_ros.vehicle import load_vehicle

@@ -12,7 +12,7 @@ import time
 
 from observer_ros.bag.errors import BagToolError
 from observer_ros.evaluation import report as eval_report
-from observer_ros.evaluation.evaluator import main as eval_main
+from observer_ros.evaluation.evaluate import main as eval_main
 from observer_ros.outputs.folders import MARKER
 from observer_ros.outputs.staging import StagedOutput, write_new_file
 from observer_ros.tuning import report as tune_report

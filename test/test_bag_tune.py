@@ -26,7 +26,8 @@ from observer_ros.core.als import (ALSError, identify_noise, model_autocovarianc
 from observer_ros.core.design import kalman_gain, observer_gain
 from observer_ros.core.estimators import process_noise_covariance
 from observer_ros.core.model import map_poles_to_discrete, zoh_matrices
-from observer_ros.evaluation.evaluator import evaluate_bag, main as eval_main
+from observer_ros.evaluation.evaluate import main as eval_main
+from observer_ros.evaluation.evaluator import evaluate_bag
 from observer_ros.tuning.tune import identify, main, tune
 from observer_ros.vehicle import load_vehicle
 import pytest

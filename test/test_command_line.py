@@ -13,7 +13,7 @@ NODES = {'plant_simulator': 'observer_ros.nodes.plant_simulator',
          'recorder': 'observer_ros.nodes.recorder',
          'container': 'observer_ros.nodes.container'}
 TOOLS = {'observer_design': 'observer_ros.tools.design_report',
-         'observer_eval': 'observer_ros.evaluation.evaluator',
+         'observer_eval': 'observer_ros.evaluation.evaluate',
          'observer_tune': 'observer_ros.tuning.tune',
          'observer_play': 'observer_ros.bag.play',
          'observer_run': 'observer_ros.tools.run_closed_loop',

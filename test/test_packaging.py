@@ -135,7 +135,7 @@ def _assert_runs_in_a_fresh_interpreter(code):
 def test_core_and_offline_tools_import_no_ros():
     _assert_runs_in_a_fresh_interpreter(
         'import sys, observer_ros.core, observer_ros.vehicle, observer_ros.sensors, '
-        'observer_ros.evaluation.evaluator, observer_ros.tools.design_report; '
+        'observer_ros.evaluation.evaluate, observer_ros.tools.design_report; '
         'bad = [m for m in sys.modules if m.split(".")[0] in '
         '("rclpy", "std_msgs", "sensor_msgs", "rcl_interfaces")]; '
         'assert not bad, bad')
@@ -144,7 +144,7 @@ def test_core_and_offline_tools_import_no_ros():
 def test_offline_tools_import_python_control_only_when_they_design():
     """observer-eval replays with the file's gains: python-control (~1 s) is not loaded."""
     _assert_runs_in_a_fresh_interpreter(
-        'import sys, observer_ros.core, observer_ros.evaluation.evaluator; '
+        'import sys, observer_ros.core, observer_ros.evaluation.evaluate; '
         'assert "control" not in sys.modules, "imported at start"; '
         'from observer_ros.core import observer_gain; '
         'L = observer_gain([[0.0, 1.0], [0.0, 0.0]], [[1.0, 0.0]], [-1.0, -2.0], '

@@ -158,7 +158,7 @@ def test_devices_and_folders_are_refused_unopened(path, kind):
 
 @pytest.mark.parametrize('entry', [
     ['observer_ros.tools.design_report', '{}'],
-    ['observer_ros.evaluation.evaluator', str(SAMPLE), '--vehicle', '{}'],
+    ['observer_ros.evaluation.evaluate', str(SAMPLE), '--vehicle', '{}'],
     ['observer_ros.tuning.tune', str(SAMPLE), '--vehicle', '{}'],
     ['observer_ros.tools.run_closed_loop', '{}'],
     ['observer_ros.nodes.observer_node', '--ros-args', '--params-file', '{}'],
@@ -211,7 +211,7 @@ def test_a_compare_file_may_be_a_pipe_and_a_fifo_without_a_writer_is_named_as_on
         writer.wait(timeout=WAIT)
     with pytest.raises(ObserverError, match='--compare .*: no such file'):
         parse_compare(str(tmp_path / 'missing.yaml'))
-    result, _ = _run('observer_ros.evaluation.evaluator', str(SAMPLE), '--vehicle',
+    result, _ = _run('observer_ros.evaluation.evaluate', str(SAMPLE), '--vehicle',
                      str(CONFIG / 'submarine.yaml'), '--compare', str(tmp_path),
                      '--out', str(tmp_path / 'eval'))
     assert result.returncode == 2 and result.stderr.strip().splitlines() == [

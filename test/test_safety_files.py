@@ -9,7 +9,7 @@ import sys
 from bag_synth import bag_file, simulate, write_bag
 from observer_ros.bag.recover import BagRecoveryError, recover_bag
 from observer_ros.core.errors import ObserverError
-from observer_ros.evaluation.evaluator import main as eval_main
+from observer_ros.evaluation.evaluate import main as eval_main
 from observer_ros.outputs.folders import MARKER
 from observer_ros.tools import run_closed_loop
 from observer_ros.tools.run_closed_loop import check_outputs, main as run_main, run_limit

@@ -32,7 +32,8 @@ import sys
 import time
 import warnings
 
-from .evaluator import _Progress, IN_MEMORY_HELP, parse_options
+from .cli import IN_MEMORY_HELP, Progress
+from .evaluator import parse_options
 from .jobs import (connect, job_dict, LOST_TIMEOUT, make_jobs, run_jobs, SCHEDULER_ENV,
                    summarize, workers_of, WorkersLost)
 from .report import text_table
@@ -313,7 +314,7 @@ def main(argv=None):
     argv = sys.argv[1:] if argv is None else list(argv)
     args = _parser().parse_args(argv)
     started = time.perf_counter()
-    progress = _Progress(args.progress or sys.stderr.isatty(), sys.stderr)
+    progress = Progress(args.progress or sys.stderr.isatty(), sys.stderr)
 
     def say(text):                       # on its own line, the progress bar after it
         progress.finish()

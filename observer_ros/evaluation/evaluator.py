@@ -1,4 +1,4 @@
-# observer_ros.evaluation.evaluator: `observer-eval BAG --vehicle V.yaml`: replay and compare.
+# observer_ros.evaluation.evaluator: a bag replayed through observer variants, and scored.
 """
 Offline evaluation of estimators on a recorded bag.
 
@@ -26,30 +26,26 @@ open files): the unit to run serially or on many workers. The metrics are in
 :mod:`observer_ros.evaluation.metrics`.
 
 """
-import argparse
 from dataclasses import dataclass, field
 import os
 from pathlib import Path
 import re
-import signal
-import sys
-import threading
 import time
 from typing import Dict, Tuple
 import warnings
 
 import numpy as np
 
+from .cli import resolve_vehicle
 from .metrics import (DEFAULT_TOLERANCE, score_variant, STEADY_FRACTION, tolerances,
                       whiteness, WHITENESS_LAGS)
-from .report import BAG_MAX_MESSAGES, format_table, write_results
+from .report import format_table, write_results
 from .results import EvalResult, jsonable, ScoredReplay, VariantResult
 from ..bag.errors import BagToolError
 from ..bag.reader import read_recording
 from ..bag.spill import blocks, count_true, Sink
-from ..core.errors import error_text, ObserverError, quiet_on_closed_pipe
+from ..core.errors import ObserverError
 from ..core.vehicle_design import design_vehicle
-from ..outputs.folders import check_output
 from ..replay.events import _epoch_cuts, epochs_from_cuts
 from ..replay.replay import (CLOCK_JUMP_AGREEMENT, CLOCK_JUMP_TOLERANCE, epochs_of,
                              live_replay, replay)
@@ -57,11 +53,9 @@ from ..replay.replay import (CLOCK_JUMP_AGREEMENT, CLOCK_JUMP_TOLERANCE, epochs_
 __all__ = ['DEFAULT_TOLERANCE', 'STEADY_FRACTION', 'WHITENESS_LAGS', 'VariantResult',
            'EvalResult', 'JobResult', 'parse_variant', 'parse_compare', 'parse_tolerance',
            'evaluate_bag',
-           'evaluate_job', 'write_results', 'format_table', 'whiteness', 'main']
+           'evaluate_job', 'write_results', 'format_table', 'whiteness']
 
 RESERVED = ('design', 'live')
-IN_MEMORY_HELP = ("keep the replays' rows in memory (default: in temporary files in TMPDIR, "
-                  'a block at a time, so that a long bag fits in memory)')
 _NAME = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
 
 
@@ -194,17 +188,6 @@ def parse_tolerance(text):
 # Evaluation
 # ---------------------------------------------------------------------------------------
 
-def _load_vehicle(vehicle, overrides=()):
-    from ..vehicle import (apply_overrides, load_vehicle, vehicle_from_parameters,
-                           vehicle_to_parameters)
-    if isinstance(vehicle, (str, os.PathLike)):
-        return load_vehicle(vehicle, overrides=list(overrides) or None)
-    if not overrides:
-        return vehicle
-    flat = apply_overrides(vehicle_to_parameters(vehicle), list(overrides))
-    return vehicle_from_parameters(flat, source=f'vehicle {vehicle.name}')
-
-
 def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=None,
                  exact=False, progress=None, clock_jump_tolerance=CLOCK_JUMP_TOLERANCE,
                  include_live=True, include_design=True, compare=None, spill=None,
@@ -271,14 +254,14 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
 
     """
     start = time.perf_counter()
-    base = _load_vehicle(vehicle)
+    base = resolve_vehicle(vehicle)
     configs = {'design': (base, ())} if include_design or not (variants or compare) \
         else {}
     for name, path in (compare or {}).items():
         if name in RESERVED or not _NAME.match(str(name)) or name in (variants or {}):
             raise BagToolError(f'--compare {name}={path}: the name {name!r} is reserved, '
                                'not a valid name or already a variant')
-        other = _load_vehicle(path)
+        other = resolve_vehicle(path)
         same = [k for k in ('state_names', 'input_names', 'output_names')
                 if tuple(getattr(other.plant, k)) != tuple(getattr(base.plant, k))]
         if not same and [(x.name, x.topic, tuple(x.outputs)) for x in other.sensors] != \
@@ -294,7 +277,7 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter('ignore')
-                configs[name] = (_load_vehicle(vehicle, overrides), tuple(overrides))
+                configs[name] = (resolve_vehicle(vehicle, overrides), tuple(overrides))
         except ObserverError as err:
             raise type(err)(f'variant {name!r}: {err}') from None
     for name, (v, _) in configs.items():
@@ -471,195 +454,3 @@ def evaluate_job(bag_path, vehicle, variant='design', overrides=(), namespace=No
         summary=jsonable(vr.summary), states=jsonable(vr.states),
         outputs=jsonable(vr.outputs), ground_truth=res.truth is not None,
         warnings=tuple(res.warnings), seconds=res.seconds)
-
-
-# ---------------------------------------------------------------------------------------
-# Command line
-# ---------------------------------------------------------------------------------------
-
-class _Progress:
-    """A one-line text progress bar on stderr."""
-
-    def __init__(self, enabled, stream=sys.stderr):
-        self.enabled = enabled
-        self.stream = stream
-        self.label = None
-        self.last = 0.0
-
-    def __call__(self, label, done, total):
-        if not self.enabled:
-            return
-        now = time.monotonic()
-        if label == self.label and now - self.last < 0.2 and done < total:
-            return
-        if label != self.label and self.label is not None:
-            self.stream.write('\n')
-        self.label, self.last = label, now
-        if total:
-            frac = min(1.0, done / total)
-            bar = '#' * int(30 * frac) + '.' * (30 - int(30 * frac))
-            text = f'\r{label:<20} [{bar}] {frac * 100:5.1f}% {done}/{total}'
-        else:
-            text = f'\r{label:<20} {done}'
-        self.stream.write(text)
-        self.stream.flush()
-
-    def finish(self):
-        if self.enabled and self.label is not None:
-            self.stream.write('\n')
-            self.stream.flush()
-            self.label = None
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised where the tool is, so that its clean-up runs (an unfinished stage)."""
-
-
-def stop_on_sigterm():
-    """
-    Make SIGTERM end a tool as Ctrl-C does: its ``finally`` blocks run, exit status 143.
-
-    Python's default (die at once) left a tool's unfinished output stage behind.
-    """
-    def on_sigterm(signum, frame):
-        raise Terminated()
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, on_sigterm)
-
-
-def tool_error(progress, err):
-    """
-    End a command-line tool on ``err``: one ``error:`` line; return the exit status.
-
-    2 for an ObserverError or OSError (its first line), 130 for Ctrl-C, 143 for SIGTERM.
-
-    """
-    progress.finish()
-    if isinstance(err, Terminated):
-        print('error: terminated (SIGTERM)', file=sys.stderr)
-        return 143
-    if isinstance(err, KeyboardInterrupt):
-        print('error: interrupted', file=sys.stderr)
-        return 130
-    print(f'error: {error_text(err)}', file=sys.stderr)
-    return 2
-
-
-_EPILOG = """\
-variants:
-  --variant NAME:KEY:=VALUE[,KEY:=VALUE...]   (repeatable; the same NAME adds overrides)
-  KEY is a vehicle-file parameter (docs/vehicle_schema.md) and VALUE is YAML, as in a ROS
-  -p override. Commas inside [...] belong to the value. Quote the whole argument.
-    --variant 'slow:observer.poles:=[-0.1,-0.11,-0.12]'
-    --variant 'kalman:observer.type:=kalman,observer.Rd:=[1.0e-6]'
-    --variant 'kalman:observer.Qd:=[1.0e-4,0.0,0.0, 0.0,1.0e-4,0.0, 0.0,0.0,1.0e-4]'
-                                                       (the same name: merged with the above)
-    --variant 'openloop:observer.type:=open_loop'
-  The vehicle file's own design is always the variant "design"; the estimate recorded on
-  state/estimate is scored as "live".
-  --compare [NAME=]FILE  (repeatable) replays another vehicle file as a variant, e.g. the
-  one observer-tune wrote: observer-eval BAG --vehicle V.yaml --compare V_tuned.yaml
-
-output (folder --out; default <bag>_eval next to the bag directory, e.g. runs/sub1 ->
-runs/sub1_eval, wherever the command is run from; never overwritten without --force):
-  the table on stdout and in results.txt, results.csv, results.json, states.png,
-  error_norm.png, residuals.png, and results_bag/ (mcap) with /eval/<variant>/state/estimate,
-  /eval/<variant>/state/error and /eval/state/true for PlotJuggler or Foxglove.
-
-exit status: 0 done; 2 the bag, the vehicle file or the arguments cannot be used (one line
-'error: ...' on stderr).
-"""
-
-
-def _parser():
-    parser = argparse.ArgumentParser(
-        prog='observer-eval',
-        description="Replay a bag's recorded measurements and commands through observer "
-                    'configurations (the same estimator code as the observer node) and '
-                    'compare them with the true state (state/true) or, without it, by '
-                    'their residuals.',
-        epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument('bag', help='bag directory, or one .mcap or .db3 file')
-    parser.add_argument('--vehicle', required=True, help='vehicle file (config/<name>.yaml)')
-    parser.add_argument('--variant', action='append', default=[],
-                        metavar='NAME:KEY:=VALUE[,...]',
-                        help='an observer configuration to compare (see below)')
-    parser.add_argument('--compare', action='append', default=[], metavar='[NAME=]FILE',
-                        help='another vehicle file to replay as a variant (e.g. the file '
-                        'observer-tune wrote); NAME defaults to the file name')
-    parser.add_argument('--out', help='output folder (default: <bag>_eval next to the bag '
-                        'directory)')
-    parser.add_argument('--namespace', help="the vehicle's namespace in the bag, e.g. /sub1 "
-                        '(default: detected from the sensor topics)')
-    parser.add_argument('--tolerance', help="settling band: a percentage of each state's "
-                        'range ("5%%") or an absolute value (default 2%%)')
-    parser.add_argument('--force', action='store_true',
-                        help='replace an existing output folder of observer-eval')
-    parser.add_argument('--no-plots', action='store_true', help='do not write PNG plots')
-    parser.add_argument('--no-bag', action='store_true', help='do not write the results bag')
-    parser.add_argument('--bag-max', type=int, default=BAG_MAX_MESSAGES, metavar='N',
-                        help='at most N messages per topic in the results bag '
-                             f'(default {BAG_MAX_MESSAGES}; decimated beyond)')
-    parser.add_argument('--exact', action='store_true',
-                        help='call the estimator for every message (no bulk replay)')
-    parser.add_argument('--in-memory', action='store_true', help=IN_MEMORY_HELP)
-    parser.add_argument('--progress', action='store_true',
-                        help='show progress even when stderr is not a terminal')
-    return parser
-
-
-def _default_out(bag):
-    """
-    Return the default output folder: ``<bag>_eval`` next to the bag directory.
-
-    For a storage file inside a bag directory (one with metadata.yaml) that directory is
-    the bag; a bare ``.mcap``/``.db3`` file gets ``<stem>_eval`` next to it. The folder
-    does not depend on the current directory.
-
-    """
-    bag = Path(bag)
-    if bag.name in ('', '.', '..'):
-        bag = bag.resolve()
-    if bag.is_file():
-        if not (bag.parent / 'metadata.yaml').is_file():
-            return bag.with_name(f'{bag.stem or "bag"}_eval')
-        bag = bag.parent
-        if bag.name in ('', '.', '..'):
-            bag = bag.resolve()
-    return bag.parent / f'{bag.name or "bag"}_eval'
-
-
-@quiet_on_closed_pipe
-def main(argv=None):
-    """Entry point of ``observer-eval``; returns the exit status."""
-    args = _parser().parse_args(argv)
-    stop_on_sigterm()
-    started = time.perf_counter()
-    progress = _Progress(args.progress or sys.stderr.isatty())
-    try:
-        variants = parse_options(args.variant, args.tolerance)
-        compare = dict(parse_compare(text) for text in args.compare)
-        if not Path(args.bag).exists():
-            raise BagToolError(f'{args.bag}: no such file or directory')
-        out = Path(args.out) if args.out else _default_out(args.bag)
-        check_output(out, args.force, 'observer-eval')
-        with warnings.catch_warnings():
-            warnings.simplefilter('ignore')
-            result = evaluate_bag(args.bag, args.vehicle, variants, args.namespace,
-                                  args.tolerance, exact=args.exact, progress=progress,
-                                  compare=compare, spill=None if args.in_memory else True)
-            progress.finish()
-            files = write_results(result, out, force=args.force, plots=not args.no_plots,
-                                  results_bag=not args.no_bag, bag_max_messages=args.bag_max)
-    except (ObserverError, OSError, KeyboardInterrupt) as err:
-        return tool_error(progress, err)
-    print(format_table(result))
-    for text in result.warnings:
-        print(f'warning: {text}', file=sys.stderr)
-    print(f'\nwritten to {out}/ ({", ".join(f.name for f in files)}) in '
-          f'{time.perf_counter() - started:.1f} s')
-    return 0
-
-
-if __name__ == '__main__':
-    raise SystemExit(main())

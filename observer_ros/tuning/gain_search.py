@@ -332,8 +332,8 @@ def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exac
     result : SearchResult
 
     """
-    from ..evaluation.evaluator import _load_vehicle
-    base = _load_vehicle(vehicle)
+    from ..evaluation.cli import resolve_vehicle
+    base = resolve_vehicle(vehicle)
     scales = sorted(float(s) for s in scales)
     if not scales or any(not (s > 0 and math.isfinite(s)) for s in scales):
         raise BagToolError(f'--grid: scales must be positive numbers; got {scales}')

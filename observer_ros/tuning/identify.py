@@ -46,7 +46,7 @@ from ..core.als_stats import DECAYS
 from ..core.autocovariance import LaggedSums
 from ..core.innovation import ALPHA, WINDOW
 from ..core.whiteness import WindowWhiteness
-from ..evaluation.evaluator import _load_vehicle
+from ..evaluation.cli import resolve_vehicle
 from ..evaluation.results import jsonable
 
 __all__ = ['BLOCK', 'TRANSIENT_DECAY', 'RATE_TOLERANCE', 'POOR_FIT', 'Identification',
@@ -383,7 +383,7 @@ def identify(bags, vehicle, namespace=None, lags=DEFAULT_LAGS, full=False, state
         noise comes out non-positive (the message names the likely cause).
 
     """
-    vehicle = _load_vehicle(vehicle)
+    vehicle = resolve_vehicle(vehicle)
     plant = vehicle.plant
     data, warn = [], []
     for bag in bags:

@@ -194,8 +194,8 @@ def pole_search(bags, vehicle, scales=DEFAULT_SCALES, namespace=None, exact=Fals
 
     """
     from scipy.optimize import minimize
-    from ..evaluation.evaluator import _load_vehicle
-    base = _load_vehicle(vehicle)
+    from ..evaluation.cli import resolve_vehicle
+    base = resolve_vehicle(vehicle)
     pole_set(base)                                       # refuse before any replay
     if int(evaluations) < 1:
         raise BagToolError(f'--evaluations {evaluations}: must be at least 1')

@@ -49,8 +49,8 @@ from .tuned_vehicle import OBSERVER_KEYS, write_tuned_vehicle
 from ..bag.errors import BagToolError
 from ..core.als import DEFAULT_LAGS
 from ..core.errors import ObserverError, quiet_on_closed_pipe
-from ..evaluation.evaluator import (_load_vehicle, _Progress, IN_MEMORY_HELP, stop_on_sigterm,
-                                    tool_error)
+from ..evaluation.cli import (default_out as tool_default_out, IN_MEMORY_HELP, Progress,
+                              resolve_vehicle, stop_on_sigterm, tool_error)
 from ..evaluation.results import jsonable
 from ..outputs.folders import check_output
 from ..outputs.staging import StagedOutput
@@ -114,9 +114,7 @@ class TuneResult:
 
 def default_out(bag):
     """Return the default report folder: ``<bag>_tune`` next to the bag directory."""
-    from ..evaluation.evaluator import _default_out
-    out = _default_out(bag)
-    return out.with_name(out.name[:-len('_eval')] + '_tune')
+    return tool_default_out(bag, '_tune')
 
 
 def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS,
@@ -176,7 +174,7 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
     """
     start = time.perf_counter()
     bags = [str(b) for b in bags]
-    vehicle = _load_vehicle(vehicle_path)
+    vehicle = resolve_vehicle(vehicle_path)
     out = Path(out)
     if search == 'auto':
         search = 'kalman' if als else 'poles'
@@ -238,8 +236,8 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
         if search == 'each-pole' and ident is None:
             _write_poles(observer, sources, sr.best_poles, _pole_note(sr, bags))
         elif sr is not None and (use_search or ident is None) and math.isfinite(sr.best):
-            best = _load_vehicle(tmp if search == 'kalman' else vehicle_path,
-                                 sr.overrides[sr.best])
+            best = resolve_vehicle(tmp if search == 'kalman' else vehicle_path,
+                                   sr.overrides[sr.best])
             grid = ', '.join(f'{x:.4g}' for x in sr.scales)
             note = (f'observer-tune gain search ({search} scale {sr.best:g} of [{grid}], '
                     f'metric {sr.metric}, on {", ".join(bags)})')
@@ -415,7 +413,7 @@ def main(argv=None):
     """Entry point of ``observer-tune``; returns the exit status."""
     args = _parser().parse_args(argv)
     stop_on_sigterm()
-    progress = _Progress(args.progress or sys.stderr.isatty())
+    progress = Progress(args.progress or sys.stderr.isatty())
     try:
         scales, states = _check_args(args)
         out = Path(args.out) if args.out else default_out(args.bags[0])
