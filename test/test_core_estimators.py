@@ -847,12 +847,12 @@ def count_designs(monkeypatch):
     """Count the pole placements the estimators run (the list grows by one per design)."""
     import observer_ros.core.estimators.placement as estimators
     designs = []
-    real = estimators._place
+    real = estimators.place
 
     def counting(*args, **kwargs):
         designs.append(1)
         return real(*args, **kwargs)
-    monkeypatch.setattr(estimators, '_place', counting)
+    monkeypatch.setattr(estimators, 'place', counting)
     return designs
 
 

@@ -129,7 +129,7 @@ def test_several_outputs_place_poles_once(monkeypatch):
     monkeypatch.setattr(placement, 'observer_gain', no_full_design)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter('always')
-        M = placement._place(A, C, z, 'auto')
+        M = placement.place(A, C, z, 'auto')
     # scipy's Tits-Yang stops here without converging: its warning is not passed on
     assert not [w for w in caught if 'Convergence' in str(w.message)]
     assert len(calls) == 1

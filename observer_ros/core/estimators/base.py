@@ -12,8 +12,8 @@ from operator import attrgetter
 
 import numpy as np
 
-from .steps import _bracket, _check_plant, CACHE_SIZE, DT_DIGITS, GAIN_CACHE_SIZE, \
-    GAIN_DIGITS, StepCache
+from .steps import (bracket, CACHE_SIZE, check_plant, DT_DIGITS, GAIN_CACHE_SIZE, GAIN_DIGITS,
+                    StepCache)
 from ..errors import DimensionError, ObserverError
 from ..model import as_vector
 
@@ -30,13 +30,14 @@ class TimeOrderError(ObserverError, ValueError):
 def _measured_rows(plant, measured_rows):
     if measured_rows is None:
         return tuple(range(plant.p))
-    rows = _as_rows(measured_rows, 'measured_rows', plant)
+    rows = as_rows(measured_rows, 'measured_rows', plant)
     if not rows:
         raise DimensionError('measured_rows is empty; an estimator needs at least one output')
     return tuple(sorted(rows))
 
 
-def _as_rows(rows, name, plant):
+def as_rows(rows, name, plant):
+    """Return ``rows`` as distinct output indices of ``plant``; DimensionError names ``name``."""
     try:
         out = tuple(int(r) for r in np.asarray(rows).reshape(-1))
     except (TypeError, ValueError):
@@ -120,7 +121,7 @@ class Estimator:
 
     def __init__(self, plant, x0=None, t0=None, measured_rows=None,
                  dt_digits=DT_DIGITS, cache_size=CACHE_SIZE, gain_digits=GAIN_DIGITS):
-        self._plant = _check_plant(plant)
+        self._plant = check_plant(plant)
         n = plant.n
         self._x0 = np.zeros(n) if x0 is None else as_vector(x0, 'x0', n)
         self._t0 = None if t0 is None else self._as_time(t0)
@@ -230,7 +231,7 @@ class Estimator:
         """
         if self._gain_cache is None:
             return key, None, 0.0
-        return _bracket(key, self._gain_digits)
+        return bracket(key, self._gain_digits)
 
     def _gain_value(self, key, name, design):
         """
@@ -248,7 +249,7 @@ class Estimator:
         if self._gain_cache is None:
             value = design(step)
         else:
-            g0, g1, w = _bracket(key, self._gain_digits)
+            g0, g1, w = bracket(key, self._gain_digits)
             value = self._grid_value(g0, name, design)
             if g1 is not None and value is not None:
                 other = self._grid_value(g1, name, design)
@@ -485,7 +486,7 @@ class Estimator:
             info = self._rows_cache.get(key)
             if info is not None:
                 return info
-        rows = _as_rows(rows, name, self._plant)
+        rows = as_rows(rows, name, self._plant)
         info = self._rows_cache.get(rows)
         if info is not None:
             return info

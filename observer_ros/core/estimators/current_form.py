@@ -8,11 +8,11 @@ The full-order and reduced-order observers given poles differ only in their gain
 
 import numpy as np
 
-from .base import _as_rows, Estimator
+from .base import as_rows, Estimator
 from ..errors import DesignVerificationError
 
 
-class _CurrentForm(Estimator):
+class CurrentForm(Estimator):
     """
     Estimators whose correction is ``x+ = x- + M(h, rows) (ybar - C x-)``.
 
@@ -23,7 +23,7 @@ class _CurrentForm(Estimator):
     time with all the rows received at that time (ybar = y - D u of each row as
     received).
 
-    Every gain designed for a step is verified (``placement._place``). A step whose
+    Every gain designed for a step is verified (``placement.place``). A step whose
     gain fails the check is never corrected with it: that correction is skipped
     (prediction only, as if the measurement had not come), counted in
     :attr:`unverified_corrections`, and :attr:`gain_failures` keeps the reason per
@@ -175,7 +175,7 @@ class _CurrentForm(Estimator):
 
         """
         info = self._all if rows is None else self._rows_info(tuple(sorted(
-            _as_rows(rows, 'rows', self._plant))), 'rows')
+            as_rows(rows, 'rows', self._plant))), 'rows')
         return self._checked_gain(self._cache.key(self._as_time(dt)), info).copy()
 
     def error_matrix(self, dt, rows=None):
@@ -202,7 +202,7 @@ class _CurrentForm(Estimator):
 
         """
         info = self._all if rows is None else self._rows_info(tuple(sorted(
-            _as_rows(rows, 'rows', self._plant))), 'rows')
+            as_rows(rows, 'rows', self._plant))), 'rows')
         step = self._cache.step(self._as_time(dt))
         M = self._checked_gain(step.key, info)
         return (np.eye(self._plant.n) - M @ info.C) @ step.Ad

@@ -10,7 +10,7 @@ import numpy as np
 import scipy.linalg
 
 from . import placement
-from .current_form import _CurrentForm
+from .current_form import CurrentForm
 from .steps import CACHE_SIZE, DT_DIGITS, GAIN_DIGITS
 from ..errors import DimensionError, ObserverError
 from ..model import as_matrix, as_poles
@@ -18,7 +18,7 @@ from ..model import as_matrix, as_poles
 __all__ = ['FullOrderEstimator']
 
 
-class FullOrderEstimator(_CurrentForm):
+class FullOrderEstimator(CurrentForm):
     """
     Full-order Luenberger observer, exact at any (irregular) sample times.
 
@@ -91,17 +91,17 @@ class FullOrderEstimator(_CurrentForm):
     """
 
     kind = 'full'
-    _STATE = _CurrentForm._STATE + ('_held', '_held_rows')
+    _STATE = CurrentForm._STATE + ('_held', '_held_rows')
 
     def __init__(self, plant, poles=None, gain=None, method='auto', x0=None, t0=None,
                  measured_rows=None, dt_digits=DT_DIGITS, cache_size=CACHE_SIZE,
                  gain_digits=GAIN_DIGITS):
         super().__init__(plant, x0, t0, measured_rows, dt_digits, cache_size, gain_digits)
-        self._method = placement._design_choice(poles, gain, method, 'full-order observer')
+        self._method = placement.design_choice(poles, gain, method, 'full-order observer')
         n, p = plant.n, plant.p
         C_m = plant.C[list(self._measured)]
-        rank = placement._unobservable_check(plant.A, C_m, plant.is_discrete,
-                                             'full-order observer')
+        rank = placement.unobservable_check(plant.A, C_m, plant.is_discrete,
+                                            'full-order observer')
         if poles is not None:
             self._mode = 'poles'
             self._poles = as_poles(poles, 'poles', discrete=plant.is_discrete)
@@ -140,7 +140,7 @@ class FullOrderEstimator(_CurrentForm):
             raise ObserverError('correction_gain and error_matrix apply to a full-order '
                                 'observer given poles')
         return self._gain_value(key, info.rows, lambda step: self._verified_design(
-            step, info.rows, lambda s, field: placement._place(
+            step, info.rows, lambda s, field: placement.place(
                 s.Ad, info.C @ s.Ad, self._zpoles(s), self._method, field)))
 
     def _propagate(self, step):

@@ -46,8 +46,9 @@ import math
 from operator import itemgetter
 
 from .base import TimeOrderError
-from .rewind import _COMMAND, _entry, _KIND, _MEASUREMENT, _RESIDUAL, _ROWS, _S, _STATE, _T, \
-    _TAG, _VALUE, _X, CHECKPOINT_EVERY, DENSE_DEPTH, DENSE_FOR, Rewinding
+from .entries import (COMMAND, ESTIMATE, INNOVATION_COV, KIND, MEASUREMENT, new_entry, RESIDUAL,
+                      ROWS, STAMP, STATE, TAG, VALUE)
+from .rewind import CHECKPOINT_EVERY, DENSE_DEPTH, DENSE_FOR, Rewinding
 from ..spec import HISTORY_LENGTH
 
 __all__ = ['History', 'HISTORY_LENGTH', 'HISTORY_MAX_MESSAGES', 'CHECKPOINT_EVERY',
@@ -58,7 +59,7 @@ __all__ = ['History', 'HISTORY_LENGTH', 'HISTORY_MAX_MESSAGES', 'CHECKPOINT_EVER
 #: reached, the oldest are dropped and the window is shorter.
 HISTORY_MAX_MESSAGES = 25000
 
-_stamp = itemgetter(_T)
+_stamp = itemgetter(STAMP)
 
 
 class History(Rewinding):
@@ -154,7 +155,7 @@ class History(Rewinding):
     @property
     def head_tag(self):
         """Return the tag of the newest message applied (None when there is none)."""
-        return self._entries[-1][_TAG] if self._entries else None
+        return self._entries[-1][TAG] if self._entries else None
 
     @property
     def pending(self):
@@ -223,9 +224,9 @@ class History(Rewinding):
             self.revised = []
         entries = self._entries
         pending = self._pending
-        if entries and type(t) is float and (not pending or pending[0][_T] >= t):
+        if entries and type(t) is float and (not pending or pending[0][STAMP] >= t):
             last = entries[-1]
-            if last[_T] < t or (last[_T] == t and last[_KIND] == _MEASUREMENT):
+            if last[STAMP] < t or (last[STAMP] == t and last[KIND] == MEASUREMENT):
                 # in order, nothing pending before it: the estimator is at the last entry
                 # and this is its step, an entry and a checkpoint every CHECKPOINT_EVERY
                 x = est.correct(t, y, rows)         # refuses a non-finite t
@@ -239,7 +240,7 @@ class History(Rewinding):
                 self._since = since
                 # x, residual and S are not kept: a rewind computes them again, and they
                 # go when the caller is done with them (memory reused, not held)
-                entry = [t, _MEASUREMENT, y, rows, tag, state, None, None, None]
+                entry = [t, MEASUREMENT, y, rows, tag, state, None, None, None]
                 entries.append(entry)
                 checkpoints = self._checkpoints
                 if state is not None:
@@ -247,10 +248,10 @@ class History(Rewinding):
                 self._drop_if_due(t)
                 self._residual, self._S, self._x_at = residual, S, x
                 return x
-        entry = self._insert(_MEASUREMENT, est._as_time(t), y, rows, tag)
-        self._residual = entry[_RESIDUAL]
-        self._S = entry[_S]
-        self._x_at = entry[_X]
+        entry = self._insert(MEASUREMENT, est._as_time(t), y, rows, tag)
+        self._residual = entry[RESIDUAL]
+        self._S = entry[INNOVATION_COV]
+        self._x_at = entry[ESTIMATE]
         return est.x_hat
 
     def set_input(self, t, u, tag=None):
@@ -284,22 +285,22 @@ class History(Rewinding):
         head = est.t
         pending = self._pending
         entries = self._entries
-        if t == head and not pending and entries and entries[-1][_T] == t:
+        if t == head and not pending and entries and entries[-1][STAMP] == t:
             # the closed loop's command in order (it answers the newest measurement): the
             # estimator is at the last entry and this is the next, as _insert would find
-            entry = _entry(t, _COMMAND, u, (), tag)
+            entry = new_entry(t, COMMAND, u, (), tag)
             self._apply(entry)                  # a bad input raises, changing nothing
             entries.append(entry)
             self._drop_if_due(t)
             return False
-        if head is not None and (t > head or (pending and pending[0][_T] <= t)):
+        if head is not None and (t > head or (pending and pending[0][STAMP] <= t)):
             # ahead of the estimate (or after commands held at its stamp): held
-            self._hold(_entry(t, _COMMAND, est.check_input(u), (), tag))
+            self._hold(new_entry(t, COMMAND, est.check_input(u), (), tag))
             return False
         late = not self.accepts(t)
         if late:
             t = head
-        self._insert(_COMMAND, t, u, (), tag)
+        self._insert(COMMAND, t, u, (), tag)
         return late
 
     def predict(self, t):
@@ -322,9 +323,9 @@ class History(Rewinding):
         state = est.save_state()
         try:
             for e in self._pending:
-                if e[_T] > t:
+                if e[STAMP] > t:
                     break
-                est.set_input(e[_T], e[_VALUE])
+                est.set_input(e[STAMP], e[VALUE])
             return est.predict(t)
         finally:
             est.restore_state(state)
@@ -339,7 +340,7 @@ class History(Rewinding):
 
         """
         head = self._est.t
-        pending = [e for e in self._pending if head is None or e[_T] > head]
+        pending = [e for e in self._pending if head is None or e[STAMP] > head]
         self._clear()
         self._pending = pending
         if head is not None:
@@ -369,11 +370,11 @@ class History(Rewinding):
         if not self.accepts(t):
             raise TimeOrderError(f'time {t!r} s is older than the history '
                                  f'({self._length:g} s before {est.t!r} s)')
-        entry = _entry(t, kind, value, rows, tag)
+        entry = new_entry(t, kind, value, rows, tag)
         entries = self._entries
         pos = len(entries)
-        while pos and (entries[pos - 1][_T] > t or
-                       (entries[pos - 1][_T] == t and entries[pos - 1][_KIND] > kind)):
+        while pos and (entries[pos - 1][STAMP] > t or
+                       (entries[pos - 1][STAMP] == t and entries[pos - 1][KIND] > kind)):
             pos -= 1
         if pos == len(entries):
             self._append(entry)          # in order: the estimator is at the last entry
@@ -385,10 +386,10 @@ class History(Rewinding):
     def _append(self, entry):
         """Apply an entry newer than those applied, the pending commands before it first."""
         pending = self._pending
-        t = entry[_T]
-        if pending and pending[0][_T] < t:
-            if entry[_KIND] == _MEASUREMENT:            # a bad one changes nothing
-                self._est.check_measurement(entry[_VALUE], entry[_ROWS])
+        t = entry[STAMP]
+        if pending and pending[0][STAMP] < t:
+            if entry[KIND] == MEASUREMENT:            # a bad one changes nothing
+                self._est.check_measurement(entry[VALUE], entry[ROWS])
             self._apply_pending(t)
         self._apply(entry)
         self._entries.append(entry)
@@ -396,13 +397,13 @@ class History(Rewinding):
     def _hold(self, entry):
         """Keep a command stamped after the estimate until the estimate reaches it."""
         pending = self._pending
-        t = entry[_T]
+        t = entry[STAMP]
         pos = len(pending)
-        while pos and pending[pos - 1][_T] > t:      # arrival order at one stamp
+        while pos and pending[pos - 1][STAMP] > t:      # arrival order at one stamp
             pos -= 1
         pending.insert(pos, entry)
         if len(self) > self._max:            # bounded: the oldest reaches the estimate
-            self._apply_pending(pending[0][_T], True)
+            self._apply_pending(pending[0][STAMP], True)
             self._drop_old()
 
     def _apply_pending(self, t, inclusive=False):
@@ -410,7 +411,7 @@ class History(Rewinding):
         pending = self._pending
         n = 0
         for e in pending:
-            if e[_T] > t or (e[_T] == t and not inclusive):
+            if e[STAMP] > t or (e[STAMP] == t and not inclusive):
                 break
             self._apply(e)
             self._entries.append(e)
@@ -420,7 +421,7 @@ class History(Rewinding):
     def _drop_if_due(self, t):
         """After an entry at t appended in order: drop the old ones if the window or count asks."""
         checkpoints = self._checkpoints
-        if (checkpoints and checkpoints[0][_T] < t - self._length) or \
+        if (checkpoints and checkpoints[0][STAMP] < t - self._length) or \
                 len(self._entries) > self._max:
             self._drop_old()
 
@@ -439,20 +440,20 @@ class History(Rewinding):
         checkpoints = self._checkpoints
         newest = entries[-1]
         upto = None
-        while checkpoints and checkpoints[0][_T] < horizon and checkpoints[0] is not newest:
+        while checkpoints and checkpoints[0][STAMP] < horizon and checkpoints[0] is not newest:
             upto = checkpoints.popleft()
         drop = 0 if upto is None else _position(entries, upto) + 1
         if len(entries) - drop > self._max:         # rare: stamps crowd
             last = len(entries) - 1
             drop = len(entries) - self._max
-            while drop < last and entries[drop - 1][_STATE] is None:
+            while drop < last and entries[drop - 1][STATE] is None:
                 drop += 1
-            if entries[drop - 1][_STATE] is None:
+            if entries[drop - 1][STATE] is None:
                 drop = 0
             upto = True                             # the checkpoints listed again below
         if drop > 0:
-            self._base = entries[drop - 1][_STATE]
-            self._dropped_t = max(self._dropped_t, entries[drop - 1][_T])
+            self._base = entries[drop - 1][STATE]
+            self._dropped_t = max(self._dropped_t, entries[drop - 1][STAMP])
             del entries[:drop]
             if upto is True:
                 self._find_checkpoints()
@@ -467,7 +468,7 @@ def _position(entries, entry):
     compared as one truth value. A bisection on the stamps, then identity among the
     entries of that stamp.
     """
-    i = bisect_left(entries, entry[_T], key=_stamp)
+    i = bisect_left(entries, entry[STAMP], key=_stamp)
     while entries[i] is not entry:
         i += 1
     return i

@@ -10,8 +10,7 @@ import numpy as np
 import scipy.linalg
 
 from .base import Estimator
-from .steps import _discrete_noise, CACHE_SIZE, DT_DIGITS, GAIN_DIGITS, \
-    process_noise_covariance
+from .steps import CACHE_SIZE, discrete_noise, DT_DIGITS, GAIN_DIGITS, process_noise_covariance
 from ..errors import DesignError
 from ..model import as_matrix
 
@@ -113,7 +112,7 @@ class KalmanEstimator(Estimator):
     def _noise_at(self, step):
         if step.k is None:
             return process_noise_covariance(self._plant.A, self._Q, step.h, self._G)
-        return _discrete_noise(self._plant.A, self._GQG, step.k)
+        return discrete_noise(self._plant.A, self._GQG, step.k)
 
     def _propagate(self, step):
         self._propagate_model(step)

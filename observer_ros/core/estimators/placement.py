@@ -21,7 +21,7 @@ from ..verify import verify_placement
 QUICK_PLACE_TOL = 1e-10
 
 
-def _design_choice(poles, gain, method, what):
+def design_choice(poles, gain, method, what):
     """Check a constructor's (poles or gain, method) choice; return the method."""
     if (poles is None) == (gain is None):
         raise DesignError(f'give exactly one of poles and gain for a {what}')
@@ -89,7 +89,7 @@ def _quick_gain(A, C, z, method):
     placed : (n, p) ndarray or None
         ``place_poles``' gain whether accurate or not (None if not computed or it
         failed): with several outputs it is python-control's ``place``, the only
-        candidate ``observer_gain`` has, so :func:`_place` does not compute it twice.
+        candidate ``observer_gain`` has, so :func:`place` does not compute it twice.
 
     """
     p = C.shape[0]
@@ -156,7 +156,7 @@ def _checked(A, C, z, formula):
     return M
 
 
-def _place(A, C, zpoles, method, field='observer.poles'):
+def place(A, C, zpoles, method, field='observer.poles'):
     """
     Gain M with the observable part of eig(A - M C) at (some of) ``zpoles``, verified.
 
@@ -211,7 +211,7 @@ def _verified(A, C, M, z, field):
     return M
 
 
-def _unobservable_check(A, C, discrete, what):
+def unobservable_check(A, C, discrete, what):
     """Rank of (A, C); raise NotDetectableError if an unobservable mode is not stable."""
     Abar, _, _, _, r = observable_decomposition(A, None, C)
     n = A.shape[0]

@@ -10,7 +10,7 @@ import numpy as np
 import scipy.linalg
 
 from . import placement
-from .current_form import _CurrentForm
+from .current_form import CurrentForm
 from .steps import CACHE_SIZE, DT_DIGITS, GAIN_DIGITS
 from ..design import reduced_coordinates
 from ..errors import DimensionError, ObserverError
@@ -19,7 +19,7 @@ from ..model import as_matrix, as_poles
 __all__ = ['ReducedOrderEstimator']
 
 
-class ReducedOrderEstimator(_CurrentForm):
+class ReducedOrderEstimator(CurrentForm):
     """
     Reduced-order observer: measured combinations taken from y, the rest estimated.
 
@@ -81,21 +81,21 @@ class ReducedOrderEstimator(_CurrentForm):
     """
 
     kind = 'reduced'
-    _STATE = _CurrentForm._STATE + ('_ybar', '_z')
+    _STATE = CurrentForm._STATE + ('_ybar', '_z')
 
     def __init__(self, plant, poles=None, gain=None, method='auto', x0=None, t0=None,
                  measured_rows=None, dt_digits=DT_DIGITS, cache_size=CACHE_SIZE,
                  gain_digits=GAIN_DIGITS):
         super().__init__(plant, x0, t0, measured_rows, dt_digits, cache_size, gain_digits)
-        self._method = placement._design_choice(poles, gain, method, 'reduced-order observer')
+        self._method = placement.design_choice(poles, gain, method, 'reduced-order observer')
         n = plant.n
         C_m = plant.C[list(self._measured)]
         pm = C_m.shape[0]
         self._T, self._Tinv, self._rest = reduced_coordinates(C_m)
         self._pm = pm
         self._pos = {r: i for i, r in enumerate(self._measured)}
-        rank = placement._unobservable_check(plant.A, C_m, plant.is_discrete,
-                                             'reduced-order observer')
+        rank = placement.unobservable_check(plant.A, C_m, plant.is_discrete,
+                                            'reduced-order observer')
         self._L = None
         self._poles = None
         if poles is not None:
@@ -168,8 +168,8 @@ class ReducedOrderEstimator(_CurrentForm):
     def _place_reduced(self, step, field):
         pm = self._pm
         Phi = self._T @ step.Ad @ self._Tinv
-        return placement._place(Phi[pm:, pm:], Phi[:pm, pm:], self._zpoles(step),
-                                self._method, field)
+        return placement.place(Phi[pm:, pm:], Phi[:pm, pm:], self._zpoles(step),
+                               self._method, field)
 
     # continuous given gain: z-form with ybar held ---------------------------
 

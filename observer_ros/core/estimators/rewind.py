@@ -26,6 +26,8 @@ a step late, most of them), moves the estimator itself: no state need be kept fo
 
 from collections import deque
 
+from .entries import (COMMAND, ESTIMATE, INNOVATION_COV, KIND, MEASUREMENT, RESIDUAL, ROWS, STAMP,
+                      STATE, TAG, VALUE)
 from .superposition import shifted_states
 
 __all__ = ['Rewinding', 'CHECKPOINT_EVERY', 'DENSE_DEPTH', 'DENSE_FOR']
@@ -48,21 +50,6 @@ DENSE_DEPTH = 32
 #: turned dense checkpoints on.
 DENSE_FOR = 64
 
-_MEASUREMENT, _COMMAND = 0, 1
-
-# An entry of the history is a list (cheaper to make than an object, per message):
-# the message's stamp, kind, value, rows and tag, then what applying it gave: the
-# estimator's state after it (a checkpoint, or None), and for a measurement the estimate
-# at its stamp, its residual and S (for the call itself and :attr:`History.revised`; the
-# fast path of :meth:`History.correct` does not keep them). At one stamp the
-# measurements come before the commands, and messages of one kind in the order they
-# arrived.
-_T, _KIND, _VALUE, _ROWS, _TAG, _STATE, _X, _RESIDUAL, _S = range(9)
-
-
-def _entry(t, kind, value, rows, tag):
-    return [t, kind, value, rows, tag, None, None, None, None]
-
 
 class Rewinding:
     """
@@ -76,44 +63,44 @@ class Rewinding:
     def _apply(self, entry, checkpoint=None):
         """Apply an entry; keep the state after it every CHECKPOINT_EVERY messages."""
         est = self._est
-        if entry[_KIND] == _MEASUREMENT:
-            entry[_X] = est.correct(entry[_T], entry[_VALUE], entry[_ROWS])
-            entry[_RESIDUAL], entry[_S] = est.last_residual()
+        if entry[KIND] == MEASUREMENT:
+            entry[ESTIMATE] = est.correct(entry[STAMP], entry[VALUE], entry[ROWS])
+            entry[RESIDUAL], entry[INNOVATION_COV] = est.last_residual()
         else:
-            est.set_input(entry[_T], entry[_VALUE])
+            est.set_input(entry[STAMP], entry[VALUE])
         since_counted = checkpoint is None
         if since_counted:
             since = self._since + 1
             checkpoint = since >= CHECKPOINT_EVERY or self._dense > 0
             self._since = 0 if checkpoint else since
-        entry[_STATE] = est.save_state() if checkpoint else None
+        entry[STATE] = est.save_state() if checkpoint else None
         if checkpoint and since_counted:
             self._checkpoints.append(entry)        # a rewind lists them again at its end
 
     def _rewind(self, pos, entry):
         est = self._est
         entries = self._entries
-        if pos == len(entries) - 1 and entry[_KIND] == _COMMAND and self.superpose and \
-                est._superposable and entries[pos][_KIND] == _MEASUREMENT:
+        if pos == len(entries) - 1 and entry[KIND] == COMMAND and self.superpose and \
+                est._superposable and entries[pos][KIND] == MEASUREMENT:
             self._superpose_head(entry)         # the closed loop's command, a step late
             return
         shallow = len(entries) - pos <= DENSE_DEPTH
         if shallow:                                   # the closed loop's lag
             self._dense = DENSE_FOR
-        if entry[_KIND] == _COMMAND and self.superpose and est._superposable and \
+        if entry[KIND] == COMMAND and self.superpose and est._superposable and \
                 self._superpose(pos, entry):
             return
         if shallow:
-            if pos == len(entries) - 1 and pos and entries[pos - 1][_STATE] is not None:
-                self._rewind_one(entry, entries[pos - 1][_STATE])
+            if pos == len(entries) - 1 and pos and entries[pos - 1][STATE] is not None:
+                self._rewind_one(entry, entries[pos - 1][STATE])
                 return
         dense = self._dense > 0
         # the newest checkpoint before the new entry, and the entries from it on
         start = pos
-        while start > 0 and entries[start - 1][_STATE] is None:
+        while start > 0 and entries[start - 1][STATE] is None:
             start -= 1
         head = est.save_state()
-        est.restore_state(entries[start - 1][_STATE] if start else self._base)
+        est.restore_state(entries[start - 1][STATE] if start else self._base)
         # checkpoints again every CHECKPOINT_EVERY messages from the one restored
         count = 0
         try:
@@ -134,8 +121,8 @@ class Rewinding:
         for e in later:
             count += 1
             self._apply(e, dense or count % CHECKPOINT_EVERY == 0)
-            if e[_KIND] == _MEASUREMENT:
-                revised.append((e[_TAG], e[_X], e[_RESIDUAL], e[_S]))
+            if e[KIND] == MEASUREMENT:
+                revised.append((e[TAG], e[ESTIMATE], e[RESIDUAL], e[INNOVATION_COV]))
         if revised:
             self.revised = revised
         self._since = 0 if dense else count % CHECKPOINT_EVERY
@@ -149,7 +136,7 @@ class Rewinding:
         if kept is not None and not checkpoints:     # not listed: list them all again
             self._find_checkpoints()
         else:
-            checkpoints.extend(e for e in entries[start:] if e[_STATE] is not None)
+            checkpoints.extend(e for e in entries[start:] if e[STATE] is not None)
 
     def _superpose(self, pos, entry):
         """
@@ -165,26 +152,26 @@ class Rewinding:
         entries = self._entries
         later = entries[pos:]
         for e in later:
-            if e[_STATE] is None:
+            if e[STATE] is None:
                 return False
         iu = est._slots['_u']
-        if later[0][_KIND] == _MEASUREMENT:         # the input held at the command's stamp
-            u_old = later[0][_STATE][iu]
-        elif pos and entries[pos - 1][_STATE] is not None:
-            u_old = entries[pos - 1][_STATE][iu]
+        if later[0][KIND] == MEASUREMENT:         # the input held at the command's stamp
+            u_old = later[0][STATE][iu]
+        elif pos and entries[pos - 1][STATE] is not None:
+            u_old = entries[pos - 1][STATE][iu]
         else:
             return False
-        u_new = est.check_input(entry[_VALUE])
-        shifted = shifted_states(est, entry[_T], u_new, u_new - u_old, [
-            (e[_T], e[_ROWS] if e[_KIND] == _MEASUREMENT else None, e[_STATE])
+        u_new = est.check_input(entry[VALUE])
+        shifted = shifted_states(est, entry[STAMP], u_new, u_new - u_old, [
+            (e[STAMP], e[ROWS] if e[KIND] == MEASUREMENT else None, e[STATE])
             for e in later])
         revised = []
         for e, (state, x, residual, S) in zip(later, shifted):
-            e[_STATE] = state
+            e[STATE] = state
             if x is not None:
-                e[_X], e[_RESIDUAL], e[_S] = x, residual, S
-                revised.append((e[_TAG], x, residual, S))
-        est._restore_shifted(later[-1][_STATE])   # the estimator was at the newest entry
+                e[ESTIMATE], e[RESIDUAL], e[INNOVATION_COV] = x, residual, S
+                revised.append((e[TAG], x, residual, S))
+        est._restore_shifted(later[-1][STATE])   # the estimator was at the newest entry
         entries.insert(pos, entry)                # no state: a rewind applies it again
         if revised:
             self.revised = revised
@@ -206,16 +193,16 @@ class Rewinding:
         est = self._est
         entries = self._entries
         last = entries[-1]
-        u_new = est.check_input(entry[_VALUE])
+        u_new = est.check_input(entry[VALUE])
         # the live parts, not copies: shifted_states makes new arrays of those it moves
         (state, x, residual, S), = shifted_states(
-            est, entry[_T], u_new, u_new - est._u,
-            [(last[_T], last[_ROWS], est._state_values(est))])
+            est, entry[STAMP], u_new, u_new - est._u,
+            [(last[STAMP], last[ROWS], est._state_values(est))])
         est._restore_shifted(state)
-        if last[_STATE] is not None:
-            last[_STATE] = est.save_state()
-        last[_X], last[_RESIDUAL], last[_S] = x, residual, S
-        self.revised = [(last[_TAG], x, residual, S)]
+        if last[STATE] is not None:
+            last[STATE] = est.save_state()
+        last[ESTIMATE], last[RESIDUAL], last[INNOVATION_COV] = x, residual, S
+        self.revised = [(last[TAG], x, residual, S)]
         entries.insert(len(entries) - 1, entry)   # no state: a rewind applies it again
         self.rewinds += 1
         self.superposed += 1
@@ -237,12 +224,12 @@ class Rewinding:
         except Exception:
             # a bad message changes nothing: the newest entry again, on the same state
             est.restore_state(state)
-            self._apply(last, last[_STATE] is not None)
+            self._apply(last, last[STATE] is not None)
             raise
-        self._apply(last, last[_STATE] is not None)
-        if last[_KIND] == _MEASUREMENT:
-            self.revised = [(last[_TAG], last[_X], last[_RESIDUAL], last[_S])]
-        if last[_STATE] is None:
+        self._apply(last, last[STATE] is not None)
+        if last[KIND] == MEASUREMENT:
+            self.revised = [(last[TAG], last[ESTIMATE], last[RESIDUAL], last[INNOVATION_COV])]
+        if last[STATE] is None:
             self._since += 1
         self.rewinds += 1
         self.reapplied += 1
@@ -250,4 +237,4 @@ class Rewinding:
 
     def _find_checkpoints(self):
         """List the entries with a state again (after a rewind moved the checkpoints)."""
-        self._checkpoints = deque(e for e in self._entries if e[_STATE] is not None)
+        self._checkpoints = deque(e for e in self._entries if e[STATE] is not None)

@@ -10,7 +10,7 @@ every ``rate_divider_k`` steps of ``vehicle.sample_time``; the period is the lea
 common multiple of the dividers):
 
 1. designs the gain of every correction of the period (each passes
-   ``verify.verify_placement`` in ``placement._place``; a refused one raises its
+   ``verify.verify_placement`` in ``placement.place``; a refused one raises its
    ``DesignVerificationError`` naming ``observer.poles``, the step and the outputs);
 2. multiplies the error maps ``F_j = (I - M_j C_j) Ad(h_j)`` of the period's
    corrections and refuses the vehicle when the product is not stable (stability

@@ -124,7 +124,7 @@ def process_noise_covariance(A, Qc, dt, G=None):
     return 0.5 * (Qd + Qd.T)
 
 
-def _discrete_noise(A, GQG, k):
+def discrete_noise(A, GQG, k):
     """Covariance sum_{i<k} A^i GQG A^iT of k steps of a discrete plant."""
     Q = np.zeros_like(GQG)
     term = GQG.copy()
@@ -139,7 +139,7 @@ def _grid_step(mant, exp):
     return float(f'{mant}e{exp}')
 
 
-def _bracket(key, digits):
+def bracket(key, digits):
     """
     Grid steps g0 <= key < g1 of ``digits`` significant digits and the weight of g1.
 
@@ -164,7 +164,8 @@ def _bracket(key, digits):
     return g0, g1, (key - g0) / (g1 - g0)
 
 
-def _check_plant(plant):
+def check_plant(plant):
+    """Return ``plant``; raise ObserverError when it is not a core.model.Plant."""
     if not isinstance(plant, Plant):
         raise ObserverError(f'plant must be an observer_ros.core.model.Plant; got '
                             f'{type(plant).__name__}')
@@ -209,7 +210,7 @@ class StepCache:
     """
 
     def __init__(self, plant, digits=DT_DIGITS, size=CACHE_SIZE):
-        self._plant = _check_plant(plant)
+        self._plant = check_plant(plant)
         if int(digits) < 3 or int(digits) > 17:
             raise ObserverError(f'dt_digits must be between 3 and 17; got {digits!r}')
         if int(size) < 1:
