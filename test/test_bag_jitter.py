@@ -14,7 +14,7 @@ import numpy as np
 from numpy.testing import assert_allclose
 from observer_ros.bag.reader import read_recording
 from observer_ros.core.estimators import make_estimator
-from observer_ros.replay.bulk_checks import _twin
+from observer_ros.replay.bulk_checks import twin
 from observer_ros.replay.replay import replay
 from observer_ros.vehicle import load_vehicle
 
@@ -54,10 +54,10 @@ def test_a_twin_has_its_own_state_and_the_same_caches():
     vehicle = load_vehicle(CONFIG / 'submarine.yaml')
     est = make_estimator(vehicle.plant, vehicle.observer)
     est.correct(1.0, [0.1], vehicle.plant.output_rows(vehicle.sensors[0].outputs))
-    twin = _twin(est)
-    assert twin.cache is est.cache and twin.gain_cache is est.gain_cache
+    copy = twin(est)
+    assert copy.cache is est.cache and copy.gain_cache is est.gain_cache
     x = est.x_hat.copy()
-    twin.reset(np.ones(vehicle.plant.n), 2.0)
+    copy.reset(np.ones(vehicle.plant.n), 2.0)
     assert_allclose(est.x_hat, x)
     assert est.t == 1.0
 
@@ -134,7 +134,7 @@ def test_bulk_maps_equal_the_probed_maps_of_every_step():
         keys = np.array([est.cache.key(h) for h in steps])
         maps = bulk_maps(est, keys, np.zeros(steps.size, dtype=int), rows)
         for c, h in enumerate(keys):
-            probed = _probe(_twin(est), 10.0, 10.0 + h, rows[0])
+            probed = _probe(twin(est), 10.0, 10.0 + h, rows[0])
             for bulk, measured in zip((M[c] for M in maps), probed):
                 assert_allclose(bulk, measured, rtol=1e-10, atol=1e-12)
 

@@ -21,8 +21,8 @@ from observer_ros.core.estimators import make_estimator
 from observer_ros.core.innovation import sequence_health, transient_time
 from observer_ros.core.vehicle_design import design_vehicle
 from observer_ros.replay import bulk_runs, events as replay_events, health as replay_health
-from observer_ros.replay.bulk_runs import _find_runs, _has_late
-from observer_ros.replay.events import _epoch_cuts, _Events
+from observer_ros.replay.bulk_runs import find_runs, has_late
+from observer_ros.replay.events import epoch_cuts, Events
 from observer_ros.replay.replay import epochs_of, innovation_health, replay
 from observer_ros.vehicle import load_vehicle
 import pytest
@@ -152,11 +152,11 @@ def test_bag_replay_in_blocks_equals_one_block(cases, name, monkeypatch):
 def _runs(rec, veh, block):
     sensors = list(veh.sensors)
     counts = dict.fromkeys(('bad_stamps', 'bad_messages', 'bad_commands'), 0)
-    events = _Events(rec, sensors, veh.plant, counts,
-                     lockstep=veh.simulator.mode == 'lockstep')
+    events = Events(rec, sensors, veh.plant, counts,
+                    lockstep=veh.simulator.mode == 'lockstep')
     est = make_estimator(veh.plant, veh.observer)
-    return events, _find_runs(events, events.streams, events.command, est, 0.5, 10.0,
-                              block=block)
+    return events, find_runs(events, events.streams, events.command, est, 0.5, 10.0,
+                             block=block)
 
 
 @pytest.mark.parametrize('name', ['sub', 'cart_shifted', 'lockstep_swapped', 'discrete'])
@@ -185,24 +185,24 @@ def test_bag_has_late_in_blocks_equals_the_whole_scan(cases, name):
     veh, bag = cases(name)
     rec = read_recording(bag, veh)
     events, _ = _runs(rec, veh, WHOLE)
-    whole = _has_late(events, events.streams, events.command, 0.5, block=WHOLE)
+    whole = has_late(events, events.streams, events.command, 0.5, block=WHOLE)
     assert whole == (name != 'sub')      # a late message, a late command
     for block in (1, 7, 113):
-        assert _has_late(events, events.streams, events.command, 0.5, block=block) == whole
+        assert has_late(events, events.streams, events.command, 0.5, block=block) == whole
 
 
 def _transient(rec, veh, block):
     """Return the peak memory of finding the runs above what it keeps, in bytes."""
     sensors = list(veh.sensors)
     counts = dict.fromkeys(('bad_stamps', 'bad_messages', 'bad_commands'), 0)
-    events = _Events(rec, sensors, veh.plant, counts)
+    events = Events(rec, sensors, veh.plant, counts)
     est = make_estimator(veh.plant, veh.observer)
     tracemalloc.start()
     try:
         tracemalloc.reset_peak()
         base = tracemalloc.get_traced_memory()[0]
-        runs = _find_runs(events, events.streams, events.command, est, 0.5, 10.0,
-                          block=block)
+        runs = find_runs(events, events.streams, events.command, est, 0.5, 10.0,
+                         block=block)
         kept, peak = tracemalloc.get_traced_memory()
     finally:
         tracemalloc.stop()
@@ -234,7 +234,7 @@ def test_bag_runs_of_no_events_are_none():
 
         def __len__(self):
             return 0
-    runs = _find_runs(_NoEvents(), [], None, est, 0.5, 10.0, block=7)
+    runs = find_runs(_NoEvents(), [], None, est, 0.5, 10.0, block=7)
     assert not runs and runs.get(0) is None
 
 
@@ -361,8 +361,8 @@ def test_bag_events_merged_in_blocks_are_in_the_nodes_order(cases, name, monkeyp
     for block in (1, 7, 113, replay_events.EVENT_BLOCK):
         monkeypatch.setattr(replay_events, 'EVENT_BLOCK', block)
         counts = dict.fromkeys(('bad_stamps', 'bad_messages', 'bad_commands'), 0)
-        events = _Events(rec, list(veh.sensors), veh.plant, counts,
-                         lockstep=veh.simulator.mode == 'lockstep')
+        events = Events(rec, list(veh.sensors), veh.plant, counts,
+                        lockstep=veh.simulator.mode == 'lockstep')
         for got, ref, field in zip((events.seq, events.kind, events.idx), want,
                                    ('seq', 'kind', 'idx')):
             assert_array_equal(got, ref, err_msg=f'{field}, block {block}')
@@ -377,5 +377,5 @@ def test_bag_epoch_cuts_in_blocks_equal_epochs_of():
             stamp[j:] -= int(rng.integers(0, 3)) * 10**9      # back by 0, 1 or 2 s
         want = (np.flatnonzero(np.diff(epochs_of(stamp, 0.5))) + 1).tolist()
         for block in (1, 2, 7, 64, 1000):
-            assert _epoch_cuts(stamp, 0.5, block) == want, (trial, block)
-    assert _epoch_cuts(np.zeros(0, dtype=np.int64), 0.5) == []
+            assert epoch_cuts(stamp, 0.5, block) == want, (trial, block)
+    assert epoch_cuts(np.zeros(0, dtype=np.int64), 0.5) == []

@@ -18,7 +18,7 @@ from observer_ros.bag.spill import (count_true, decimated_rows, pairwise_sum, Si
                                     SortedColumn, SpilledColumn)
 from observer_ros.evaluation import metrics
 from observer_ros.evaluation.plots import decimate
-from observer_ros.replay.events import _epoch_cuts, epochs_from_cuts, epochs_of
+from observer_ros.replay.events import epoch_cuts, epochs_from_cuts, epochs_of
 import pytest
 
 
@@ -89,7 +89,7 @@ def test_epochs_from_cuts_are_epochs_of(tmp_path):
     want = epochs_of(stamp, 0.5)
     assert want[-1] == 3
     for col in _both(stamp, tmp_path):
-        cuts = _epoch_cuts(col, 0.5, block=64)
+        cuts = epoch_cuts(col, 0.5, block=64)
         for spilled in (None, tmp_path):
             got = epochs_from_cuts(cuts, len(col), spilled, block=100)
             assert isinstance(got, SpilledColumn) == (spilled is not None)

@@ -20,7 +20,7 @@ from rosbags.typesys import get_typestore, Stores
 
 from .bag_checks import (check_metadata_file, check_regular, LOCK_NAME, metadata_disagreement,
                          metadata_storage_disagreement, recording_holder, still_growing)
-from .cdr_decode import _PAD
+from .cdr_decode import PAD
 from .errors import BagToolError
 from .integrity import checksum_note, chunk_crcs
 from .mcap_fast import fast_chunks, fast_messages
@@ -310,7 +310,7 @@ class BagReader:
         if len(readers) != 1 or (topics is not None and not conns):
             return None
         try:
-            chunks = fast_chunks(readers[0], conns, pad=_PAD)
+            chunks = fast_chunks(readers[0], conns, pad=PAD)
         except Exception:   # noqa: BLE001 - any doubt: the message-by-message path
             return None
         return None if chunks is None else self._guarded(chunks)

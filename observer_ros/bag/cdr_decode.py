@@ -38,7 +38,7 @@ _IMU_OFFSETS = {
 }
 _IMU_EULER = ('orientation.roll', 'orientation.pitch', 'orientation.yaw')
 _JOINT_ARRAYS = ('position', 'velocity', 'effort')
-_PAD = 512          # zero bytes appended so that gathers past a short message stay inside
+PAD = 512          # zero bytes appended so that gathers past a short message stay inside
 
 
 @dataclass
@@ -65,7 +65,7 @@ def _align(pos, alignment):
     return 4 + (rel + alignment - 1) // alignment * alignment
 
 
-def _joint_state_layout(buf):
+def joint_state_layout(buf):
     """
     Parse one little-endian JointState: names, arrays (offset, count), structural bytes.
 
@@ -181,7 +181,7 @@ def decode_messages(raws, msgtype, fields, mode='sensor', fallback=None, max_lay
     if n:
         np.cumsum(lengths[:-1], out=starts[1:])
     # one copy of the batch (joining, then appending the padding, made two)
-    flat = np.frombuffer(b''.join(itertools.chain(raws, (bytes(_PAD),))), dtype=np.uint8)
+    flat = np.frombuffer(b''.join(itertools.chain(raws, (bytes(PAD),))), dtype=np.uint8)
     return decode_packed(flat, starts, lengths, msgtype, fields, mode, fallback, max_layouts,
                          raws=raws)
 
@@ -206,7 +206,7 @@ def decode_packed(flat, starts, lengths, msgtype, fields, mode='sensor', fallbac
     :func:`decode_messages` for messages already in one buffer.
 
     Message i is ``flat[starts[i]:starts[i] + lengths[i]]``; ``flat`` (uint8) must have
-    at least ``_PAD`` bytes after the last message. ``raws`` (a list of the same
+    at least ``PAD`` bytes after the last message. ``raws`` (a list of the same
     messages) is optional: without it a message is sliced out of ``flat`` when the
     per-message path needs it.
 
@@ -317,7 +317,7 @@ def _decode_joint_state(raws, flat, starts, lengths, little, fields, mode, stamp
         while group.size and layouts < max_layouts:
             first = int(group[0])
             try:
-                names, arrays, structural = _joint_state_layout(memoryview(raws[first]))
+                names, arrays, structural = joint_state_layout(memoryview(raws[first]))
             except ValueError:
                 group = group[1:]           # left to the fallback
                 continue

@@ -373,7 +373,7 @@ def process_noise_map(A, G, dt=None, discrete=False):
     return lambda Q: process_noise_covariance(A, Q, dt, G)
 
 
-def _basis(k, full):
+def symmetric_basis(k, full):
     """Symmetric basis matrices of k x k: diagonal ones, then (i < j) pairs if full."""
     out, labels = [], []
     for i in range(k):
@@ -418,8 +418,8 @@ def als_matrix(Ad, C, Lp, noise_map, k, lags, full=False):
     """
     p = np.asarray(C).shape[0]
     n = np.asarray(Ad).shape[0]
-    qb, q_labels = _basis(k, full)
-    rb, r_labels = _basis(p, full)
+    qb, q_labels = symmetric_basis(k, full)
+    rb, r_labels = symmetric_basis(p, full)
     cols = [model_autocovariances(Ad, C, Lp, noise_map(E), np.zeros((p, p)), lags).ravel()
             for E in qb]
     cols += [model_autocovariances(Ad, C, Lp, np.zeros((n, n)), E, lags).ravel()

@@ -426,12 +426,12 @@ class LTVModel:
         of its unknown, per entry divided by the number of pairs (as the data's).
 
         """
-        from .als import _basis
+        from .als import symmetric_basis
         m = self.model
         C = m.C
         p, n = C.shape
-        qb, q_labels = _basis(k, full)
-        rb, r_labels = _basis(p, full)
+        qb, q_labels = symmetric_basis(k, full)
+        rb, r_labels = symmetric_basis(p, full)
         S_q = [self.G @ E @ self.G.T for E in qb]
         Rb = np.array(rb).reshape(-1, p, p)
         h = m.h

@@ -46,7 +46,7 @@ from ..bag.reader import read_recording
 from ..bag.spill import blocks, count_true, Sink
 from ..core.errors import ObserverError
 from ..core.vehicle_design import design_vehicle
-from ..replay.events import _epoch_cuts, epochs_from_cuts
+from ..replay.events import epoch_cuts, epochs_from_cuts
 from ..replay.replay import (CLOCK_JUMP_AGREEMENT, CLOCK_JUMP_TOLERANCE, epochs_of,
                              live_replay, replay)
 
@@ -361,7 +361,7 @@ def _truth(tr, tolerance, spill):
             t_ns.append(tr.stamp_ns[sel])
             values.append(tr.values[sel])
         t_ns, values = t_ns.result(), values.result()
-    return t_ns, values, epochs_from_cuts(_epoch_cuts(t_ns, tolerance), len(t_ns), spill)
+    return t_ns, values, epochs_from_cuts(epoch_cuts(t_ns, tolerance), len(t_ns), spill)
 
 
 def _scored(result, vr, keep_rows, health=True):

@@ -223,7 +223,7 @@ def write_results(result, out, force=False, plots=True, results_bag=True,
 
 def _joint_state_bytes(names, stamp_ns, values):
     """Serialize JointState messages (name, position) for many stamps at once."""
-    from ..bag.cdr_decode import _joint_state_layout   # the same layout rules as the decoder
+    from ..bag.cdr_decode import joint_state_layout   # the same layout rules as the decoder
     store = jazzy_typestore()
     js = store.types['sensor_msgs/msg/JointState']
     hdr = store.types['std_msgs/msg/Header']
@@ -232,7 +232,7 @@ def _joint_state_bytes(names, stamp_ns, values):
     msg = js(header=hdr(stamp=tm(sec=0, nanosec=0), frame_id=''), name=list(names),
              position=np.zeros(k), velocity=np.zeros(0), effort=np.zeros(0))
     template = np.frombuffer(bytes(store.serialize_cdr(msg, js.__msgtype__)), np.uint8)
-    _, arrays, _ = _joint_state_layout(template.tobytes())
+    _, arrays, _ = joint_state_layout(template.tobytes())
     off, count = arrays['position']
     assert count == k
     N = stamp_ns.size

@@ -3,9 +3,9 @@
 Checks of a bulk-replayed stretch against the estimator, before its estimates are used.
 
 Every step against its affine map with the held input found again from the events
-(:func:`_check_steps`), and windows of the estimator's own calls over the recorded
-events (:func:`_check_windows`, placed by :func:`_windows`); a difference beyond
-:data:`CHECK_RTOL` of the size of the steps' terms (:func:`_term_scale`) fails it.
+(:func:`check_steps`), and windows of the estimator's own calls over the recorded
+events (:func:`check_windows`, placed by :func:`_windows`); a difference beyond
+:data:`CHECK_RTOL` of the size of the steps' terms (:func:`term_scale`) fails it.
 
 """
 
@@ -20,7 +20,7 @@ IRREGULAR_STEPS = 3            # steps of each of those
 CHECK_RTOL = 1e-10             # bulk vs call, relative to the terms of the steps so far
 
 
-def _twin(est):
+def twin(est):
     """
     Return a copy of an estimator with its own state and the same caches.
 
@@ -33,14 +33,14 @@ def _twin(est):
     return copy.deepcopy(est, memo)
 
 
-def _spread(items, count):
+def spread(items, count):
     """Return up to ``count`` of ``items`` spread evenly, the first and the last included."""
     if len(items) <= count:
         return list(items)
     return [items[i] for i in np.linspace(0, len(items) - 1, count).round().astype(int)]
 
 
-def _class_matvec(M, classes, V, chunk=1 << 16):
+def class_matvec(M, classes, V, chunk=1 << 16):
     """
     Return ``out[k] = M[classes[k]] @ V[k]`` for every step k.
 
@@ -120,7 +120,7 @@ def _windows(run, K):
     return merged
 
 
-def _check_windows(est, run, streams, cmd, rows, X, U, scale, setup=None):
+def check_windows(est, run, streams, cmd, rows, X, U, scale, setup=None):
     """
     Compare the bulk estimates X with the estimator's calls over the checked windows.
 
@@ -134,7 +134,7 @@ def _check_windows(est, run, streams, cmd, rows, X, U, scale, setup=None):
     a, K = run['a'], X.shape[0]
     mev, tm = run['mev'], run['tm']
     for s0, s1 in _windows(run, K):
-        check = _twin(est)
+        check = twin(est)
         if s0:
             t0 = float(tm[a + s0])
             check.reset(X[s0 - 1], t0)
@@ -152,19 +152,19 @@ def _check_windows(est, run, streams, cmd, rows, X, U, scale, setup=None):
     return None
 
 
-def _term_scale(maps, cls, sens, Y, Xprev, X, U):
+def term_scale(maps, cls, sens, Y, Xprev, X, U):
     """Return the running maximum over steps of ``max(|F| |x_prev| + |G| |y| + |H| |u|, |x|)``."""
     absF, absG, absH = (np.abs(M) for M in maps[:3])
-    terms = _class_matvec(absF, cls, np.abs(Xprev)) + _class_matvec(absH, cls, np.abs(U))
+    terms = class_matvec(absF, cls, np.abs(Xprev)) + class_matvec(absH, cls, np.abs(U))
     for k, y in enumerate(Y):
         if y is not None:
             sel = np.flatnonzero(sens == k)
-            terms[sel] += _class_matvec(absG, cls[sel], np.abs(y))
+            terms[sel] += class_matvec(absG, cls[sel], np.abs(y))
     scale = np.maximum(np.max(terms, axis=1), np.max(np.abs(X), axis=1))
     return np.maximum.accumulate(scale) + np.finfo(float).tiny
 
 
-def _check_steps(run, cmd, maps, cls, sens, Y, X, x0, u0, scale):
+def check_steps(run, cmd, maps, cls, sens, Y, X, x0, u0, scale):
     """
     Check every step of a bulk run against its own affine map; None or a message.
 
@@ -189,11 +189,11 @@ def _check_steps(run, cmd, maps, cls, sens, Y, X, x0, u0, scale):
         U[held] = cmd.values[idx[last[held]]]
     F, G, H = maps[:3]
     Xprev = np.vstack([x0[None, :], X[:-1]])
-    pred = _class_matvec(F, cls, Xprev) + _class_matvec(H, cls, U)
+    pred = class_matvec(F, cls, Xprev) + class_matvec(H, cls, U)
     for k, y in enumerate(Y):
         if y is not None:
             sel = np.flatnonzero(sens == k)
-            pred[sel] += _class_matvec(G, cls[sel], y)
+            pred[sel] += class_matvec(G, cls[sel], y)
     err = np.max(np.abs(pred - X), axis=1)
     bad = np.flatnonzero(err > CHECK_RTOL * scale)
     if bad.size:

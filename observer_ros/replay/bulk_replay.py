@@ -11,9 +11,9 @@ command before it in the replay order (the order above, which the main loop walk
 lockstep it is not the bag order). Every stretch is checked before it is used:
 
 - every step against its affine map, with the held input found again from the events
-  (:func:`_check_steps`);
+  (:func:`check_steps`);
 - windows of the estimator's own calls, the recorded events handled as the main loop
-  handles them (:func:`_check_windows`): the first and last steps, a spread across the
+  handles them (:func:`check_windows`): the first and last steps, a spread across the
   stretch, and its irregular places (a gap with other than one command, events whose bag
   order is not the replay order, a change of step length or sensor);
 - one step of each step class from its bulk prior.
@@ -28,8 +28,8 @@ bulk's different round-off as much. ``exact=True`` turns bulk replay off.
 
 import numpy as np
 
-from .bulk_checks import (_check_steps, _check_windows, _class_matvec, _spread, _term_scale,
-                          _twin, CHECK_RTOL)
+from .bulk_checks import (CHECK_RTOL, check_steps, check_windows, class_matvec, spread, term_scale,
+                          twin)
 from .bulk_kalman import kalman_maps
 from .step_maps import bulk_maps
 
@@ -150,7 +150,7 @@ def _step_maps(est, run, first, sens, rows, warnings):
     over the run; else measured by :func:`_probe` class by class. None: not linear.
 
     """
-    probe = _twin(est)
+    probe = twin(est)
     a, tm = run['a'], run['tm']
     first = np.asarray(first)
     t0, t1 = tm[a + first], tm[a + first + 1]
@@ -159,7 +159,7 @@ def _step_maps(est, run, first, sens, rows, warnings):
     if len(first) > CHECK_CLASSES:
         keys = run['keys'][run['step_class'][a + first] // len(rows)]
         maps = bulk_maps(est, keys, ks, rows)
-    todo = range(len(first)) if maps is None else _spread(range(len(first)), CHECK_CLASSES)
+    todo = range(len(first)) if maps is None else spread(range(len(first)), CHECK_CLASSES)
     probed = {}
     for c in todo:
         mp = _probe(probe, float(t0[c]), float(t1[c]), rows[ks[c]])
@@ -190,7 +190,7 @@ def _spectral_radius(F, h):
 
     """
     if F.shape[0] > 8 * CHECK_CLASSES:
-        pick = _spread(range(F.shape[0]), 8 * CHECK_CLASSES)
+        pick = spread(range(F.shape[0]), 8 * CHECK_CLASSES)
         pick += [int(np.argmin(h)), int(np.argmax(h))]
         F = F[pick]
     return float(np.max(np.abs(np.linalg.eigvals(F))))
@@ -222,7 +222,7 @@ def _held_inputs(run, cmd, u0, a, b):
     return U
 
 
-def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
+def bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
     """
     Replay measurements a+1..b of a run in bulk; hand the state back to est.
 
@@ -273,7 +273,7 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
         Y[k] = streams[k].values[idx[sel]]
         Gk, Hk = maps[1], maps[2]
         ck = cls[sel]
-        W[sel] = _class_matvec(Gk, ck, Y[k]) + _class_matvec(Hk, ck, U[sel])
+        W[sel] = class_matvec(Gk, ck, Y[k]) + class_matvec(Hk, ck, U[sel])
     x0 = est.x_hat
     X = affine_scan(Fs, W, x0, cls)
     if not np.all(np.isfinite(X)):
@@ -287,23 +287,23 @@ def _bulk_run(est, run, streams, cmd, rows, rows_idx, out, m, warnings):
             continue
         ck = cls[sel]
         Rx, Ry, Ru = maps[3:]
-        r = (_class_matvec(Rx, ck, Xprev[sel]) + _class_matvec(Ry, ck, Y[k])
-             + _class_matvec(Ru, ck, U[sel]))
+        r = (class_matvec(Rx, ck, Xprev[sel]) + class_matvec(Ry, ck, Y[k])
+             + class_matvec(Ru, ck, U[sel]))
         R[np.ix_(sel, rows_idx[k])] = r
         if E is not None:                        # whitened by the step's S
-            E[np.ix_(sel, rows_idx[k])] = _class_matvec(cov.whiten, ck, r)
+            E[np.ix_(sel, rows_idx[k])] = class_matvec(cov.whiten, ck, r)
     # round-off is relative to the size of the terms of a step, |F| |x| + |G| |y| +
     # |H| |u| (the map of a reduced-order observer in x coordinates has large entries
     # that cancel), and to the largest of them so far: the estimate may shrink to zero
     # by cancellation or grow without bound on an unstable open loop
-    scale = _term_scale(maps, cls, sens, Y, Xprev, X, U)
+    scale = term_scale(maps, cls, sens, Y, Xprev, X, U)
     # check: every step against its map, windows of real calls over the recorded
     # events, and one step of each class from its bulk prior
-    problem = _check_steps(run, cmd, maps, cls, sens, Y, X, x0, est.u, scale)
+    problem = check_steps(run, cmd, maps, cls, sens, Y, X, x0, est.u, scale)
     if problem is None:
-        problem = _check_windows(est, run, streams, cmd, rows, X, U, scale, setup)
-    check = _twin(est)
-    for f in _spread(first, CHECK_CLASSES) if problem is None else ():
+        problem = check_windows(est, run, streams, cmd, rows, X, U, scale, setup)
+    check = twin(est)
+    for f in spread(first, CHECK_CLASSES) if problem is None else ():
         k = int(sens[f])
         check.reset(Xprev[f], float(tm[a + f]))
         check.set_input(float(tm[a + f]), U[f])

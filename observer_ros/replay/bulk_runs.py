@@ -6,7 +6,7 @@ A step between two accepted measurements is one affine map of the current-form
 estimators when its stamp increases, every check of the node passes and every command
 in the gap is stamped at the earlier measurement (:func:`_steps`). :class:`_Runs` finds
 the stretches of such steps a block of :data:`RUN_BLOCK` steps at a time and cuts them
-into pieces of at most :data:`MAX_RUN` steps; :func:`_has_late` tells whether any message
+into pieces of at most :data:`MAX_RUN` steps; :func:`has_late` tells whether any message
 would be late (then nothing is replayed in bulk). :mod:`observer_ros.replay.bulk_replay`
 evaluates the pieces.
 
@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from .events import _index_type
+from .events import index_type
 from ..bag.spill import Sink
 from ..core.errors import ObserverError
 
@@ -25,7 +25,7 @@ MAX_RUN = 1 << 17              # steps: longer stretches are replayed in pieces 
 RUN_BLOCK = 1 << 17           # steps: the bulk stretches are found this many at a time
 
 
-def _has_late(events, streams, cmd, length, block=1 << 16):
+def has_late(events, streams, cmd, length, block=1 << 16):
     """Tell whether a message comes, in replay order, up to ``length`` s after a newer one."""
     if length <= 0.0 or not len(events):
         return False
@@ -210,14 +210,14 @@ def _measurement_events(kind, block, spill=None):
     """
     blocks = range(0, kind.size, block)
     count = sum(int(np.count_nonzero(kind[e0:e0 + block] >= 0)) for e0 in blocks)
-    mev = Sink(_index_type(kind.size), (), count, spill)
+    mev = Sink(index_type(kind.size), (), count, spill)
     for e0 in blocks:
         mev.append(np.flatnonzero(kind[e0:e0 + block] >= 0) + e0)
     return mev.result()
 
 
-def _find_runs(events, streams, cmd, est, jump, future_tolerance, block=None,
-               max_gap=math.inf):
+def find_runs(events, streams, cmd, est, jump, future_tolerance, block=None,
+              max_gap=math.inf):
     """
     Stretches of measurements each of whose steps is an affine map of the previous x.
 

@@ -2,8 +2,8 @@
 """
 The recording's measurements and commands merged into the observer node's order.
 
-:class:`_Events` gives bag order for a free-running node and stamp order within each
-epoch (:func:`epochs_of`) for a lockstep one; :class:`_Rows` reads its columns as Python
+:class:`Events` gives bag order for a free-running node and stamp order within each
+epoch (:func:`epochs_of`) for a lockstep one; :class:`Rows` reads its columns as Python
 ints a block at a time for the replay's main loop.
 
 """
@@ -65,12 +65,12 @@ def epochs_from_cuts(cuts, size, spill=None, block=None):
     return epoch.result()
 
 
-def _index_type(size):
+def index_type(size):
     """Return int32 for indices below ``size`` when they fit (half the memory), else int64."""
     return np.int32 if size < (1 << 31) else np.int64
 
 
-def _epoch_cuts(stamp_ns, tolerance, block=None):
+def epoch_cuts(stamp_ns, tolerance, block=None):
     """
     Return where the epochs of a sequence of stamps start (after the first), as a list.
 
@@ -174,7 +174,7 @@ class _Source:
         return out
 
 
-class _Events:
+class Events:
     """
     The recording's measurements and commands merged into the order the node used.
 
@@ -213,9 +213,9 @@ class _Events:
             self._lockstep(sources, clock_jump_tolerance)
 
     def _sinks(self, count, size):
-        return (Sink(_index_type(size), (), count, self.spill), Sink(np.int8, (), count,
-                                                                     self.spill),
-                Sink(_index_type(size), (), count, self.spill))
+        return (Sink(index_type(size), (), count, self.spill), Sink(np.int8, (), count,
+                                                                    self.spill),
+                Sink(index_type(size), (), count, self.spill))
 
     def _bag_order(self, sources):
         """
@@ -267,7 +267,7 @@ class _Events:
                 sb[sel] = s.stream.stamp_ns[ib[sel]]
             stamp.append(sb)
         stamp = stamp.result()
-        cuts = _epoch_cuts(stamp, clock_jump_tolerance)
+        cuts = epoch_cuts(stamp, clock_jump_tolerance)
         epochs = list(zip([0, *cuts], [*cuts, size]))
         todo = [not _in_order(stamp, self.kind, e0, e1) for e0, e1 in epochs]
         if not any(todo):
@@ -297,7 +297,7 @@ class _Events:
         return int(self.kind.size)
 
 
-class _Rows:
+class Rows:
     """
     Rows of integer columns as tuples of Python ints, converted a block at a time.
 

@@ -7,7 +7,7 @@ The events (every sensor message and every ``control/u`` message of a
 bag order, the order the recorder received them (ties in receive time keep the order in
 the file); for a vehicle whose ``simulator.mode`` is ``lockstep``, stamp order within
 each epoch of the bag (a measurement before a command at one stamp), since the recorder
-may receive a command after the next measurement (:class:`_Events`). Each one is handled
+may receive a command after the next measurement (:class:`Events`). Each one is handled
 as ``observer_ros.nodes.observer_node`` handles it:
 
 - every message is judged by the node's own
@@ -47,10 +47,9 @@ from typing import Dict, Optional, Tuple
 import numpy as np
 
 from . import bulk_runs
-from .bulk_replay import _bulk_run, affine_scan
-from .bulk_runs import _find_runs, _has_late
-from .events import (_epoch_cuts, _Events, _index_type, _Rows, epochs_from_cuts,
-                     epochs_of)
+from .bulk_replay import affine_scan, bulk_run
+from .bulk_runs import find_runs, has_late
+from .events import epoch_cuts, epochs_from_cuts, epochs_of, Events, index_type, Rows
 from .health import innovation_health
 from .rows import ReplayOutputs
 from ..bag.errors import BagToolError
@@ -205,9 +204,9 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
     plant = vehicle.plant
     sensors = _variant_sensors(vehicle, recording)
     counts = dict.fromkeys(COUNTERS, 0)
-    events = _Events(recording, sensors, plant, counts,
-                     lockstep=vehicle.simulator.mode == 'lockstep',
-                     clock_jump_tolerance=clock_jump_tolerance, spill=spill)
+    events = Events(recording, sensors, plant, counts,
+                    lockstep=vehicle.simulator.mode == 'lockstep',
+                    clock_jump_tolerance=clock_jump_tolerance, spill=spill)
     est = make_estimator(plant, vehicle.observer)
     history = History(est, vehicle.observer.history_length)
     max_gap = max_prediction_gap(plant.A, vehicle.sample_time, plant.is_discrete)
@@ -230,24 +229,24 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
     n_meas = events.measurements
     kalman = est.kind == 'kalman'
     # the narrowest exact types: epochs and bag positions fit the events' index type
-    out = ReplayOutputs(n_meas, plant.n, plant.p, kalman, _index_type(len(events)),
-                        _index_type(events.seq_max + 1),
+    out = ReplayOutputs(n_meas, plant.n, plant.p, kalman, index_type(len(events)),
+                        index_type(events.seq_max + 1),
                         np.int8 if len(sensors) < 128 else np.int16, spill=spill,
                         ahead=bulk_runs.MAX_RUN + bulk_runs.MIN_RUN)
     runs = {}
     warnings = []
     answered = _Answers(plant.n) if answers else None
     if not exact and answered is None and _bulk_capable(est) and \
-            not _has_late(events, streams, cmd, history.length):
-        runs = _find_runs(events, streams, cmd, est, clock_jump_tolerance, future_tolerance,
-                          max_gap=max_gap)
+            not has_late(events, streams, cmd, history.length):
+        runs = find_runs(events, streams, cmd, est, clock_jump_tolerance, future_tolerance,
+                         max_gap=max_gap)
     stamps = [s.stamp_ns for s in streams]
     lockstep = vehicle.simulator.mode == 'lockstep'
     head_ns = None                  # the stamp (ns) of the estimate's time
     epoch = 0
     m = 0
     bulk_steps = 0
-    event = _Rows(events.kind, events.idx, events.seq)
+    event = Rows(events.kind, events.idx, events.seq)
     total = len(events)
     next_report = _PROGRESS_EVERY
     i = 0
@@ -322,9 +321,9 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
         run = runs.get(i - 1)
         while run is not None:
             b = out.local(m)
-            done = _bulk_run(est, run, streams, cmd, rows, rows_idx,
-                             (out.ns, out.x, out.r, out.seq, out.sensor, out.e), b,
-                             warnings)
+            done = bulk_run(est, run, streams, cmd, rows, rows_idx,
+                            (out.ns, out.x, out.r, out.seq, out.sensor, out.e), b,
+                            warnings)
             if done is None:             # check failed: replay everything call by call
                 runs = {}
                 break
@@ -452,7 +451,7 @@ def live_replay(recording, vehicle, clock_jump_tolerance=CLOCK_JUMP_TOLERANCE, s
                            ('seq', est.seq[sel])):
             cols[name].append(part)
     stamp = cols['ns'].result()
-    cuts = _epoch_cuts(stamp, clock_jump_tolerance)
+    cuts = epoch_cuts(stamp, clock_jump_tolerance)
     epoch = epochs_from_cuts(cuts, count, spill)
     sensor = Sink(np.int64, (), count, spill)
     for lo in range(0, count, 1 << 16):
