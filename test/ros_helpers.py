@@ -15,7 +15,7 @@ import warnings
 from diagnostic_msgs.msg import DiagnosticArray
 import numpy as np
 from observer_ros.nodes.common import SENSOR_QOS, STATE_QOS
-from observer_ros.timeutil import stamp_to_sec
+from observer_ros.timeutil import sec_to_stamp_parts, stamp_to_sec
 from observer_ros.tools.run_closed_loop import node_command
 import rclpy
 from rclpy.context import Context
@@ -369,3 +369,39 @@ def tmpfs(path, options, what):
         yield path
     finally:
         subprocess.run(['umount', '-l', str(path)], check=False)
+
+
+def stamped(msg, ns):
+    """Stamp a message ``ns`` nanoseconds; return it."""
+    msg.header.stamp.sec = ns // 1_000_000_000
+    msg.header.stamp.nanosec = ns % 1_000_000_000
+    return msg
+
+
+def gyro_msg(ns, q):
+    """Return a gyro measurement (Imu, q on angular_velocity.y) stamped ``ns``."""
+    msg = stamped(Imu(), ns)
+    msg.angular_velocity.y = float(q)
+    return msg
+
+
+def innovation_status(listener, sensor):
+    """Return the latest innovation status of a sensor (None before one)."""
+    for array in reversed(listener.diagnostics):
+        for status in array.status:
+            if status.name.endswith(f'observer/innovation/{sensor}'):
+                return status
+    return None
+
+
+def level_of(status):
+    level = status.level
+    return level if isinstance(level, int) else int.from_bytes(level, 'little')
+
+
+def imu_msg(t, q):
+    msg = Imu()
+    # rounded once to the ns (100.2 - 0.2 is 99.99999999999999: not 99 s + 10^9 ns)
+    msg.header.stamp.sec, msg.header.stamp.nanosec = sec_to_stamp_parts(t)
+    msg.angular_velocity.y = q
+    return msg

@@ -18,8 +18,8 @@ from pathlib import Path
 import subprocess
 import sys
 
+from netns import env, NET
 from observer_ros.tools.run_closed_loop import stop_process
-from test_multihost import _env, hosts, NET  # noqa: F401 (hosts: the fixture)
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / 'bags' / 'samples' / 'submarine'
@@ -44,7 +44,7 @@ def _rows(out):
         return [{k: v for k, v in r.items() if k != 'seconds'} for r in csv.DictReader(f)]
 
 
-def test_a_batch_across_two_hosts_gives_the_serial_numbers(hosts, tmp_path):  # noqa: F811
+def test_a_batch_across_two_hosts_gives_the_serial_numbers(hosts, tmp_path):
     ip1, ip2 = f'10.200.{NET}.1', f'10.200.{NET}.2'
     bags = tmp_path / 'bags'
     bags.mkdir()
@@ -58,7 +58,7 @@ def test_a_batch_across_two_hosts_gives_the_serial_numbers(hosts, tmp_path):  # 
         log = open(tmp_path / f'{name}.log', 'w')
         logs.append(log)
         procs.append(subprocess.Popen(_in(ns, *cmd), stdout=log, stderr=subprocess.STDOUT,
-                                      env=_env()))
+                                      env=env()))
     address = f'tcp://{ip1}:8786'
     try:
         # as README.md says: --host and --dashboard-address on the private address (the
@@ -73,7 +73,7 @@ def test_a_batch_across_two_hosts_gives_the_serial_numbers(hosts, tmp_path):  # 
                 f'c = Client({address!r}, timeout="{WAIT:g}s"); '
                 f'c.wait_for_workers(2, timeout={WAIT}); print("workers", len(c.nthreads()))')
         proc = subprocess.run(_in(hosts['sim'], sys.executable, '-c', wait), capture_output=True,
-                              text=True, timeout=WAIT + 60, env=_env())
+                              text=True, timeout=WAIT + 60, env=env())
         assert 'workers 2' in proc.stdout, proc.stderr[-2000:]
         # every port of the cluster is on the host's own address on the link
         for ns, ip in ((hosts['sim'], ip1), (hosts['est'], ip2)):
@@ -83,7 +83,7 @@ def test_a_batch_across_two_hosts_gives_the_serial_numbers(hosts, tmp_path):  # 
         out = tmp_path / 'out'
         proc = subprocess.run(_in(hosts['sim'], BIN / 'observer-eval-batch', *args, '--out',
                                   out, '--scheduler', address), capture_output=True,
-                              text=True, timeout=WAIT, env=_env())
+                              text=True, timeout=WAIT, env=env())
         assert proc.returncode == 0, proc.stderr[-2000:]
         assert 'parallel efficiency' in proc.stdout and 'on 2 workers' in proc.stdout
         serial = tmp_path / 'serial'
@@ -98,7 +98,7 @@ def test_a_batch_across_two_hosts_gives_the_serial_numbers(hosts, tmp_path):  # 
             f'c = Client({address!r}); '
             'print(json.dumps(c.run(lambda dask_worker: sum(1 for e in dask_worker.state.log '
             'if "run_job" in str(e[0]) and e[2] == "memory"))))')),
-            capture_output=True, text=True, timeout=WAIT, env=_env())
+            capture_output=True, text=True, timeout=WAIT, env=env())
         counts = json.loads(ran.stdout.strip().splitlines()[-1])
         assert len(counts) == 2 and all(v > 0 for v in counts.values()), counts
     finally:

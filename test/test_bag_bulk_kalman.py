@@ -10,6 +10,7 @@ jittered stamps stay time-varying.
 
 from pathlib import Path
 
+from bag_cases import jittered
 from bag_synth import CONFIG, simulate, write_bag
 import numpy as np
 from numpy.testing import assert_allclose, assert_array_equal
@@ -18,7 +19,6 @@ from observer_ros.replay import bulk_kalman, bulk_runs
 from observer_ros.replay.replay import replay
 from observer_ros.vehicle import load_vehicle
 import pytest
-from test_bag_jitter import _jittered
 
 SAMPLES = Path(__file__).resolve().parents[1] / 'bags' / 'samples'
 
@@ -75,7 +75,7 @@ def test_sample_bags_kalman_in_bulk_equals_the_filters_calls(name, spy):
 def test_jittered_stamps_stay_time_varying_and_equal_the_calls(tmp_path, spy):
     vehicle = load_vehicle(CONFIG / 'submarine.yaml', overrides=KALMAN['submarine'])
     run = simulate(vehicle, steps=400, noise=True)
-    rec = read_recording(write_bag(tmp_path / 'jit', _jittered(run['messages'])), vehicle)
+    rec = read_recording(write_bag(tmp_path / 'jit', jittered(run['messages'])), vehicle)
     bulk = replay(rec, vehicle)
     assert bulk.bulk_steps > 300
     _same(bulk, replay(rec, vehicle, exact=True))

@@ -9,6 +9,7 @@ step are designed once, not once per copy.
 
 import copy
 
+from bag_cases import jittered
 from bag_synth import CONFIG, simulate, write_bag
 import numpy as np
 from numpy.testing import assert_allclose
@@ -18,29 +19,11 @@ from observer_ros.replay.bulk_checks import twin
 from observer_ros.replay.replay import replay
 from observer_ros.vehicle import load_vehicle
 
-JITTER_NS = 300_000
-
-
-def _jittered(messages, seed=3):
-    """Move every step's messages (stamp and receive time) by one jitter of +-0.3 ms."""
-    rng = np.random.default_rng(seed)
-    shift = {}
-    out = []
-    for topic, msgtype, ns, msg in messages:
-        if ns not in shift:
-            shift[ns] = int(rng.integers(-JITTER_NS, JITTER_NS + 1))
-        t = ns + shift[ns]
-        msg = copy.deepcopy(msg)
-        stamp = msg.header.stamp if hasattr(msg, 'header') else msg.clock
-        stamp.sec, stamp.nanosec = t // 1_000_000_000, t % 1_000_000_000
-        out.append((topic, msgtype, t, msg))
-    return out
-
 
 def test_jittered_bulk_replay_equals_the_estimators_calls(tmp_path):
     vehicle = load_vehicle(CONFIG / 'submarine.yaml')
     run = simulate(vehicle, steps=400, noise=True)
-    bag = write_bag(tmp_path / 'jit', _jittered(run['messages']))
+    bag = write_bag(tmp_path / 'jit', jittered(run['messages']))
     rec = read_recording(bag, vehicle)
     steps = np.diff(rec.sensors['gyro'].stamp_ns)
     assert np.unique(steps).size > 300            # a new step length nearly every message
@@ -85,7 +68,7 @@ def test_jittered_maps_are_built_in_bulk_with_few_probes(tmp_path, monkeypatch):
     from observer_ros.replay import bulk_replay
     vehicle = load_vehicle(CONFIG / 'submarine.yaml')
     run = simulate(vehicle, steps=400, noise=True)
-    rec = read_recording(write_bag(tmp_path / 'jit', _jittered(run['messages'])), vehicle)
+    rec = read_recording(write_bag(tmp_path / 'jit', jittered(run['messages'])), vehicle)
     calls = []
     probe = bulk_replay._probe
 

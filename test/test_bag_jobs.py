@@ -11,12 +11,12 @@ those of observer-eval for the same variant; the worker path imports no ROS.
 import contextlib
 import csv
 import io
-import json
 import math
 from pathlib import Path
 import subprocess
 import sys
 
+from bag_cases import numbers
 from observer_ros.bag.errors import BagToolError
 from observer_ros.evaluation.batch import find_bags, main
 from observer_ros.evaluation.evaluator import evaluate_bag
@@ -36,13 +36,6 @@ def _jobs():
     return jobs
 
 
-def _numbers(rows):
-    """Return the rows without their timings, as comparable text (NaN compares equal)."""
-    return [json.dumps({k: v for k, v in r.items() if k not in ('seconds', 'cpu_seconds')},
-                       sort_keys=True)
-            for r in rows]
-
-
 def test_a_local_dask_cluster_of_two_workers_gives_the_serial_numbers_exactly():
     jobs = _jobs()
     seen = []
@@ -54,7 +47,7 @@ def test_a_local_dask_cluster_of_two_workers_gives_the_serial_numbers_exactly():
     done = []
     on_dask = run_jobs(jobs, 'dask', workers=2, progress=lambda d, t: done.append(d))
     assert done == list(range(1, len(jobs) + 1))
-    assert _numbers(on_dask) == _numbers(serial)
+    assert numbers(on_dask) == numbers(serial)
     # the design and the open loop differ (the rows are not all one number)
     assert serial[0]['summary']['error_rms'] != serial[1]['summary']['error_rms']
 
@@ -157,7 +150,7 @@ def test_jobs_run_on_an_existing_cluster_named_by_the_environment(monkeypatch):
         # the cluster is still there: run_jobs closed only its client
         assert cluster.scheduler_address
         again = run_jobs(jobs, 'dask', scheduler=cluster.scheduler_address)
-    assert _numbers(rows) == _numbers(serial) == _numbers(again)
+    assert numbers(rows) == numbers(serial) == numbers(again)
 
 
 def test_a_local_cluster_listens_on_the_loopback_interface_only():

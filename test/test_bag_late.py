@@ -3,7 +3,7 @@
 
 import json
 
-from bag_synth import blank, IMU, JOINT_STATE, vector_msg, write_bag
+from bag_cases import late_bag
 import control
 import late_sensors
 import numpy as np
@@ -11,30 +11,8 @@ from numpy.testing import assert_allclose, assert_array_equal
 from observer_ros.bag.reader import read_recording
 from observer_ros.evaluation.evaluate import main as eval_main
 from observer_ros.replay.replay import replay
-from observer_ros.sensors import fill_measurement
 from observer_ros.vehicle import load_vehicle
 import pytest
-
-TOPICS = {'gyro': ('imu/data', IMU), 'pitch': ('pitch', JOINT_STATE)}
-
-
-def _bag(path, veh, msgs, truth, latency=True):
-    """Write the messages received at their arrival (or, latency=False, stamp) times."""
-    sensors = {s.name: s for s in veh.sensors}
-    out = [('state/true', JOINT_STATE, ns, vector_msg(veh.plant.state_names, x, ns))
-           for ns, x in truth]
-    for kind, ns, arrival, value in msgs:
-        if kind == 'u':
-            out.append(('control/u', JOINT_STATE, arrival if latency else ns,
-                        vector_msg(['delta'], [value], ns)))
-            continue
-        topic, msgtype = TOPICS[kind]
-        msg = blank(msgtype, ns)
-        fill_measurement(msg, sensors[kind], [value])
-        out.append((topic, msgtype, arrival if latency else ns, msg))
-    # receive order; messages received together keep the order of the list (stamp order)
-    out.sort(key=lambda m: m[2])
-    return write_bag(path, out)
 
 
 @pytest.fixture(scope='module', params=['full', 'kalman'])
@@ -42,8 +20,8 @@ def bags(request, tmp_path_factory):
     tmp = tmp_path_factory.mktemp(f'late_{request.param}')
     veh = late_sensors.vehicle(tmp, request.param)
     msgs, truth = late_sensors.messages(veh)
-    received = _bag(tmp / 'received', veh, late_sensors.stamp_order(msgs), truth)
-    stamped = _bag(tmp / 'stamped', veh, late_sensors.stamp_order(msgs), truth, latency=False)
+    received = late_bag(tmp / 'received', veh, late_sensors.stamp_order(msgs), truth)
+    stamped = late_bag(tmp / 'stamped', veh, late_sensors.stamp_order(msgs), truth, latency=False)
     return veh, received, stamped, tmp
 
 
@@ -115,8 +93,8 @@ def test_late_commands_revise_every_row_to_the_stamp_order(kind, tmp_path):
     veh = load_vehicle(path)
     msgs, truth = late_sensors.messages(veh)
     msgs = late_sensors.stamp_order(late_sensors.commands_late(msgs))
-    received = _bag(tmp_path / 'received', veh, msgs, truth)
-    stamped = _bag(tmp_path / 'stamped', veh, msgs, truth, latency=False)
+    received = late_bag(tmp_path / 'received', veh, msgs, truth)
+    stamped = late_bag(tmp_path / 'stamped', veh, msgs, truth, latency=False)
     late = replay(read_recording(received, veh), veh, exact=True)
     ref = replay(read_recording(stamped, veh), veh, exact=True)
     assert late.counts['commands'] == ref.counts['commands'] == 300

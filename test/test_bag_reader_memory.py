@@ -10,9 +10,9 @@ The streams are the same whichever way they are filled, and the same in temporar
 
 """
 
-import importlib.util
 import tracemalloc
 
+from bag_cases import p3_benchmark
 from bag_synth import CONFIG
 import numpy as np
 from numpy.testing import assert_array_equal
@@ -26,14 +26,6 @@ SAMPLES = CONFIG.parent / 'bags' / 'samples'
 FIELDS = ('seq', 'log_ns', 'stamp_ns', 'values', 'valid')
 
 
-def _p3():
-    spec = importlib.util.spec_from_file_location(
-        'p3_replay', CONFIG.parent / 'benchmarks' / 'p3_replay.py')
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def _peak(bag, veh):
     tracemalloc.start()
     rec = read_recording(bag, veh)
@@ -43,7 +35,7 @@ def _peak(bag, veh):
 
 
 def test_bag_reader_bytes_per_imu_message(tmp_path):
-    p3 = _p3()
+    p3 = p3_benchmark()
     veh = load_vehicle(CONFIG / 'submarine.yaml')
     small = p3.generate(40_000, data=tmp_path, log=lambda *a: None)
     large = p3.generate(120_000, data=tmp_path, log=lambda *a: None)
@@ -105,7 +97,7 @@ def test_bag_reader_spilled_streams_equal_the_in_memory_ones(name, tmp_path):
 
 def test_bag_reader_spilled_keeps_a_bounded_memory(tmp_path):
     # in memory ~37 B per Imu message are kept (above); spilled, the columns are on disk
-    p3 = _p3()
+    p3 = p3_benchmark()
     veh = load_vehicle(CONFIG / 'submarine.yaml')
     small = p3.generate(40_000, data=tmp_path, log=lambda *a: None)
     large = p3.generate(120_000, data=tmp_path, log=lambda *a: None)

@@ -12,8 +12,8 @@ them does not grow with the bag.
 import copy
 import tracemalloc
 
-from bag_synth import blank, CONFIG, JOINT_STATE, simulate, write_bag
-import late_sensors
+from bag_cases import CASES
+from bag_synth import CONFIG, simulate, write_bag
 import numpy as np
 from numpy.testing import assert_array_equal
 from observer_ros.bag.reader import read_recording
@@ -26,97 +26,12 @@ from observer_ros.replay.events import epoch_cuts, Events
 from observer_ros.replay.replay import epochs_of, innovation_health, replay
 from observer_ros.vehicle import load_vehicle
 import pytest
-from test_bag_late import _bag as late_bag
 
 WHOLE = 1 << 40                 # one block over the whole bag
 
-TWO = ['model.outputs:=[theta, q]', 'model.C:=[1.0,0.0,0.0, 0.0,0.0,1.0]',
-       'model.D:=[0.0, 0.0]', 'sensors.names:=[gyro, pitch]',
-       'sensors.pitch.topic:=attitude/pitch', 'sensors.pitch.type:=std_msgs/msg/Float64',
-       'sensors.pitch.fields:=[data]', 'sensors.pitch.outputs:=[theta]',
-       'sensors.pitch.noise_std:=[0.001]', 'sensors.pitch.rate_divider:=2']
 
-
-def _shift_commands(messages, lo, hi, by):
-    """Stamp the commands received in [lo, hi) ns ``by`` ns later (no bulk there)."""
-    out = []
-    for topic, msgtype, ns, msg in messages:
-        if topic == 'control/u' and lo < ns < hi:
-            msg = copy.deepcopy(msg)
-            msg.header.stamp = blank(JOINT_STATE, ns + by).header.stamp
-        out.append((topic, msgtype, ns, msg))
-    return out
-
-
-def _swap_commands(messages, every=7):
-    """Receive u[k] after y[k+1] at every k % every == 3 (a lockstep recording)."""
-    out, held, step = [], None, -1
-    for item in messages:
-        topic, msgtype, ns, msg = item
-        step += topic == '/clock'
-        if topic == 'control/u' and step % every == 3:
-            held = item
-            continue
-        out.append(item)
-        if held is not None and topic not in ('/clock', 'state/true'):
-            out.append((held[0], held[1], ns, held[3]))
-            held = None
-    return out
-
-
-SAMPLES = CONFIG.parent / 'bags' / 'samples'
-
-
-def _case(name, tmp):
-    if name.startswith('sample_'):           # the sample bags with their vehicles
-        bag = name[len('sample_'):]
-        return load_vehicle(CONFIG / f'{bag}.yaml'), SAMPLES / bag
-    if name in ('late', 'two_stamped'):      # two sensors, received late or at their stamps
-        veh = late_sensors.vehicle(tmp, 'full')
-        msgs, truth = late_sensors.messages(veh)
-        return veh, late_bag(tmp / name, veh, late_sensors.stamp_order(msgs), truth,
-                             latency=name == 'late')
-    if name == 'loop':                       # the run twice: the stamps jump back
-        veh = load_vehicle(CONFIG / 'submarine.yaml')
-        msgs = simulate(veh, noise=True, seed=2)['messages']
-        span = msgs[-1][2] - msgs[0][2] + 50_000_000
-        log = [ns for _, _, ns, _ in msgs] + [ns + span for _, _, ns, _ in msgs]
-        return veh, write_bag(tmp / name, msgs + msgs, log_ns=log)
-    base, overrides, kwargs, edit = {
-        'sub': ('submarine', None, {'noise': True, 'seed': 3}, None),
-        'cart_shifted': ('cart_pendulum', ['simulator.initial_state:=[0.05, 0.0, 0.0, 0.0]'],
-                         {'noise': True, 'seed': 1},
-                         lambda m: _shift_commands(m, 3 * 10**9, 4 * 10**9, 4_000_000)),
-        'two_sensors': ('submarine', TWO, {'noise': True}, None),
-        'lockstep_swapped': ('submarine', None, {'noise': True, 'seed': 3}, _swap_commands),
-        'realtime_swapped': ('submarine', ['simulator.mode:=realtime'],
-                             {'noise': True, 'seed': 3}, _swap_commands),
-        'reduced': ('submarine_reduced', None, {'noise': True}, None),
-        'discrete': ('submarine_discrete', None, {'noise': True}, None),
-    }[name]
-    veh = load_vehicle(CONFIG / f'{base}.yaml', overrides=overrides)
-    messages = simulate(veh, **kwargs)['messages']
-    if edit is not None:
-        messages = edit(messages)
-    return veh, write_bag(tmp / name, messages)
-
-
-CASES = ['sub', 'cart_shifted', 'two_sensors', 'two_stamped', 'lockstep_swapped',
-         'realtime_swapped', 'loop', 'reduced', 'discrete', 'late', 'sample_submarine',
-         'sample_cart_pendulum', 'sample_submarine_reduced']
 BULK = ('sub', 'lockstep_swapped', 'reduced', 'discrete', 'sample_submarine',
         'sample_cart_pendulum', 'sample_submarine_reduced')     # mostly in bulk
-
-
-@pytest.fixture(scope='module')
-def cases(tmp_path_factory):
-    made = {}
-
-    def get(name):
-        if name not in made:
-            made[name] = _case(name, tmp_path_factory.mktemp(name))
-        return made[name]
-    return get
 
 
 def _replayed(rec, veh, monkeypatch, block, max_run):

@@ -16,6 +16,7 @@ import json
 import tempfile
 import tracemalloc
 
+from bag_cases import CASES, p3_benchmark, SAMPLES, spy_on_spill
 from bag_synth import CONFIG, simulate, write_bag
 import numpy as np
 from numpy.testing import assert_array_equal
@@ -28,8 +29,6 @@ from observer_ros.replay.replay import replay
 from observer_ros.replay.rows import SpilledColumn
 from observer_ros.vehicle import load_vehicle
 import pytest
-from test_bag_reader_memory import _p3
-from test_bag_replay_blocks import CASES, cases, SAMPLES  # noqa: F401 (the fixture)
 
 FIELDS = ('stamp_ns', 'x_hat', 'residual', 'epoch', 'seq', 'sensor')
 KALMAN = ['observer.type:=kalman',
@@ -135,18 +134,6 @@ def test_eval_writes_the_same_files_spilled_or_in_memory(name, tmp_path, monkeyp
                        _written(results[1], tmp_path / 'memory'))
 
 
-def spy_on_spill(monkeypatch):
-    """Record the ``spill`` argument of every evaluate_bag call; return that list."""
-    spills = []
-    evaluate_bag = evaluate.evaluate_bag
-
-    def recorded(*args, **kwargs):
-        spills.append(kwargs.get('spill'))
-        return evaluate_bag(*args, **kwargs)
-    monkeypatch.setattr(evaluate, 'evaluate_bag', recorded)
-    return spills
-
-
 def test_observer_eval_spills_by_default_with_the_same_files(tmp_path, monkeypatch):
     monkeypatch.setattr(replay_outputs, 'SPILL_BLOCK', 50)
     spills = spy_on_spill(monkeypatch)
@@ -178,7 +165,7 @@ def test_eval_memory_per_estimate_is_bounded(tmp_path, monkeypatch):
     for module, name in ((bulk_runs, 'RUN_BLOCK'), (bulk_runs, 'MAX_RUN'),
                          (replay_outputs, 'SPILL_BLOCK'), (replay_health, 'HEALTH_BLOCK')):
         monkeypatch.setattr(module, name, 1 << 12)
-    p3 = _p3()
+    p3 = p3_benchmark()
     veh = load_vehicle(CONFIG / 'submarine.yaml')
     small = p3.generate(70_000, data=tmp_path, log=lambda *a: None)
     large = p3.generate(140_000, data=tmp_path, log=lambda *a: None)

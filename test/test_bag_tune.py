@@ -16,7 +16,8 @@ import json
 import math
 from pathlib import Path
 
-from bag_synth import CONFIG, control_law, JOINT_STATE, vector_msg, write_bag
+from bag_cases import INPUT_NOISE, simulate_noisy, STEPS, true_noise
+from bag_synth import CONFIG, write_bag
 import numpy as np
 from numpy.testing import assert_allclose
 from observer_ros.bag.errors import BagToolError
@@ -33,59 +34,9 @@ from observer_ros.vehicle import load_vehicle
 import pytest
 import yaml
 
-STEPS = 10_000
-# process noise intensity on the input (std per sqrt(s)): large enough to matter
-# against each vehicle's measurement noise, small enough to keep the loop near its design
-INPUT_NOISE = {'submarine': 0.02, 'cart_pendulum': 0.01}
-
-
-def _true(name):
-    v = load_vehicle(CONFIG / f'{name}.yaml')
-    q = INPUT_NOISE[name] ** 2
-    r = float(v.sensors[0].noise_std[0]) ** 2
-    return v, q, r
-
 
 def _floats(values):
     return '[' + ', '.join(repr(float(x)) for x in np.ravel(values)) + ']'
-
-
-def simulate_noisy(v, q, seed, steps=STEPS, t0=1.0, x0=None, noise_scale=1.0):
-    """
-    Return the messages of a closed loop with input noise of intensity q (see above).
-
-    The loop starts at rest (x = 0, where the observers start too) unless ``x0`` is
-    given: the vehicle files' initial errors (the submarine's 30 degrees) would make the
-    RMSE mostly a measure of one transient, not of the noise. ``noise_scale`` multiplies
-    the sensor's noise_std.
-
-    """
-    from bag_synth import blank
-    from observer_ros.core.vehicle_design import design_vehicle
-    from observer_ros.sensors import fill_measurement
-    plant, dt = v.plant, v.sample_time
-    Ad, Bd = zoh_matrices(plant.A, plant.B, dt)
-    w, V = np.linalg.eigh(process_noise_covariance(plant.A, [[q]], dt, plant.B))
-    S = V * np.sqrt(np.maximum(w, 0.0))
-    design = design_vehicle(v)
-    sensor = v.sensors[0]
-    rows = plant.output_rows(sensor.outputs)
-    std = noise_scale * np.asarray(sensor.noise_std, float)
-    rng = np.random.default_rng(seed)
-    x = np.zeros(plant.n) if x0 is None else np.asarray(x0, float).copy()
-    u = np.zeros(plant.m)
-    messages = []
-    for k in range(steps + 1):
-        ns = int(round(t0 * 1e9)) + k * int(round(dt * 1e9))
-        messages.append(('state/true', JOINT_STATE, ns, vector_msg(plant.state_names, x, ns)))
-        y = plant.C[rows] @ x + plant.D[rows] @ u + std * rng.standard_normal(len(rows))
-        msg = blank(sensor.msg_type, ns, sensor.frame_id)
-        fill_measurement(msg, sensor, y)
-        messages.append((sensor.topic, sensor.msg_type, ns, msg))
-        u = control_law(design, v, x)
-        messages.append(('control/u', JOINT_STATE, ns, vector_msg(plant.input_names, u, ns)))
-        x = Ad @ x + Bd @ u + S @ rng.standard_normal(plant.n)
-    return messages
 
 
 @pytest.fixture(scope='module')
@@ -94,7 +45,7 @@ def noisy_bags(tmp_path_factory):
     root = tmp_path_factory.mktemp('tune')
     out = {}
     for seed, name in enumerate(INPUT_NOISE):
-        v, q, _ = _true(name)
+        v, q, _ = true_noise(name)
         messages = simulate_noisy(v, q, 10 + seed)
         out[name] = write_bag(root / name, messages)
         if name == 'submarine':
@@ -106,7 +57,7 @@ def noisy_bags(tmp_path_factory):
 # ------------------------------------------------------------------------------ core
 
 def _sampled(name):
-    v, q, r = _true(name)
+    v, q, r = true_noise(name)
     pl, dt = v.plant, v.sample_time
     Ad, Bd = zoh_matrices(pl.A, pl.B, dt)
     F = process_noise_map(pl.A, pl.B, dt)
@@ -213,7 +164,7 @@ def test_als_discrete_vehicle_and_pooled_sequences():
 @pytest.mark.parametrize('name', list(INPUT_NOISE))
 def test_tune_identifies_the_noise_and_the_kalman_filter_matches_the_true_one(
         noisy_bags, tmp_path, name):
-    v, q, r = _true(name)
+    v, q, r = true_noise(name)
     bag = noisy_bags[name]
     res = tune([bag], CONFIG / f'{name}.yaml', tmp_path / 'tune', input_noise=True,
                search='none', plots=False)

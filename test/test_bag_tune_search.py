@@ -11,6 +11,7 @@ initial state (the second starts away from rest, where the observer starts).
 from pathlib import Path
 from types import SimpleNamespace
 
+from bag_cases import simulate_noisy, true_noise
 from bag_synth import CONFIG, write_bag
 import numpy as np
 from numpy.testing import assert_allclose
@@ -21,7 +22,6 @@ from observer_ros.tuning.pole_search import MARGIN, pole_set
 from observer_ros.tuning.tune import main, tune
 from observer_ros.vehicle import load_vehicle
 import pytest
-from test_bag_tune import _true, simulate_noisy
 import yaml
 
 STEPS = 3000
@@ -33,7 +33,7 @@ def two_bags(tmp_path_factory):
     root = tmp_path_factory.mktemp('tune_search')
     out = {}
     for name in ('cart_pendulum', 'submarine'):
-        v, q, _ = _true(name)
+        v, q, _ = true_noise(name)
         runs = [simulate_noisy(v, q, 31, steps=STEPS),
                 simulate_noisy(v, q, 32, steps=STEPS, x0=0.01 * np.ones(v.plant.n),
                                noise_scale=2.0)]
@@ -202,7 +202,7 @@ def test_model_errors_are_least_at_the_true_covariances_and_match_a_simulation()
     from observer_ros.tuning.gain_search import model_errors
     from observer_ros.tuning.sampled import sampled_model
     from observer_ros.core.estimators import process_noise_covariance
-    v, q, r = _true('submarine')
+    v, q, r = true_noise('submarine')
     Ad, _ = sampled_model(v, v.sample_time)
     C = v.plant.C
     Qk = process_noise_covariance(v.plant.A, [[q]], v.sample_time, v.plant.B)

@@ -14,6 +14,7 @@ flags). The metrics are the same whether the rows are kept, spilled or dropped, 
 
 import tracemalloc
 
+from bag_cases import numbers, p3_benchmark, spy_on_spill
 from bag_synth import CONFIG
 from observer_ros.evaluation import batch, evaluator as evaluate
 from observer_ros.evaluation.jobs import make_jobs, run_jobs
@@ -22,9 +23,6 @@ from observer_ros.replay import bulk_runs, health as replay_health, rows as repl
 from observer_ros.tuning.gain_search import score_variants, search_overrides
 from observer_ros.vehicle import load_vehicle
 import pytest
-from test_bag_jobs import _numbers
-from test_bag_reader_memory import _p3
-from test_bag_spill import spy_on_spill
 
 SAMPLES = CONFIG.parent / 'bags' / 'samples'
 ROWS = 70_000
@@ -35,7 +33,7 @@ SCALES = (0.5, 0.8, 1.25, 2.0)
 def p3_bag(tmp_path_factory):
     """Return P3's synthesised Imu bag of 70000 messages (submarine, with state/true)."""
     data = tmp_path_factory.mktemp('p3')
-    return _p3().generate(ROWS, data=data, log=lambda *a: None)
+    return p3_benchmark().generate(ROWS, data=data, log=lambda *a: None)
 
 
 @pytest.fixture
@@ -125,7 +123,7 @@ def test_jobs_spill_by_default_with_the_same_rows(tmp_path, monkeypatch):
     jobs = make_jobs([SAMPLES / 'submarine'], CONFIG / 'submarine.yaml',
                      {'openloop': ['observer.type:=open_loop']})
     spills = spy_on_spill(monkeypatch)
-    assert _numbers(run_jobs(jobs, 'serial')) == _numbers(run_jobs(jobs, 'serial', spill=None))
+    assert numbers(run_jobs(jobs, 'serial')) == numbers(run_jobs(jobs, 'serial', spill=None))
     assert spills == [True, True, None, None]
     tables = []
     for extra in ([], ['--in-memory']):

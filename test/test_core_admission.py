@@ -9,19 +9,12 @@ from observer_ros.core.errors import ObserverError
 from observer_ros.core.estimators import admission as adm
 from observer_ros.core.estimators import FullOrderEstimator, History
 from observer_ros.core.estimators.admission import Admission
-from observer_ros.core.model import Plant
+from plants import GYRO, PITCH, two_sensor_submarine
 import pytest
-
-# Seed 000 submarine with two sensors: a gyro (q, output 0) and a pitch sensor (theta, 1).
-A = [[0.0, 0.0, 1.0], [0.0135, -0.322, -0.7102], [-0.036, 0.126, -0.7395]]
-B = [[0.0], [0.0322], [-0.0857]]
-C = [[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]
-GYRO, PITCH = (0,), (1,)
 
 
 def _history(length=0.25):
-    plant = Plant(A, B, C, None, state_names=('theta', 'w', 'q'), input_names=('delta',),
-                  output_names=('q', 'theta'))
+    plant = two_sensor_submarine()
     return History(FullOrderEstimator(plant, poles=[-0.6, -0.61, -0.62], x0=[0.1, 0, 0]),
                    length)
 

@@ -20,15 +20,14 @@ from observer_ros.core.spec import (ControllerSpec, ObserverSpec, SensorSpec, Si
 from observer_ros.core.vehicle_design import (design_vehicle, design_warnings,
                                               measurement_intensity, observer_noise_gain)
 from observer_ros.core.vehicle_report import format_report, to_json_dict
+import plants
 import pytest
 import scipy.linalg
 import scipy.optimize
 
-SUB_A = np.array([[0, 0, 1], [0.0135, -0.322, -0.7102], [-0.036, 0.126, -0.7395]])
-SUB_B = np.array([[0.0], [0.0322], [-0.0857]])
-SUB_C = np.array([[0.0, 0.0, 1.0]])
-CART_A = np.array([[0, 0, 1, 0], [0, 0, 0, 1], [10.78, 0, 0, 0], [-0.98, 0, 0, 0]], float)
-CART_B = np.array([[0.0], [0.0], [-1.0], [1.0]])
+SUB_A, SUB_B = np.array(plants.SUBMARINE_A), np.array(plants.SUBMARINE_B)
+SUB_C = np.array(plants.GYRO_C)
+CART_A, CART_B = np.array(plants.CART_A), np.array(plants.CART_B)
 CART_C = np.array([[0.0, 1.0, 0.0, 0.0]])
 
 

@@ -12,6 +12,7 @@ from observer_ros.core.design import (
 from observer_ros.core.errors import (DesignError, DimensionError, NotControllableError,
                                       NotDetectableError, NotObservableError,
                                       ObserverDesignWarning, ObserverError)
+from plants import GYRO_C, SUBMARINE_A, SUBMARINE_B
 import pytest
 from scipy.stats import ortho_group
 
@@ -284,9 +285,7 @@ def test_dlqr_path():
 
 
 def test_kalman_bucy_gain_is_P_Ct_Rinv_with_P_from_the_are():
-    A = np.array([[0, 0, 1], [0.0135, -0.322, -0.7102], [-0.036, 0.126, -0.7395]])
-    C = np.array([[0.0, 0.0, 1.0]])
-    Bd = np.array([[0.0], [0.0322], [-0.0857]])
+    A, C, Bd = np.array(SUBMARINE_A), np.array(GYRO_C), np.array(SUBMARINE_B)
     Qd = np.array([[4.0]])
     Rd = np.array([[1e-4]])
     L, P, E = kalman_gain(A, C, Qd, Rd, Bd)

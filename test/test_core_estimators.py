@@ -13,6 +13,7 @@ from observer_ros.core.estimators import (FullOrderEstimator, KalmanEstimator,
 from observer_ros.core.model import Plant, zoh_matrices
 from observer_ros.core.simulate import PlantSimulator
 from observer_ros.core.spec import ObserverSpec
+from plants import cart, submarine
 import pytest
 import scipy.integrate
 import scipy.linalg
@@ -21,23 +22,6 @@ SUB_POLES = [-0.6, -0.61, -0.62]
 CART_POLES = [-10 + 10j, -10 - 10j, -20 + 20j, -20 - 20j]
 CART_REDUCED_POLES = [-20, -20 + 20j, -20 - 20j]
 THETA0 = np.deg2rad(30.0)
-
-
-def submarine(C=((0.0, 0.0, 1.0),)):
-    """Seed 000 submarine pitch model, states [theta, w, q]; default a rate gyro on q."""
-    A = [[0.0, 0.0, 1.0], [0.0135, -0.322, -0.7102], [-0.036, 0.126, -0.7395]]
-    B = [[0.0], [0.0322], [-0.0857]]
-    C = np.array(C, dtype=float)
-    return Plant(A, B, C, None, state_names=('theta', 'w', 'q'), input_names=('delta',))
-
-
-def cart(C=((0.0, 1.0, 0.0, 0.0),)):
-    """Seed 002 inverted pendulum on a cart, states [theta, x, theta', x']; C measures x."""
-    A = [[0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0], [10.78, 0.0, 0.0, 0.0],
-         [-0.98, 0.0, 0.0, 0.0]]
-    B = [[0.0], [0.0], [-1.0], [1.0]]
-    return Plant(A, B, np.array(C, dtype=float), None,
-                 state_names=('theta', 'x', 'theta_dot', 'x_dot'))
 
 
 # Seed 003 pitch dynamics measured by an IMU: y = [q, a_N], a_N = Z_alpha alpha + Z_delta delta.

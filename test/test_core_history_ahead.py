@@ -1,12 +1,12 @@
 # test_core_history_ahead: commands stamped ahead of the estimate, held pending.
 """Tests of the history's pending commands: the cart's delay compensation stamps them ahead."""
 
+from history_cases import feed, GYRO, KINDS, make, messages, PITCH, stamp_order
 import numpy as np
 from numpy.testing import assert_allclose, assert_array_equal
 from observer_ros.core.errors import DimensionError
 from observer_ros.core.estimators import History
 import pytest
-from test_core_history import feed, GYRO, KINDS, make, messages, PITCH, stamp_order
 
 DT = 0.01
 AHEAD = 3           # controller.delay_compensation: commands stamped 3 steps ahead

@@ -6,31 +6,13 @@ Late commands here go through the rewind (``History.superpose = False``, as for 
 observers given a gain); test_core_superposition.py tests the default for the others.
 """
 
+from history_cases import (closed_loop, DT, feed, GYRO, KINDS, make, messages, PITCH,
+                           stamp_order)
 import numpy as np
 from numpy.testing import assert_array_equal
 from observer_ros.core.errors import DimensionError
 from observer_ros.core.estimators import CHECKPOINT_EVERY, DENSE_DEPTH, DENSE_FOR, History
 import pytest
-from test_core_history import feed, GYRO, KINDS, make, messages, PITCH, stamp_order
-
-DT = 0.01
-
-
-def closed_loop(steps, seed=0, lag=1):
-    """
-    Gyro at 100 Hz and the command answering each estimate, as the closed loop sends them.
-
-    The command stamped t_k (computed from the estimate at t_k) arrives after the gyro
-    measurement stamped t_{k+lag}. Returns (stamp order, arrival order) of
-    ``(stamp, arrival, kind, value, rows)``.
-    """
-    rng = np.random.default_rng(seed)
-    msgs = []
-    for k in range(steps):
-        t = 1.0 + k * DT
-        msgs.append((t, t, 'y', rng.normal(0.0, 1e-2, 1), GYRO))
-        msgs.append((t, t + (lag + 0.5) * DT, 'u', rng.normal(0.0, 0.1, 1), ()))
-    return stamp_order(msgs), sorted(msgs, key=lambda m: m[1])
 
 
 def checkpoints_listed(history):

@@ -9,69 +9,18 @@ from one settling time of the observer's slowest pole on, the design is consiste
 the node's monitor and in the evaluation's figures alike; a fault after that is named.
 """
 
-from bag_synth import blank, IMU, JOINT_STATE, vector_msg, write_bag
+from bag_cases import GYRO_NOISE, innovation_run
+from bag_synth import write_bag
 import numpy as np
 from observer_ros.bag.reader import read_recording
-from observer_ros.core.estimators import make_estimator
 from observer_ros.core.health import settling_time
-from observer_ros.core.innovation import InnovationMonitor, sequence_health, transient_time
-from observer_ros.core.model import zoh_matrices
-from observer_ros.core.vehicle_design import design_vehicle
+from observer_ros.core.innovation import sequence_health, transient_time
 from observer_ros.replay.replay import innovation_health, replay
-from observer_ros.sensors import fill_measurement
-from observer_ros.vehicle import load_vehicle
 import pytest
-from ros_helpers import CONFIG
-
-NOISE = 0.001       # rad/s, the file's gyro noise_std
 
 
-@pytest.fixture(scope='module')
-def submarine():
-    veh = load_vehicle(CONFIG / 'submarine.yaml')
-    return veh, design_vehicle(veh)
-
-
-def _run(submarine, steps=600, seed=0, sign=1.0, bias=0.0, onset=0, transient=None):
-    """
-    Close the loop on the estimate; return the monitor and the whitened residuals.
-
-    ``_run.messages`` keeps what a recorder would have: (topic, type, ns, message).
-    """
-    veh, design = submarine
-    plant, dt = veh.plant, veh.sample_time
-    if transient is None:
-        transient = transient_time(design.observer_poles, dt, plant.is_discrete)
-    Ad, Bd = zoh_matrices(plant.A, plant.B, dt)
-    rng = np.random.default_rng(seed)
-    x = np.array(veh.simulator.initial_state, dtype=float)
-    est = make_estimator(plant, veh.observer)
-    monitor = InnovationMonitor([('gyro', [NOISE])], kalman=False, transient=transient)
-    E, since, msgs = [], [], []
-    gyro = veh.sensors[0]
-    for k in range(steps):
-        ns = 1_000_000_000 + k * int(round(dt * 1e9))
-        t = ns * 1e-9
-        msgs.append(('state/true', JOINT_STATE, ns, vector_msg(plant.state_names, x, ns)))
-        q = (plant.C @ x)[0]
-        y = (sign * q + bias if k >= onset else q) + NOISE * rng.normal()
-        est.correct(t, [y], (0,))
-        monitor.add('gyro', est.residual, None, t)
-        E.append(est.residual / NOISE)
-        since.append(t - 1.0)
-        u = -design.K @ est.x_hat
-        est.set_input(t, u)
-        x = Ad @ x + Bd @ u
-        msg = blank(IMU, ns)
-        fill_measurement(msg, gyro, [y])
-        msgs.append((gyro.topic, IMU, ns, msg))
-        msgs.append(('control/u', JOINT_STATE, ns, vector_msg(plant.input_names, u, ns)))
-    _run.messages = msgs
-    return monitor, np.array(E), np.array(since), transient
-
-
-def test_the_transient_is_one_settling_time_of_the_slowest_pole(submarine):
-    veh, design = submarine
+def test_the_transient_is_one_settling_time_of_the_slowest_pole(submarine_design):
+    veh, design = submarine_design
     t = transient_time(design.observer_poles, veh.sample_time, False)
     assert t == pytest.approx(4.0 / 0.6)                     # poles -0.6, -0.61, -0.62
     assert t == settling_time(design.observer_poles, veh.sample_time)
@@ -85,8 +34,8 @@ def test_the_transient_is_one_settling_time_of_the_slowest_pole(submarine):
 
 
 @pytest.mark.parametrize('seed', range(4))
-def test_the_own_design_on_its_own_data_is_consistent(submarine, seed):
-    monitor, E, since, transient = _run(submarine, seed=seed)
+def test_the_own_design_on_its_own_data_is_consistent(submarine_design, seed):
+    monitor, E, since, transient = innovation_run(submarine_design, seed=seed)
     h = monitor.health('gyro')
     assert h.consistent, h.problem
     assert h.transient == np.count_nonzero(since < transient) > 100
@@ -100,8 +49,8 @@ def test_the_own_design_on_its_own_data_is_consistent(submarine, seed):
     assert everything['problem'].startswith('gyro: residuals too large')
 
 
-def test_the_monitor_says_it_is_converging_before_judging(submarine):
-    monitor, _, _, transient = _run(submarine, steps=100)        # 5 s < 6.7 s
+def test_the_monitor_says_it_is_converging_before_judging(submarine_design):
+    monitor, _, _, transient = innovation_run(submarine_design, steps=100)        # 5 s < 6.7 s
     h = monitor.health('gyro')
     assert h.consistent and h.converging and h.samples == 0 and h.transient == 100
     monitor.restart()                                            # an estimator reset
@@ -112,11 +61,11 @@ def test_the_monitor_says_it_is_converging_before_judging(submarine):
     assert h.transient == 1 and h.samples == 1 and not h.converging
 
 
-@pytest.mark.parametrize('fault', [{'bias': 10 * NOISE}, {'sign': -1.0}],
+@pytest.mark.parametrize('fault', [{'bias': 10 * GYRO_NOISE}, {'sign': -1.0}],
                          ids=['bias', 'flip'])
-def test_a_fault_after_the_transient_is_named(submarine, fault):
+def test_a_fault_after_the_transient_is_named(submarine_design, fault):
     # from 15 s on (converged); the data stop when the window holds 50 faulty residuals
-    monitor, E, since, transient = _run(submarine, steps=350, onset=300, **fault)
+    monitor, E, since, transient = innovation_run(submarine_design, steps=350, onset=300, **fault)
     h = monitor.health('gyro')
     assert not h.consistent
     assert h.problem.startswith('gyro: residuals too large'), h.problem
@@ -125,13 +74,13 @@ def test_a_fault_after_the_transient_is_named(submarine, fault):
     assert figures['problem'].startswith('gyro: ')
 
 
-@pytest.mark.parametrize('fault', [{}, {'bias': 10 * NOISE}], ids=['correct', 'bias'])
-def test_observer_eval_judges_as_the_node(submarine, fault, tmp_path):
+@pytest.mark.parametrize('fault', [{}, {'bias': 10 * GYRO_NOISE}], ids=['correct', 'bias'])
+def test_observer_eval_judges_as_the_node(submarine_design, fault, tmp_path):
     # the same data recorded and replayed: the evaluation's per-variant figures are the
     # node's (the same core function decides what is transient)
-    veh, _ = submarine
-    monitor, E, since, transient = _run(submarine, steps=350, onset=300, **fault)
-    bag = write_bag(tmp_path / 'run', _run.messages)
+    veh, _ = submarine_design
+    monitor, E, since, transient = innovation_run(submarine_design, steps=350, onset=300, **fault)
+    bag = write_bag(tmp_path / 'run', innovation_run.messages)
     rep = replay(read_recording(bag, veh), veh, exact=True)
     figures = innovation_health(rep)['gyro']
     h = monitor.health('gyro')

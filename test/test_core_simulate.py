@@ -7,13 +7,9 @@ from observer_ros.core.errors import DimensionError, ObserverError
 from observer_ros.core.estimators import process_noise_covariance
 from observer_ros.core.model import Plant
 from observer_ros.core.simulate import PlantSimulator
+from plants import submarine
 import pytest
 import scipy.integrate
-
-
-def submarine():
-    A = [[0.0, 0.0, 1.0], [0.0135, -0.322, -0.7102], [-0.036, 0.126, -0.7395]]
-    return Plant(A, [[0.0], [0.0322], [-0.0857]], [[0.0, 0.0, 1.0]], None)
 
 
 def imu_pitch():

@@ -7,6 +7,7 @@ estimates, residuals and S after it must be those the rewind (``superpose = Fals
 every message applied again) and the stamp order give, to round-off.
 """
 
+from history_cases import closed_loop, feed, KINDS, make, stamp_order
 import numpy as np
 from numpy.testing import assert_allclose, assert_array_equal
 from observer_ros.core.errors import DimensionError
@@ -14,8 +15,6 @@ from observer_ros.core.estimators import (FullOrderEstimator, History, KalmanEst
                                           OpenLoopEstimator, ReducedOrderEstimator)
 from observer_ros.core.model import Plant
 import pytest
-from test_core_history import feed, KINDS, make, stamp_order
-from test_core_history_one_back import closed_loop
 
 SHIFTED = ['full', 'reduced', 'open_loop', 'kalman']     # 'full_gain' holds y: rewound
 

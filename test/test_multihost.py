@@ -12,66 +12,21 @@ prints what it sees as JSON lines. Needs root and ``ip``; skipped otherwise.
 """
 
 import json
-import os
 from pathlib import Path
-import shutil
 import signal
 import subprocess
 import sys
 import threading
 
+from netns import env, ip, VETH_SIM
 import numpy as np
 from observer_ros.tools.run_closed_loop import node_command, stop_process
-import pytest
-from ros_helpers import CONFIG, DOMAIN_ID, WAIT
+from ros_helpers import CONFIG, WAIT
 
 VEHICLE = CONFIG / 'submarine.yaml'
 SIM = ['simulator.mode:=realtime', 'simulator.realtime_factor:=2.0',
        'simulator.noise:=false', 'simulator.duration:=3000.0']
 CLIENT = SIM + ['use_sim_time:=true']
-TAG = os.getpid() % 10000
-NET = 100 + os.getpid() % 100                # 10.200.NET.0/24
-NS_SIM, NS_EST = f'obsros_sim_{TAG}', f'obsros_est_{TAG}'
-VETH_SIM, VETH_EST = f'vobs{TAG}a', f'vobs{TAG}b'   # (at most 15 characters)
-
-
-def _ip(*args, check=True):
-    return subprocess.run(['ip', *args], capture_output=True, text=True, check=check)
-
-
-@pytest.fixture
-def hosts():
-    """Two namespaces joined by a veth pair; removed afterwards."""
-    if shutil.which('ip') is None:
-        pytest.skip('no ip command (iproute2): cannot build network namespaces')
-    if os.geteuid() != 0:
-        pytest.skip('network namespaces need root')
-    made = []
-    try:
-        for ns in (NS_SIM, NS_EST):
-            out = _ip('netns', 'add', ns, check=False)
-            if out.returncode != 0:
-                pytest.skip(f'cannot create a network namespace: {out.stderr.strip()}')
-            made.append(ns)
-        _ip('link', 'add', VETH_SIM, 'type', 'veth', 'peer', 'name', VETH_EST)
-        for ns, dev, host in ((NS_SIM, VETH_SIM, 1), (NS_EST, VETH_EST, 2)):
-            _ip('link', 'set', dev, 'netns', ns)
-            _ip('-n', ns, 'addr', 'add', f'10.200.{NET}.{host}/24', 'dev', dev)
-            _ip('-n', ns, 'link', 'set', 'dev', dev, 'multicast', 'on')
-            _ip('-n', ns, 'link', 'set', dev, 'up')
-            _ip('-n', ns, 'link', 'set', 'lo', 'up')
-        yield {'sim': NS_SIM, 'est': NS_EST}
-    finally:
-        for ns in made:
-            _ip('netns', 'del', ns, check=False)      # takes its end of the veth along
-
-
-def _env():
-    env = dict(os.environ)
-    env.update(ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONUNBUFFERED='1',
-               FASTDDS_BUILTIN_TRANSPORTS='UDPv4', ROS_AUTOMATIC_DISCOVERY_RANGE='SUBNET')
-    env.pop('ROS_LOCALHOST_ONLY', None)
-    return env
 
 
 class Watch:
@@ -83,7 +38,7 @@ class Watch:
         self.log = open(log_path, 'w')
         self.proc = subprocess.Popen(
             ['ip', 'netns', 'exec', ns, sys.executable, '-W', 'ignore', __file__, '--probe'],
-            stdout=subprocess.PIPE, stderr=self.log, text=True, env=_env())
+            stdout=subprocess.PIPE, stderr=self.log, text=True, env=env())
         self.thread = threading.Thread(target=self._read, daemon=True)
         self.thread.start()
 
@@ -132,7 +87,7 @@ class Watch:
 def _start(ns, node, params, log_dir):
     log = open(log_dir / f'{node}.log', 'w')
     proc = subprocess.Popen(['ip', 'netns', 'exec', ns, *node_command(node, VEHICLE, *params)],
-                            stdout=log, stderr=subprocess.STDOUT, env=_env())
+                            stdout=log, stderr=subprocess.STDOUT, env=env())
     return proc, log
 
 
@@ -165,7 +120,7 @@ def test_loop_across_two_hosts_survives_a_cut_link(hosts, tmp_path):
 
         # cut the link: nothing arrives on host 2; the observer reports that it only
         # predicts (WARN), the compensator that its estimate is stale (ERROR)
-        _ip('-n', hosts['sim'], 'link', 'set', VETH_SIM, 'down')
+        ip('-n', hosts['sim'], 'link', 'set', VETH_SIM, 'down')
         n_diag = len(watch.diagnostics)
         watch.wait(lambda: (s := watch.status('observer', n_diag)) and s[0] == WARN
                    and 'predicting only' in s[1], 'the observer reporting predicting only')
@@ -182,7 +137,7 @@ def test_loop_across_two_hosts_survives_a_cut_link(hosts, tmp_path):
             assert proc.poll() is None, f'{name} exited during the cut'
 
         # the link returns: data flows again, both report OK, the estimate converges again
-        _ip('-n', hosts['sim'], 'link', 'set', VETH_SIM, 'up')
+        ip('-n', hosts['sim'], 'link', 'set', VETH_SIM, 'up')
         n_diag, n_est = len(watch.diagnostics), len(watch.estimates)
         watch.wait(lambda: (s := watch.status('observer', n_diag)) and s[0] == OK,
                    'the observer estimating again')

@@ -7,29 +7,13 @@ from diagnostic_msgs.msg import DiagnosticStatus
 import numpy as np
 from observer_ros.nodes.common import joint_state, SENSOR_QOS
 from observer_ros.nodes.observer_node import silence_watch_period
-from observer_ros.timeutil import sec_to_stamp_parts, stamp_to_sec
+from observer_ros.timeutil import stamp_to_sec
 import pytest
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
-# Listener: still importable from here, where test files found it before ros_helpers had it
-from ros_helpers import (compensator_under_test, CONFIG, Listener,  # noqa: F401
-                         NODE_PARAMS, observer_under_test, Proc, REALTIME, WAIT)
+from ros_helpers import CONFIG, imu_msg, NODE_PARAMS, observer_under_test, Proc, REALTIME, WAIT
 from sensor_msgs.msg import Imu
 import yaml
-
-
-def _imu(t, q):
-    msg = Imu()
-    # rounded once to the ns (100.2 - 0.2 is 99.99999999999999: not 99 s + 10^9 ns)
-    msg.header.stamp.sec, msg.header.stamp.nanosec = sec_to_stamp_parts(t)
-    msg.angular_velocity.y = q
-    return msg
-
-
-@pytest.fixture
-def observer_setup(tmp_path):
-    with observer_under_test(tmp_path) as run:
-        yield run.proc, run.probe, run.listener, run.pubs['imu/data'], run.pubs['control/u']
 
 
 def test_observer_survives_every_bad_message(observer_setup):
@@ -39,7 +23,7 @@ def test_observer_survives_every_bad_message(observer_setup):
     def good(q=0.01):
         nonlocal t
         t += 0.05
-        pub.publish(_imu(t, q))
+        pub.publish(imu_msg(t, q))
         x = listener.estimate_at(t)
         assert np.all(np.isfinite(x))
         return x
@@ -48,27 +32,27 @@ def test_observer_survives_every_bad_message(observer_setup):
     good()
     # NaN and Inf measurements: skipped, counted
     for bad in (float('nan'), float('inf')):
-        pub.publish(_imu(t + 0.01, bad))
+        pub.publish(imu_msg(t + 0.01, bad))
     listener.wait_counter('observer', 'bad_messages', 2)
     good()
     # a zero stamp: a malformed stamp, refused and counted
-    pub.publish(_imu(0.0, 0.0))
+    pub.publish(imu_msg(0.0, 0.0))
     listener.wait_counter('observer', 'bad_stamps', 1)
     good()
     # an older stamp (out of order: older than the history, 0.25 s, and less than the
     # clock-jump tolerance back)
-    pub.publish(_imu(t - 0.4, 0.0))
+    pub.publish(imu_msg(t - 0.4, 0.0))
     listener.wait_counter('observer', 'out_of_order', 1)
     # a duplicate stamp: not corrected twice, the estimate is re-published
     n_before = len(listener.estimates)
-    pub.publish(_imu(t, 0.5))
+    pub.publish(imu_msg(t, 0.5))
     listener.wait_counter('observer', 'duplicates', 1)
     probe.spin_until(lambda: len(listener.estimates) > n_before, 5.0, 're-published estimate')
     np.testing.assert_array_equal(listener.estimates[-1].position,
                                   listener.estimates[-2].position)
     good()
     # a stamp far in the future of the node's clock
-    pub.publish(_imu(time.time() + 1e6, 0.0))
+    pub.publish(imu_msg(time.time() + 1e6, 0.0))
     listener.wait_counter('observer', 'future_stamps', 1)
     good()
     # commands with unknown names, too few values, or NaN
@@ -83,7 +67,7 @@ def test_observer_survives_every_bad_message(observer_setup):
     received_before = listener.counter('observer', 'measurements')
     for _ in range(50):
         t += 0.001
-        pub.publish(_imu(t, 0.0))
+        pub.publish(imu_msg(t, 0.0))
     probe.spin_until(lambda: any(abs(stamp_to_sec(m.header.stamp) - t) < 1e-6
                                  for m in listener.estimates), WAIT, 'end of the burst')
     # the clock jumps back (a looping bag): the first two messages back are skipped as
@@ -91,7 +75,7 @@ def test_observer_survives_every_bad_message(observer_setup):
     t -= 30.0
     for _ in range(2):
         t += 0.05
-        pub.publish(_imu(t, 0.0))
+        pub.publish(imu_msg(t, 0.0))
     listener.wait_counter('observer', 'far_back_stamps', 2)
     good()
     listener.wait_counter('observer', 'clock_jumps', 1)
@@ -126,15 +110,9 @@ def test_observer_pole_change_is_validated(observer_setup):
     result = _set_parameter(probe, 'observer', 'observer.poles', [-1.0, -1.1, -1.2])
     assert result.successful, result.reason
     # the node still estimates with the new gain
-    pub.publish(_imu(200.0, 0.0))
+    pub.publish(imu_msg(200.0, 0.0))
     assert np.all(np.isfinite(listener.estimate_at(200.0)))
     assert proc.alive()
-
-
-@pytest.fixture
-def compensator_setup(tmp_path):
-    with compensator_under_test(tmp_path) as run:
-        yield run.proc, run.probe, run.listener, run.pubs['state/estimate']
 
 
 def test_compensator_stale_and_bad_estimates_give_the_safe_command(compensator_setup):
@@ -224,7 +202,7 @@ def test_undetectable_plant_is_refused_with_the_mode_named(tmp_path):
 def test_estimate_carries_the_measurement_stamp_to_the_nanosecond(observer_setup):
     """A wall-clock stamp does not survive float seconds; the estimate must carry it as is."""
     proc, probe, listener, pub, cmd = observer_setup
-    msg = _imu(0.0, 0.01)
+    msg = imu_msg(0.0, 0.01)
     # an hour old: the node publishes no predictions for it (they are for stamps on its
     # clock), which in the same second would be counted as answers below
     msg.header.stamp.sec = int(time.time()) - 3600
@@ -249,7 +227,7 @@ def test_silent_sensor_means_predict_only(observer_setup):
     """Stamps on the node's clock; the sensor stops: predictions are published, with a WARN."""
     proc, probe, listener, pub, cmd = observer_setup
     t = time.time()
-    pub.publish(_imu(t, 0.01))
+    pub.publish(imu_msg(t, 0.01))
     listener.estimate_at(t)
     listener.wait_counter('observer', 'predictions', 3)
 
@@ -274,7 +252,7 @@ def test_silence_is_watched_slowly_and_predicted_at_the_rate(tmp_path):
         pub, listener, probe = run.pubs['imu/data'], run.listener, run.probe
         for _ in range(2):
             t = time.time()
-            pub.publish(_imu(t, 0.01))
+            pub.publish(imu_msg(t, 0.01))
             listener.estimate_at(t)
 
             def predictions():
@@ -299,7 +277,7 @@ def test_observer_follows_remaps_and_overrides(tmp_path):
     with observer_under_test(tmp_path, publish=[('robot/gyro', Imu, SENSOR_QOS)],
                              params=[REALTIME, 'observer.poles:=[-2.0, -2.1, -2.2]'],
                              remaps=['imu/data:=robot/gyro']) as run:
-        run.pubs['robot/gyro'].publish(_imu(50.0, 0.0))
+        run.pubs['robot/gyro'].publish(imu_msg(50.0, 0.0))
         assert np.all(np.isfinite(run.listener.estimate_at(50.0)))
     out = run.proc.output()
     assert '-2.2, -2.1, -2' in out or '[-2.2' in out, out

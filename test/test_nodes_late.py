@@ -9,24 +9,13 @@ from observer_ros.nodes.common import joint_state, SENSOR_QOS, STATE_QOS
 from observer_ros.nodes.observer_node import covariance_names
 from observer_ros.timeutil import ns_to_sec, stamp_to_sec
 import pytest
-from ros_helpers import COMMANDS, GYRO, observer_under_test, WAIT
-from sensor_msgs.msg import Imu, JointState
-
-
-def _stamp(msg, ns):
-    msg.header.stamp.sec = ns // 1_000_000_000
-    msg.header.stamp.nanosec = ns % 1_000_000_000
-    return msg
-
-
-def _gyro(ns, q):
-    msg = _stamp(Imu(), ns)
-    msg.angular_velocity.y = float(q)
-    return msg
+from ros_helpers import (COMMANDS, GYRO, gyro_msg, innovation_status, level_of,
+                         observer_under_test, stamped, WAIT)
+from sensor_msgs.msg import JointState
 
 
 def _pitch(ns, theta):
-    msg = _stamp(JointState(), ns)
+    msg = stamped(JointState(), ns)
     msg.name, msg.position = ['theta'], [float(theta)]
     return msg
 
@@ -62,7 +51,7 @@ def test_messages_out_of_order_over_dds_give_the_stamp_order_estimate(late_obser
         if kind == 'u':
             pubs['u'].publish(joint_state(['delta'], [value], ns_to_sec(ns)))
             continue
-        pubs[kind].publish(_gyro(ns, value) if kind == 'gyro' else _pitch(ns, value))
+        pubs[kind].publish(gyro_msg(ns, value) if kind == 'gyro' else _pitch(ns, value))
         answered += 1
         # each measurement is answered by one estimate (the newest, revised if it was late)
         probe.spin_until(lambda: len(listener.estimates) >= answered, WAIT,
@@ -90,7 +79,7 @@ def test_publish_rate_gives_the_prediction_to_now(late_observer):
     proc, probe, listener, pubs, veh = late_observer
     # a measurement stamped now (the node's clock is the system clock): then predictions
     now_ns = probe.node.get_clock().now().nanoseconds
-    pubs['gyro'].publish(_gyro(now_ns, 0.02))
+    pubs['gyro'].publish(gyro_msg(now_ns, 0.02))
     t0 = ns_to_sec(now_ns)
     probe.spin_until(lambda: sum(stamp_to_sec(m.header.stamp) > t0
                                  for m in listener.estimates) >= 10, WAIT, '10 predictions')
@@ -104,20 +93,6 @@ def test_publish_rate_gives_the_prediction_to_now(late_observer):
         probe_est.restore_state(est.save_state())
         assert_allclose(msg.position, probe_est.predict(t), rtol=1e-9, atol=1e-12)
     listener.wait_counter('observer', 'rate_publications', 1)
-
-
-def _health(listener, sensor):
-    """Return the latest innovation status of a sensor (None before one)."""
-    for array in reversed(listener.diagnostics):
-        for status in array.status:
-            if status.name.endswith(f'observer/innovation/{sensor}'):
-                return status
-    return None
-
-
-def _level(status):
-    level = status.level
-    return level if isinstance(level, int) else int.from_bytes(level, 'little')
 
 
 @pytest.mark.parametrize('late_observer', [('kalman', ())], indirect=True)
@@ -134,17 +109,17 @@ def test_a_faulty_sensor_is_named_on_diagnostics(late_observer, fault):
     probe.wait_matched(sub, 'state/covariance')
     answered = 0
     for kind, ns, _, value in late_sensors.receive_order(msgs):
-        pubs[kind].publish(_gyro(ns, value) if kind == 'gyro' else _pitch(ns, value))
+        pubs[kind].publish(gyro_msg(ns, value) if kind == 'gyro' else _pitch(ns, value))
         answered += 1
         probe.spin_until(lambda: len(listener.estimates) >= answered, WAIT,
                          f'the answer to {kind} stamped {ns}')
     WARN = 1
-    probe.spin_until(lambda: (s := _health(listener, 'pitch')) is not None and
-                     _level(s) == WARN, WAIT, 'an innovation WARN naming pitch')
-    status = _health(listener, 'pitch')
+    probe.spin_until(lambda: (s := innovation_status(listener, 'pitch')) is not None and
+                     level_of(s) == WARN, WAIT, 'an innovation WARN naming pitch')
+    status = innovation_status(listener, 'pitch')
     assert status.message.startswith('pitch: residuals'), status.message
-    gyro = _health(listener, 'gyro')
-    assert _level(gyro) == 0, gyro.message
+    gyro = innovation_status(listener, 'gyro')
+    assert level_of(gyro) == 0, gyro.message
     # the node's main status is not changed by it
     assert listener.latest_status('observer').name.endswith('observer')
     # the Kalman covariance of the last estimate, with its stamp: that of the core filter

@@ -15,10 +15,8 @@ from observer_ros.vehicle import load_vehicle
 import pytest
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
-from ros_helpers import compensator_under_test, CONFIG, ESTIMATES, Probe, Proc, WAIT
+from ros_helpers import compensator_under_test, CONFIG, ESTIMATES, imu_msg, Probe, Proc, WAIT
 from sensor_msgs.msg import JointState
-from test_nodes_faults import (_imu, compensator_setup,  # noqa: F401
-                               observer_setup)
 
 REALTIME = ['simulator.mode:=realtime', 'simulator.duration:=3000.0']
 # the vehicle, its reference, the realtime factor, and |x - x_d| that counts as converged
@@ -244,7 +242,7 @@ def _set(probe, node, name, value):
     return future.result().results[0]
 
 
-def test_observer_refuses_tolerances_and_poles_that_stop_it(observer_setup):  # noqa: F811
+def test_observer_refuses_tolerances_and_poles_that_stop_it(observer_setup):
     proc, probe, listener, pub, cmd = observer_setup
     for name, value, words in (
             ('future_tolerance', -1.0, ['future_tolerance', '-1']),
@@ -256,18 +254,18 @@ def test_observer_refuses_tolerances_and_poles_that_stop_it(observer_setup):  # 
         assert all(w in result.reason for w in words), result.reason
     assert _set(probe, 'observer', 'future_tolerance', 5.0).successful
     # the observer still answers
-    pub.publish(_imu(300.0, 0.01))
+    pub.publish(imu_msg(300.0, 0.01))
     assert np.all(np.isfinite(listener.estimate_at(300.0)))
 
 
-def test_observer_reports_a_diverging_estimate(observer_setup):  # noqa: F811
+def test_observer_reports_a_diverging_estimate(observer_setup):
     proc, probe, listener, pub, cmd = observer_setup
     t = 400.0
-    pub.publish(_imu(t, 0.0))
+    pub.publish(imu_msg(t, 0.0))
     listener.estimate_at(t)
     # measurements far beyond anything the file makes plausible (q = 1e6 rad/s)
     for k in range(1, 16):
-        pub.publish(_imu(t + 0.05 * k, 1e6 * k))
+        pub.publish(imu_msg(t + 0.05 * k, 1e6 * k))
     probe.spin_until(lambda: (s := listener.latest_status('observer')) is not None
                      and s.level == DiagnosticStatus.ERROR and 'diverging' in s.message,
                      10.0, 'a divergence ERROR')
@@ -277,7 +275,7 @@ def test_observer_reports_a_diverging_estimate(observer_setup):  # noqa: F811
 
 
 def test_compensator_reports_divergence_and_sends_the_safe_command(
-        compensator_setup):  # noqa: F811
+        compensator_setup):
     proc, probe, listener, est = compensator_setup
     names = ['theta', 'w', 'q']
     est.publish(joint_state(names, [0.1, 0.0, 0.0], 5.0))
@@ -302,7 +300,7 @@ def test_compensator_reports_divergence_and_sends_the_safe_command(
 
 
 def test_after_an_outage_estimates_are_gated_and_the_loop_closes_again(
-        compensator_setup):  # noqa: F811
+        compensator_setup):
     proc, probe, listener, est = compensator_setup
     names = ['theta', 'w', 'q']
     est.publish(joint_state(names, [0.1, 0.0, 0.0], 5.0))
@@ -328,10 +326,10 @@ def test_after_an_outage_estimates_are_gated_and_the_loop_closes_again(
     assert listener.counter('compensator', 'commands') >= 3
 
 
-def test_overloaded_observer_says_so(observer_setup):  # noqa: F811
+def test_overloaded_observer_says_so(observer_setup):
     proc, probe, listener, pub, cmd = observer_setup
     t = 500.0
-    pub.publish(_imu(t, 0.0))
+    pub.publish(imu_msg(t, 0.0))
     listener.estimate_at(t)
     # a flood: stamps 0.05 s apart (the sensor's period) sent as fast as we can, for
     # as long as it takes the observer to say it is overloaded
@@ -341,7 +339,7 @@ def test_overloaded_observer_says_so(observer_setup):  # noqa: F811
         assert time.monotonic() - start < WAIT, 'no overload report'
         for _ in range(500):
             t += 0.05
-            pub.publish(_imu(t, 0.0))
+            pub.publish(imu_msg(t, 0.0))
         probe.executor.spin_once(timeout_sec=0.0)
         found = next((s for a in reversed(listener.diagnostics) for s in a.status
                       if s.name.endswith('observer') and 'overloaded' in s.message), None)

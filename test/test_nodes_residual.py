@@ -14,9 +14,8 @@ import time
 
 from observer_ros.nodes.common import STATE_QOS
 from observer_ros.timeutil import stamp_to_ns
-from ros_helpers import CONFIG, DOMAIN_ID, GYRO, observer_under_test, REPO, WAIT
+from ros_helpers import CONFIG, DOMAIN_ID, GYRO, gyro_msg, observer_under_test, REPO, WAIT
 from sensor_msgs.msg import JointState
-from test_nodes_late import _gyro
 
 
 def test_a_late_subscriber_gets_the_residuals(tmp_path):
@@ -33,7 +32,7 @@ def test_a_late_subscriber_gets_the_residuals(tmp_path):
         def send():
             nonlocal sent
             sent += 1
-            gyro.publish(_gyro(ns + sent * 4_000_000, 0.001 * sent))
+            gyro.publish(gyro_msg(ns + sent * 4_000_000, 0.001 * sent))
             probe.spin_until(lambda: len(listener.estimates) >= sent, WAIT,
                              f'the answer to gyro message {sent}')
 
@@ -71,7 +70,6 @@ from rclpy.event_handler import UnsupportedEventTypeError
 from sensor_msgs.msg import JointState
 from observer_ros.nodes import observer_node
 from observer_ros.nodes.common import STATE_QOS
-from test_nodes_late import _gyro
 
 
 def unsupported(*args, **kwargs):       # a middleware without matched events
@@ -88,7 +86,7 @@ node.create_subscription(JointState, 'observer/residual', residuals.append, STAT
 sensor = next(s for s in node.vehicle.sensors if s.topic.endswith('imu/data'))
 ns = time.time_ns() - 3_600_000_000_000
 for k in range(1, 6):
-    node._on_measurement(sensor, _gyro(ns + k * 4_000_000, 0.001 * k))
+    node._on_measurement(sensor, gyro_msg(ns + k * 4_000_000, 0.001 * k))
 deadline = time.monotonic() + float(sys.argv[2])
 while len(residuals) < 5 and time.monotonic() < deadline:
     rclpy.spin_once(node, timeout_sec=0.05)

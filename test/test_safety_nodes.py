@@ -16,10 +16,9 @@ from observer_ros.sensors import extract_measurement
 from observer_ros.timeutil import stamp_to_sec
 from observer_ros.vehicle import load_vehicle
 import pytest
-from ros_helpers import (compensator_under_test, CONFIG, NODE_PARAMS, nodes_under_test,
+from ros_helpers import (compensator_under_test, CONFIG, imu_msg, NODE_PARAMS, nodes_under_test,
                          observer_under_test, WAIT)
 from sensor_msgs.msg import Imu, JointState
-from test_nodes_faults import _imu
 
 VEHICLE = load_vehicle(CONFIG / 'submarine.yaml')
 STATES = list(VEHICLE.plant.state_names)
@@ -75,7 +74,7 @@ def test_malformed_stamps_are_refused_counted_and_never_reset_the_estimate(tmp_p
         def good(q=0.02):
             nonlocal t
             t = round(t + 0.05, 6)
-            msg = _imu(t, q)
+            msg = imu_msg(t, q)
             pub.publish(msg)
             expected = ref.correct(msg)
             np.testing.assert_allclose(listener.estimate_at(t), expected, rtol=1e-9,
@@ -106,7 +105,7 @@ def test_malformed_stamps_are_refused_counted_and_never_reset_the_estimate(tmp_p
         # logged and counted
         t -= 30.0
         for k in range(3):
-            pub.publish(_imu(round(t + 0.05 * (k + 1), 6), 0.02))
+            pub.publish(imu_msg(round(t + 0.05 * (k + 1), 6), 0.02))
         listener.wait_counter('observer', 'estimator_resets', 1)
         assert listener.counter('observer', 'clock_jumps') == 1
         assert listener.counter('observer', 'far_back_stamps') == 2
@@ -121,7 +120,7 @@ def test_a_huge_command_is_refused_by_its_size_first(tmp_path):
         t = 100.0
         for k in range(3):
             t = round(t + 0.05, 6)
-            msg = _imu(t, 0.01)
+            msg = imu_msg(t, 0.01)
             pub.publish(msg)
             np.testing.assert_allclose(listener.estimate_at(t), ref.correct(msg), rtol=1e-9,
                                        atol=1e-12)
@@ -136,7 +135,7 @@ def test_a_huge_command_is_refused_by_its_size_first(tmp_path):
         # the estimator goes on untouched
         for k in range(3):
             t = round(t + 0.05, 6)
-            msg = _imu(t, 0.01)
+            msg = imu_msg(t, 0.01)
             pub.publish(msg)
             np.testing.assert_allclose(listener.estimate_at(t), ref.correct(msg), rtol=1e-9,
                                        atol=1e-12)

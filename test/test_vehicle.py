@@ -17,6 +17,7 @@ from observer_ros.vehicle import (apply_overrides, KNOWN_KEYS, load_parameters,
                                   load_vehicle, parameters_to_yaml,
                                   SENSOR_KEYS, vehicle_from_parameters,
                                   vehicle_to_parameters)
+from plants import GYRO_C, SUBMARINE_A, SUBMARINE_B
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -68,9 +69,9 @@ def test_submarine_numbers():
     v = load_vehicle(SUBMARINE)
     p = v.plant
     assert p.state_names == ('theta', 'w', 'q')
-    assert_allclose(p.A, [[0, 0, 1], [0.0135, -0.322, -0.7102], [-0.036, 0.126, -0.7395]])
-    assert_allclose(p.B.ravel(), [0, 0.0322, -0.0857])
-    assert_allclose(p.C, [[0, 0, 1]])
+    assert_allclose(p.A, SUBMARINE_A)
+    assert_allclose(p.B, SUBMARINE_B)
+    assert_allclose(p.C, GYRO_C)
     assert_allclose(p.D, [[0.0]])
     gyro, = v.sensors
     assert (gyro.msg_type, gyro.fields, gyro.outputs) == (

@@ -1,0 +1,104 @@
+# Shared fixtures of the suite, and the `ros` marker kept honest.
+"""
+Fixtures shared by the test folders: plants, vehicles, bags, node processes, hosts.
+
+The helper modules beside this file (plants.py, bag_synth.py, bag_cases.py, ros_helpers.py,
+netns.py) hold the functions; a test module takes fixtures from here and functions from
+those, never from another test module.
+
+A test that starts a process or a DDS participant carries the ``ros`` marker (pytest.ini):
+``make check`` leaves those tests out. A test without the marker that starts either fails
+at once, saying so.
+"""
+
+import multiprocessing.process
+import subprocess
+
+from bag_cases import make_case
+from netns import two_hosts
+from observer_ros.core.vehicle_design import design_vehicle
+from observer_ros.vehicle import load_vehicle
+import plants
+import pytest
+from ros_helpers import compensator_under_test, CONFIG, observer_under_test
+
+
+def _refuse(what):
+    def refuse(*args, **kwargs):
+        raise RuntimeError(f'{what} in a test not marked ros: mark it @pytest.mark.ros')
+    return refuse
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    """Refuse processes and DDS participants in a test without the ``ros`` marker."""
+    if item.get_closest_marker('ros') or item.get_closest_marker('linter'):
+        yield
+        return
+    from rclpy.context import Context
+    mp = pytest.MonkeyPatch()
+    mp.setattr(subprocess.Popen, '__init__', _refuse('a process started'))
+    mp.setattr(multiprocessing.process.BaseProcess, 'start', _refuse('a process started'))
+    mp.setattr(Context, 'init', _refuse('a ROS context initialised'))
+    try:
+        yield
+    finally:
+        mp.undo()
+
+
+# ------------------------------------------------------------------ plants and vehicles
+
+@pytest.fixture
+def submarine_plant():
+    """Return the submarine (seed 000) with a rate gyro on q."""
+    return plants.submarine()
+
+
+@pytest.fixture
+def two_sensor_plant():
+    """Return the submarine with a gyro (q, output 0) and a pitch sensor (theta, output 1)."""
+    return plants.two_sensor_submarine()
+
+
+@pytest.fixture(scope='module')
+def submarine_design():
+    """Return config/submarine.yaml's vehicle and its design."""
+    veh = load_vehicle(CONFIG / 'submarine.yaml')
+    return veh, design_vehicle(veh)
+
+
+# ------------------------------------------------------------------ bags
+
+@pytest.fixture(scope='module')
+def cases(tmp_path_factory):
+    """Return ``get(name)``: the vehicle and bag of a replay case (bag_cases.CASES), made once."""
+    made = {}
+
+    def get(name):
+        if name not in made:
+            made[name] = make_case(name, tmp_path_factory.mktemp(name))
+        return made[name]
+    return get
+
+
+# ------------------------------------------------------------------ processes and hosts
+
+@pytest.fixture
+def observer_setup(tmp_path):
+    """Run the observer node: its process, the probe, listener, gyro and command publishers."""
+    with observer_under_test(tmp_path) as run:
+        yield run.proc, run.probe, run.listener, run.pubs['imu/data'], run.pubs['control/u']
+
+
+@pytest.fixture
+def compensator_setup(tmp_path):
+    """Run the compensator: its process, the probe, listener and estimate publisher."""
+    with compensator_under_test(tmp_path) as run:
+        yield run.proc, run.probe, run.listener, run.pubs['state/estimate']
+
+
+@pytest.fixture
+def hosts():
+    """Two network namespaces joined by a veth pair (netns.py); skipped without root."""
+    with two_hosts() as names:
+        yield names
