@@ -15,7 +15,7 @@ ROS2CLI := ../shared/ros2cli
 KIT_FILES := $(wildcard $(ROS2CLI)/install.sh $(ROS2CLI)/wheels/*.whl)
 KIT_SUM := .venv/.ros2cli-kit.sha256
 
-.PHONY: setup demo test bench clean-venv
+.PHONY: setup demo test check bench clean-venv
 
 setup: $(STAMP)
 
@@ -39,8 +39,15 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml $(KIT_FILES)
 demo: $(STAMP)
 	.venv/bin/observer-run $(VEHICLE) --evaluate $(ARGS)
 
+# the whole suite (CI): in TEST_WORKERS processes, each in its own DDS domain
+# (test/ros_helpers.py); most tests that start nodes wait on discovery, not on the CPU
+TEST_WORKERS ?= 4
 test: $(STAMP)
-	$(PY) -W ignore::DeprecationWarning -m pytest -q -p no:cacheprovider test
+	$(PY) -W ignore::DeprecationWarning -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) test
+
+# after each change: every test that starts no process and no DDS participant
+check: $(STAMP)
+	$(PY) -W ignore::DeprecationWarning -m pytest -q -p no:cacheprovider -m "not ros" test
 
 bench: $(STAMP)
 	$(PY) benchmarks/run_all.py

@@ -3,7 +3,7 @@
 The observer under a measurement flood (not part of CI; figures in docs/reliability.md).
 
 The observer runs as its own process (the submarine's vehicle file, realtime mode, wall
-clock, ``diagnostics_period`` 1 s). After ``--before`` s, ``test/flood_publisher.py`` (its
+clock, ``diagnostics_period`` 1 s). After ``--before`` s, ``test/nodes/flood_publisher.py`` (its
 own process) publishes Imu on ``imu/data`` as fast as Python can for ``--seconds`` s, while
 this script publishes the gyro at 20 Hz on the same topic and listens to /diagnostics. It
 reports:
@@ -34,7 +34,7 @@ import time
 import warnings
 
 REPO = Path(__file__).resolve().parents[1]
-FLOOD = REPO / 'test' / 'flood_publisher.py'
+FLOOD = REPO / 'test' / 'nodes' / 'flood_publisher.py'
 sys.path.insert(0, str(REPO / 'benchmarks'))   # benchmarks/ is not a package
 
 from soak_observer import rss_kib  # noqa: E402

@@ -5,7 +5,7 @@ Run the observer_ros benchmarks P1..P5 and print each figure as a ratio to its b
 Each benchmark runs in its own process (``benchmarks/p*.py``, also runnable alone) with
 the benchmarks' ROS domain (``ROS_DOMAIN_ID`` 47, or ``$BENCH_ROS_DOMAIN_ID``); every
 figure is printed on a line starting ``RATIO <id>``. ``--smoke`` runs each for a few
-seconds, only to check that it still runs (CI: test/test_benchmarks_smoke.py); the
+seconds, only to check that it still runs (CI: test/system/test_benchmarks_smoke.py); the
 targets are then not judged.
 
 Exit status: 0 when every benchmark ran (targets met or not: these are measurements),

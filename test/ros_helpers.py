@@ -36,8 +36,27 @@ GYRO = ('imu/data', Imu, SENSOR_QOS)
 COMMANDS = ('control/u', JointState, STATE_QOS)
 ESTIMATES = ('state/estimate', JointState, STATE_QOS)
 
-# One DDS domain per test session, so concurrent runs on the machine do not cross-talk.
-DOMAIN_ID = random.SystemRandom().randint(100, 199)
+
+def _domain_id():
+    """
+    Return this test process's DDS domain: one per pytest session, one per xdist worker.
+
+    Workers of one run (``pytest -n N``) share a random base (from the run's id) and add
+    their index, so they never share a domain; other runs on the machine pick other bases.
+    Fast DDS refuses domains above 232 with its default ports.
+    """
+    worker = os.environ.get('PYTEST_XDIST_WORKER', '')
+    if not worker.startswith('gw'):
+        return random.SystemRandom().randint(100, 199)
+    index = int(worker[2:])
+    count = int(os.environ.get('PYTEST_XDIST_WORKER_COUNT', '1'))
+    run = os.environ.get('PYTEST_XDIST_TESTRUNUID', '')
+    base = random.Random(run).randint(100, 232 - count) if run else 100
+    return base + index
+
+
+# One DDS domain per test process, so concurrent runs on the machine do not cross-talk.
+DOMAIN_ID = _domain_id()
 
 # s: the one deadline of every wait on a condition (discovery, a message, a counter on
 # /diagnostics). CI runs 800 tests on a loaded 2-core machine, where discovery alone took

@@ -70,6 +70,7 @@ def _installed_env(prefix):
     return env
 
 
+@pytest.mark.ros
 def test_colcon_installs_executables_where_ros2_run_looks(colcon_install):
     for exe in EXECUTABLES:
         assert (colcon_install / 'lib' / 'observer_ros' / exe).is_file(), exe
@@ -87,6 +88,7 @@ def test_colcon_installs_executables_where_ros2_run_looks(colcon_install):
             'observer_ros').is_file()
 
 
+@pytest.mark.ros
 def test_installed_design_tool_runs_on_the_installed_config(colcon_install):
     env = _installed_env(colcon_install)
     exe = colcon_install / 'lib' / 'observer_ros' / 'observer_design'
@@ -108,6 +110,7 @@ def test_installed_design_tool_runs_on_the_installed_config(colcon_install):
     assert module.startswith(str(colcon_install)) and share.startswith(str(colcon_install))
 
 
+@pytest.mark.ros
 def test_installed_observer_node_runs_with_the_installed_config(colcon_install):
     env = _installed_env(colcon_install)
     exe = colcon_install / 'lib' / 'observer_ros' / 'observer'
@@ -132,6 +135,7 @@ def _assert_runs_in_a_fresh_interpreter(code):
     assert result.returncode == 0, result.stderr
 
 
+@pytest.mark.ros
 def test_core_and_offline_tools_import_no_ros():
     _assert_runs_in_a_fresh_interpreter(
         'import sys, observer_ros.core, observer_ros.vehicle, observer_ros.sensors, '
@@ -141,6 +145,7 @@ def test_core_and_offline_tools_import_no_ros():
         'assert not bad, bad')
 
 
+@pytest.mark.ros
 def test_offline_tools_import_python_control_only_when_they_design():
     """observer-eval replays with the file's gains: python-control (~1 s) is not loaded."""
     _assert_runs_in_a_fresh_interpreter(

@@ -5,7 +5,7 @@ Write the key tables of docs/vehicle_schema.md from the schema.
 Each table in that page stands between ``<!-- schema: SECTION -->`` and
 ``<!-- /schema -->``; :func:`render` replaces each with the table made from
 :mod:`.schema`, so the page cannot say another type, default, unit or bound than the
-loader and the nodes' descriptors use. test/test_vehicle_schema.py checks that the
+loader and the nodes' descriptors use. test/vehicle/test_vehicle_schema.py checks that the
 page is up to date; ``python -m observer_ros.vehicle.doc docs/vehicle_schema.md``
 rewrites it.
 

@@ -18,7 +18,7 @@ from observer_ros.vehicle import load_vehicle
 import pytest
 import yaml
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CONFIG = REPO / 'config'
 
 

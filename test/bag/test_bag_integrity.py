@@ -1,4 +1,4 @@
-# test/test_bag_integrity.py: chunk CRCs in the bags observer_ros writes, and their check.
+# test/bag/test_bag_integrity.py: chunk CRCs in the bags observer_ros writes, and their check.
 """
 Integrity: the bags this project writes carry chunk CRCs; the evaluation checks them.
 
@@ -28,7 +28,7 @@ from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
 from rosbags.rosbag2.storage_mcap import McapReader
 
 VEHICLE = CONFIG / 'submarine.yaml'
-SAMPLES = Path(__file__).resolve().parents[1] / 'bags' / 'samples'
+SAMPLES = Path(__file__).resolve().parents[2] / 'bags' / 'samples'
 
 
 @pytest.fixture(scope='module')

@@ -12,7 +12,7 @@ import pytest
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 
-SAMPLES = Path(__file__).resolve().parents[1] / 'bags' / 'samples'
+SAMPLES = Path(__file__).resolve().parents[2] / 'bags' / 'samples'
 
 
 def _stream(messages):
@@ -119,7 +119,7 @@ def test_blank_sensor_messages_round_trip(tmp_path):
 def test_recording_read_by_chunks_equals_message_by_message(name, monkeypatch):
     """read_recording decodes chunk buffers directly; the result must not change."""
     path = SAMPLES / name
-    vehicle = load_vehicle(Path(__file__).resolve().parents[1] / 'config' / f'{name}.yaml')
+    vehicle = load_vehicle(Path(__file__).resolve().parents[2] / 'config' / f'{name}.yaml')
     calls = []
     real = BagReader.message_chunks
 

@@ -1,4 +1,4 @@
-# test/test_bag_play.py: observer-play publishes a bag's messages with the recorded timing.
+# test/bag/test_bag_play.py: observer-play publishes a bag's messages with the recorded timing.
 """
 observer-play, run as a subprocess, received by a subscriber node in this process.
 
@@ -22,14 +22,15 @@ from observer_ros.bag.errors import BagToolError
 from observer_ros.bag.play import message_class, parse_remap
 from observer_ros.vehicle import load_vehicle
 import pytest
+from ros_helpers import DOMAIN_ID
 
 pytestmark = pytest.mark.filterwarnings('ignore::DeprecationWarning')
 
 rclpy = pytest.importorskip('rclpy')
 EXE = Path(sys.executable).parent / 'observer-play'
-# ROS_DOMAIN_ID when set (so that concurrent runs can be kept apart), else 1..99 (the
-# node tests use 100..199); /clock is not namespaced, so two players in one domain mix
-DOMAIN = int(os.environ.get('ROS_DOMAIN_ID') or 1 + os.getpid() % 99)
+# this test process's own domain (ros_helpers): /clock is not namespaced, so two players
+# in one domain would mix
+DOMAIN = DOMAIN_ID
 NS = f'/play{os.getpid()}'
 DT = 0.05          # the submarine's step (20 Hz)
 
@@ -114,6 +115,7 @@ def _stop(proc, sig=signal.SIGINT, wait=0.0):
     return proc.returncode, err
 
 
+@pytest.mark.ros
 def test_bag_play_messages_and_clock_in_order_with_scaled_timing(bag):
     rate = 2.0
     listener = Listener(_topics())
@@ -153,6 +155,7 @@ def test_bag_play_messages_and_clock_in_order_with_scaled_timing(bag):
     assert 0.5 * 50 * span < len(clock) < 2.0 * 50 * span + 10
 
 
+@pytest.mark.ros
 def test_bag_play_loop_jumps_the_clock_back_and_stops_on_sigint(bag):
     listener = Listener(_topics())
     proc = _player(bag, '--rate', '10', '--loop', '--clock', '--wait-subscribers', '3')
@@ -176,6 +179,7 @@ def test_bag_play_loop_jumps_the_clock_back_and_stops_on_sigint(bag):
     assert any(b < a for a, b in zip(clock, clock[1:]))    # the clock jumped back
 
 
+@pytest.mark.ros
 def test_bag_play_topics_and_remap(bag):
     from rclpy.qos import QoSProfile
     from sensor_msgs.msg import JointState
@@ -195,6 +199,7 @@ def test_bag_play_topics_and_remap(bag):
     assert len(got) == 101 and 'published 101 messages' in err
 
 
+@pytest.mark.ros
 def test_bag_play_errors(bag, tmp_path):
     for args, text in (([tmp_path / 'missing'], 'no such file or directory'),
                        ([bag, '--rate', '0'], '--rate must be positive'),
@@ -256,6 +261,7 @@ def test_bag_play_uses_the_recorded_qos(tmp_path):
     assert got['/a/imu_raw'].reliability == ReliabilityPolicy.BEST_EFFORT
 
 
+@pytest.mark.ros
 def test_bag_play_publishes_raw_bytes_rclpy_accepts(bag):
     """publisher.publish(bytes) sends serialized data as is (what the player relies on)."""
     from rclpy.context import Context

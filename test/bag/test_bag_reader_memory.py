@@ -1,4 +1,4 @@
-# test/test_bag_reader_memory.py: what read_recording keeps per message.
+# test/bag/test_bag_reader_memory.py: what read_recording keeps per message.
 """
 The recording holds each message once, in narrow exact dtypes.
 
@@ -34,6 +34,7 @@ def _peak(bag, veh):
     return rec, kept, peak
 
 
+@pytest.mark.ros
 def test_bag_reader_bytes_per_imu_message(tmp_path):
     p3 = p3_benchmark()
     veh = load_vehicle(CONFIG / 'submarine.yaml')

@@ -1,4 +1,4 @@
-# test/test_bag_samples.py: the sample bags recorded by observer-run, replayed and scored.
+# test/bag/test_bag_samples.py: the sample bags recorded by observer-run, replayed and scored.
 """
 The bags under bags/samples/ (how each was made: bags/README.md) replayed offline.
 
@@ -28,7 +28,7 @@ from observer_ros.vehicle import load_vehicle
 import pytest
 import yaml
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SAMPLES = ROOT / 'bags' / 'samples'
 
 # bag -> vehicle file, as recorded (bags/README.md)

@@ -292,6 +292,7 @@ def test_staircase_rank_agrees_with_obsv_rank_and_pbh(seed):
     assert all(r.passed for r in rep.pbh)
 
 
+@pytest.mark.ros
 def test_core_package_exports_and_stays_ros_free():
     import subprocess
     import sys

@@ -1,4 +1,4 @@
-# test/test_core_autocovariance.py: running lagged sums against the whole-array formulas.
+# test/core/test_core_autocovariance.py: running lagged sums against the whole-array formulas.
 """
 Sample autocovariances from blocks (core.autocovariance, core.als).
 

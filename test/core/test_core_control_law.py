@@ -1,4 +1,4 @@
-# test/test_core_control_law.py: the compensator's float law and gate against numpy's.
+# test/core/test_core_control_law.py: the compensator's float law and gate against numpy's.
 """ControlLaw (plain floats) equals control_law (numpy) and command_problem, limits or not."""
 
 import math

@@ -15,7 +15,7 @@ from observer_ros.nodes.compensator import control_law
 from observer_ros.vehicle import load_vehicle
 import pytest
 
-CART = Path(__file__).resolve().parents[1] / 'config' / 'cart_pendulum.yaml'
+CART = Path(__file__).resolve().parents[2] / 'config' / 'cart_pendulum.yaml'
 DT = 0.01
 
 

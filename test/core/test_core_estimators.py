@@ -955,7 +955,7 @@ def test_jittered_steps_are_the_exact_zoh_of_the_step(vehicle):
     """A new step is factored on a cached base step; it must equal scipy's expm of it."""
     from pathlib import Path
     from observer_ros.vehicle import load_vehicle
-    config = Path(__file__).resolve().parents[1] / 'config'
+    config = Path(__file__).resolve().parents[2] / 'config'
     plant = load_vehicle(config / f'{vehicle}.yaml').plant
     cache = StepCache(plant)
     rng = np.random.default_rng(3)

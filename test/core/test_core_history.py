@@ -178,7 +178,7 @@ def test_history_length_is_checked():
 
 
 def test_vehicle_keys_of_the_history_and_the_publish_rate():
-    config = Path(__file__).resolve().parents[1] / 'config'
+    config = Path(__file__).resolve().parents[2] / 'config'
     v = load_vehicle(config / 'submarine.yaml')
     assert v.observer.history_length == 0.25 and v.observer.publish_rate_hz is None
     v = load_vehicle(config / 'submarine.yaml', overrides=[

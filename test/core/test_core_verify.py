@@ -22,7 +22,7 @@ from observer_ros.tools import design_report
 from observer_ros.vehicle import load_vehicle, parameters_to_yaml, vehicle_to_parameters
 import pytest
 
-SUBMARINE = str(Path(__file__).resolve().parents[1] / 'config' / 'submarine.yaml')
+SUBMARINE = str(Path(__file__).resolve().parents[2] / 'config' / 'submarine.yaml')
 
 
 def vehicle(A, B, C, observer, controller, dt=None):

@@ -1,4 +1,4 @@
-# test/test_bag_batch_multihost.py: observer-eval-batch across two hosts (network namespaces).
+# test_bag_batch_multihost.py: observer-eval-batch across two hosts (network namespaces).
 """
 observer-eval-batch on a Dask cluster across two hosts gives the serial numbers.
 
@@ -20,8 +20,11 @@ import sys
 
 from netns import env, NET
 from observer_ros.tools.run_closed_loop import stop_process
+import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.ros      # processes or DDS participants
+
+ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / 'bags' / 'samples' / 'submarine'
 VEHICLE = ROOT / 'config' / 'submarine.yaml'
 BIN = Path(sys.executable).parent

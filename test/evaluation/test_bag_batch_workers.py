@@ -1,4 +1,4 @@
-# test/test_bag_batch_workers.py: observer-eval-batch when its Dask workers die mid-run.
+# test/evaluation/test_bag_batch_workers.py: observer-eval-batch when its Dask workers die mid-run.
 """
 observer-eval-batch on a real Dask cluster whose workers are killed mid-run.
 
@@ -30,7 +30,9 @@ import time
 from observer_ros.tools.run_closed_loop import stop_process
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.ros      # processes or DDS participants
+
+ROOT = Path(__file__).resolve().parents[2]
 VEHICLE = ROOT / 'config' / 'submarine.yaml'
 DASK = Path(sys.executable).parent / 'dask'
 BATCH = Path(sys.executable).parent / 'observer-eval-batch'

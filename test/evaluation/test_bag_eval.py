@@ -1,4 +1,4 @@
-# test/test_bag_eval.py: bag reading, replay and observer-eval on bags written with rosbags.
+# test_bag_eval.py: bag reading, replay and observer-eval on bags written with rosbags.
 """
 Bag tools: decode, replay, metrics, errors and the observer-eval command.
 
@@ -784,6 +784,7 @@ def test_bag_observer_eval_output_goes_next_to_the_bag(runs, tmp_path, monkeypat
     capsys.readouterr()
 
 
+@pytest.mark.ros
 def test_bag_observer_eval_console_script(bags, tmp_path):
     exe = Path(sys.executable).parent / 'observer-eval'
     if not exe.exists():
@@ -803,6 +804,7 @@ def test_bag_observer_eval_console_script(bags, tmp_path):
     assert '<bag>_eval next to the bag directory' in helptext
 
 
+@pytest.mark.ros
 def test_bag_tools_do_not_import_rclpy():
     code = ('import sys; import observer_ros.evaluation.evaluate, observer_ros.bag.reader; '
             'sys.exit(1 if "rclpy" in sys.modules else 0)')

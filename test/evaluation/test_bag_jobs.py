@@ -1,4 +1,4 @@
-# test/test_bag_jobs.py: bag x variant jobs, serially and on a local Dask cluster.
+# test/evaluation/test_bag_jobs.py: bag x variant jobs, serially and on a local Dask cluster.
 """
 The job layer (observer_ros/evaluation/jobs.py) and observer-eval-batch (evaluation/batch.py).
 
@@ -23,7 +23,7 @@ from observer_ros.evaluation.evaluator import evaluate_bag
 from observer_ros.evaluation.jobs import Job, make_jobs, run_job, run_jobs, summarize
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SAMPLES = ROOT / 'bags' / 'samples'
 CONFIG = ROOT / 'config'
 OPEN_LOOP = ['observer.type:=open_loop']
@@ -36,6 +36,7 @@ def _jobs():
     return jobs
 
 
+@pytest.mark.ros
 def test_a_local_dask_cluster_of_two_workers_gives_the_serial_numbers_exactly():
     jobs = _jobs()
     seen = []
@@ -67,6 +68,7 @@ def test_a_jobs_numbers_are_observer_evals():
             {k: m['residual_rms'] for k, m in vr.outputs.items()}
 
 
+@pytest.mark.ros
 def test_the_worker_path_imports_no_ros():
     code = ('import sys; from observer_ros.evaluation.jobs import Job, run_job; '
             f'row = run_job(Job({str(SAMPLES / "submarine")!r}, '
@@ -137,6 +139,7 @@ def test_command_line_merged_table_summary_and_plot(tmp_path):
     assert e2.getvalue().startswith('error: ') and 'exists' in e2.getvalue()
 
 
+@pytest.mark.ros
 def test_jobs_run_on_an_existing_cluster_named_by_the_environment(monkeypatch):
     from distributed import LocalCluster
     from observer_ros.evaluation.jobs import SCHEDULER_ENV
@@ -153,6 +156,7 @@ def test_jobs_run_on_an_existing_cluster_named_by_the_environment(monkeypatch):
     assert numbers(rows) == numbers(serial) == numbers(again)
 
 
+@pytest.mark.ros
 def test_a_local_cluster_listens_on_the_loopback_interface_only():
     import os
     import psutil

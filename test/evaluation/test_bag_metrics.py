@@ -1,4 +1,4 @@
-# test/test_bag_metrics.py: scores of a replay computed block by block.
+# test/evaluation/test_bag_metrics.py: scores of a replay computed block by block.
 """
 ``metrics.StateError`` gives the error rows on demand and ``score_variant`` scores from it.
 

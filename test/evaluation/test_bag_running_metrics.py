@@ -1,4 +1,4 @@
-# test/test_bag_running_metrics.py: block-by-block error metrics equal the whole-series ones.
+# test_bag_running_metrics.py: block-by-block error metrics equal the whole-series ones.
 """Per-state metrics fed block by block (running_metrics) against the whole-series code."""
 
 import math
@@ -12,7 +12,7 @@ from observer_ros.evaluation.metrics import STEADY_FRACTION, truth_at
 from observer_ros.evaluation.running_metrics import blocked_state_metrics
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SAMPLES = ROOT / 'bags' / 'samples'
 
 

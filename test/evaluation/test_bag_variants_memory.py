@@ -1,4 +1,4 @@
-# test/test_bag_variants_memory.py: many variants of one bag in the memory of one.
+# test/evaluation/test_bag_variants_memory.py: many variants of one bag in the memory of one.
 """
 An evaluation scores each variant as soon as its replay ends.
 

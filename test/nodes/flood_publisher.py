@@ -2,7 +2,7 @@
 """
 Flood a topic with Imu messages stamped with the wall clock, as fast as Python publishes.
 
-Run as ``python test/flood_publisher.py TOPIC SECONDS``: it waits until the topic has a
+Run as ``python test/nodes/flood_publisher.py TOPIC SECONDS``: it waits until the topic has a
 subscriber, publishes for SECONDS, then prints ``published N rate R`` (messages/s).
 Used by test_nodes_flood.py and benchmarks/flood_observer.py (a separate process, so the
 test's probe stays responsive).

@@ -1,8 +1,8 @@
-# test/observer_recorder_process.py: the observer and the recorder in one process.
+# test/nodes/observer_recorder_process.py: the observer and the recorder in one process.
 """
 Run the observer node and the recorder in one process, spun by one executor.
 
-A test's helper (``python test/observer_recorder_process.py --ros-args --params-file
+A test's helper (``python test/nodes/observer_recorder_process.py --ros-args --params-file
 VEHICLE -p output:=BAG ...``): both nodes share the process's DDS participant, so each
 message reaches the two readers together and the bag holds the messages in the order the
 observer took them. A recorder in a process of its own receives from each publisher on

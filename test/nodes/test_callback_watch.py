@@ -7,6 +7,7 @@ from diagnostic_msgs.msg import DiagnosticStatus
 from observer_ros.nodes import callback_watch
 from observer_ros.nodes.callback_watch import (BEAT, CallbackWatch, FLOOD_MESSAGES, LAG_LIMIT,
                                                LAG_RESUME, LAG_SWITCH)
+import pytest
 
 
 class _Node:
@@ -98,6 +99,7 @@ def test_a_flood_shedding_cannot_keep_up_with_asks_to_leave_the_events_executor(
     assert not watch.overrun
 
 
+@pytest.mark.ros
 def test_leaving_the_events_executor_keeps_every_node_spinning():
     import rclpy
     from rclpy.context import Context

@@ -1,4 +1,4 @@
-# test/test_compensator_callback.py: the compensator's estimate callback in process.
+# test/nodes/test_compensator_callback.py: the compensator's estimate callback in process.
 """
 The compensator node's hot path, called in process (not spun; no DDS peers).
 
@@ -71,10 +71,12 @@ def _run(config, case):
     return out.stdout
 
 
+@pytest.mark.ros
 def test_commands_equal_numpy_law_without_limits():
     assert 'clipped 0' in _run(CONFIG / 'submarine.yaml', 'free')
 
 
+@pytest.mark.ros
 def test_commands_equal_numpy_law_with_binding_limits():
     out = _run(CONFIG / 'submarine.yaml', 'limits')
     clipped = int(out.split('clipped')[1])

@@ -127,6 +127,7 @@ rclpy.shutdown()
 """
 
 
+@pytest.mark.ros
 def test_rclpy_applies_the_ranges_and_keys_absent_from_the_file_can_be_set():
     env = dict(__import__('os').environ, ROS_DOMAIN_ID=str(DOMAIN_ID))
     result = subprocess.run([sys.executable, '-c', SCRIPT, str(SUBMARINE)], env=env,
@@ -180,6 +181,7 @@ print(json.dumps(out))
 """
 
 
+@pytest.mark.ros
 def test_ros_reads_every_shipped_file_as_the_loader_does():
     """Read every shipped file with ROS's own parser (rcl): the loader's values (bare N: false)."""
     env = dict(__import__('os').environ, ROS_DOMAIN_ID=str(DOMAIN_ID))

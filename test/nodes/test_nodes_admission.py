@@ -7,7 +7,7 @@ older than the history, future-stamped and malformed messages, bad commands, a l
 stamp far back and a clock jump (three messages in a row); the bag is replayed and the
 replay's answers equal the estimates the node published, message for message, with the
 same counters. The recorder runs in the observer's process
-(test/observer_recorder_process.py), so the bag holds the messages in the order the
+(test/nodes/observer_recorder_process.py), so the bag holds the messages in the order the
 observer took them. The lone outlier and the agreement a clock jump needs are also
 checked against a reference estimator on the observer alone.
 """
@@ -27,11 +27,14 @@ from observer_ros.replay.replay import replay
 from observer_ros.sensors import extract_measurement
 from observer_ros.timeutil import sec_to_stamp_parts, stamp_to_ns, stamp_to_sec
 from observer_ros.vehicle import load_vehicle
+import pytest
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from ros_helpers import (_die_with_parent, Listener, observer_under_test, Probe, Proc,
                          ros_env, SUBMARINE, WAIT)
 from sensor_msgs.msg import Imu, JointState
+
+pytestmark = pytest.mark.ros      # processes or DDS participants
 
 # The loop: realtime, 10 s simulated at half the wall clock's pace (room for the probe's
 # injections between steps); the gyro never silent for the observer's prediction (a
@@ -65,7 +68,7 @@ def _command(t, u, names=('delta',), stamp=None):
 
 
 class _ObserverAndRecorder(Proc):
-    """test/observer_recorder_process.py as a Proc: the two nodes in one process."""
+    """test/nodes/observer_recorder_process.py as a Proc: the two nodes in one process."""
 
     def __init__(self, params_file, *params, log_dir):
         self.log_path = Path(log_dir) / f'observer_recorder_{time.monotonic_ns()}.log'

@@ -19,6 +19,7 @@ def _container(*args, timeout=60):
                           text=True, timeout=timeout, env=ros_env())
 
 
+@pytest.mark.ros
 def test_unknown_or_repeated_node_is_refused_with_the_usage():
     for args, what in ((['observer', 'recorder'], "unknown node(s) ['recorder']"),
                        (['observer', 'observer'], 'a node named twice')):
@@ -27,11 +28,13 @@ def test_unknown_or_repeated_node_is_refused_with_the_usage():
         assert what in result.stderr and 'usage: container NODE' in result.stderr
 
 
+@pytest.mark.ros
 def test_no_node_prints_the_usage():
     result = _container('--ros-args')
     assert result.returncode == 2 and 'usage: container NODE' in result.stderr
 
 
+@pytest.mark.ros
 def test_bad_vehicle_file_stops_the_container_naming_the_field():
     result = _container('observer', 'compensator', '--ros-args', '--params-file',
                         str(CONFIG / 'submarine.yaml'), '-p', 'model.A:=[1.0]')

@@ -3,9 +3,12 @@
 
 from diagnostic_msgs.msg import DiagnosticStatus
 from observer_ros.nodes.common import STATE_QOS
+import pytest
 from ros_helpers import CONFIG, Listener, Probe, Proc, WAIT
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
+
+pytestmark = pytest.mark.ros      # processes or DDS participants
 
 # long enough for the loop to close on a loaded machine (DDS matching can take seconds)
 REALTIME = ('simulator.mode:=realtime', 'simulator.duration:=5.0', 'diagnostics_period:=0.2')

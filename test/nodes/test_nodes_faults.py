@@ -16,6 +16,7 @@ from sensor_msgs.msg import Imu
 import yaml
 
 
+@pytest.mark.ros
 def test_observer_survives_every_bad_message(observer_setup):
     proc, probe, listener, pub, cmd = observer_setup
     t = 100.0
@@ -100,6 +101,7 @@ def _set_parameter(probe, node, name, values):
     return future.result().results[0]
 
 
+@pytest.mark.ros
 def test_observer_pole_change_is_validated(observer_setup):
     proc, probe, listener, pub, cmd = observer_setup
     result = _set_parameter(probe, 'observer', 'observer.poles', [0.5, -1.0, -2.0])
@@ -115,6 +117,7 @@ def test_observer_pole_change_is_validated(observer_setup):
     assert proc.alive()
 
 
+@pytest.mark.ros
 def test_compensator_stale_and_bad_estimates_give_the_safe_command(compensator_setup):
     proc, probe, listener, est = compensator_setup
     names = ['theta', 'w', 'q']
@@ -142,6 +145,7 @@ def test_compensator_stale_and_bad_estimates_give_the_safe_command(compensator_s
     assert proc.alive()
 
 
+@pytest.mark.ros
 def test_controller_pole_change_is_validated(compensator_setup):
     proc, probe, listener, est = compensator_setup
     result = _set_parameter(probe, 'compensator', 'controller.poles', [0.3, -0.31, -0.32])
@@ -169,6 +173,7 @@ def _write_vehicle(tmp_path, mutate):
     return path
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize('node', ['observer_node', 'compensator', 'plant_simulator'])
 def test_unusable_file_stops_the_node_before_it_starts(tmp_path, node):
     path = _write_vehicle(tmp_path, lambda p: p['model'].pop('A'))
@@ -178,6 +183,7 @@ def test_unusable_file_stops_the_node_before_it_starts(tmp_path, node):
     assert 'model.A' in proc.output()
 
 
+@pytest.mark.ros
 def test_undetectable_plant_is_refused_with_the_mode_named(tmp_path):
     """Seed 002, Example 5.15: x3 (eigenvalue 5) is unobservable and unstable."""
     def example_5_15(p):
@@ -199,6 +205,7 @@ def test_undetectable_plant_is_refused_with_the_mode_named(tmp_path):
     assert 'x3' in out and '5' in out, out
 
 
+@pytest.mark.ros
 def test_estimate_carries_the_measurement_stamp_to_the_nanosecond(observer_setup):
     """A wall-clock stamp does not survive float seconds; the estimate must carry it as is."""
     proc, probe, listener, pub, cmd = observer_setup
@@ -223,6 +230,7 @@ def test_estimate_carries_the_measurement_stamp_to_the_nanosecond(observer_setup
     assert got == [123_456_789, 123_456_789]
 
 
+@pytest.mark.ros
 def test_silent_sensor_means_predict_only(observer_setup):
     """Stamps on the node's clock; the sensor stops: predictions are published, with a WARN."""
     proc, probe, listener, pub, cmd = observer_setup
@@ -240,6 +248,7 @@ def test_silent_sensor_means_predict_only(observer_setup):
     assert status.level == DiagnosticStatus.WARN and 'predicting only' in status.message
 
 
+@pytest.mark.ros
 def test_silence_is_watched_slowly_and_predicted_at_the_rate(tmp_path):
     """
     ``observer.rate_hz`` 200 (a 200 Hz gyro): once it is silent, predictions 5 ms apart; twice.
@@ -272,6 +281,7 @@ def test_silence_watch_period():
     assert silence_watch_period(10.0, [0.5]) == pytest.approx(0.1)     # not faster than it
 
 
+@pytest.mark.ros
 def test_observer_follows_remaps_and_overrides(tmp_path):
     """`-r imu/data:=robot/gyro` points it at another topic; `-p` changes its poles."""
     with observer_under_test(tmp_path, publish=[('robot/gyro', Imu, SENSOR_QOS)],

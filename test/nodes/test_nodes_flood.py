@@ -6,7 +6,10 @@ import sys
 
 from diagnostic_msgs.msg import DiagnosticStatus
 from observer_ros.timeutil import stamp_to_sec
+import pytest
 from ros_helpers import COMMANDS, observer_under_test, REALTIME, ros_env, WAIT
+
+pytestmark = pytest.mark.ros      # processes or DDS participants
 
 FLOOD = __file__.replace('test_nodes_flood.py', 'flood_publisher.py')
 PERIOD = 0.5

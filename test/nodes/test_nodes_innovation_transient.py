@@ -13,6 +13,8 @@ from observer_ros.timeutil import ns_to_sec
 import pytest
 from ros_helpers import gyro_msg, innovation_status, level_of, observer_under_test, WAIT
 
+pytestmark = pytest.mark.ros      # processes or DDS participants
+
 OK, WARN = 0, 1
 
 

@@ -13,6 +13,8 @@ from ros_helpers import (COMMANDS, GYRO, gyro_msg, innovation_status, level_of,
                          observer_under_test, stamped, WAIT)
 from sensor_msgs.msg import JointState
 
+pytestmark = pytest.mark.ros      # processes or DDS participants
+
 
 def _pitch(ns, theta):
     msg = stamped(JointState(), ns)

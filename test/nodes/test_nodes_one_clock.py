@@ -17,6 +17,8 @@ from ros_helpers import CONFIG, Probe, Proc, WAIT
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
+pytestmark = pytest.mark.ros      # processes or DDS participants
+
 # the owner of /clock: a submarine (20 Hz); the follower: the cart (100 Hz, unstable open
 # loop), both realtime at the wall clock's pace
 OWNER, FOLLOWER = '/sub1', '/sub2'

@@ -14,8 +14,11 @@ import time
 
 from observer_ros.nodes.common import STATE_QOS
 from observer_ros.timeutil import stamp_to_ns
+import pytest
 from ros_helpers import CONFIG, DOMAIN_ID, GYRO, gyro_msg, observer_under_test, REPO, WAIT
 from sensor_msgs.msg import JointState
+
+pytestmark = pytest.mark.ros      # processes or DDS participants
 
 
 def test_a_late_subscriber_gets_the_residuals(tmp_path):
@@ -70,6 +73,7 @@ from rclpy.event_handler import UnsupportedEventTypeError
 from sensor_msgs.msg import JointState
 from observer_ros.nodes import observer_node
 from observer_ros.nodes.common import STATE_QOS
+from ros_helpers import gyro_msg
 
 
 def unsupported(*args, **kwargs):       # a middleware without matched events

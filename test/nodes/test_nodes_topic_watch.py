@@ -3,6 +3,7 @@
 
 from diagnostic_msgs.msg import DiagnosticStatus
 from observer_ros.nodes.topic_watch import describe_qos, level_rank, TopicWatch
+import pytest
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from ros_helpers import COMMANDS, GYRO, observer_under_test, STATE_QOS
 from sensor_msgs.msg import JointState
@@ -19,6 +20,7 @@ def _wait_status(run, level, *words):
     return run.listener.latest_status('observer')
 
 
+@pytest.mark.ros
 def test_a_best_effort_command_publisher_is_reported_not_silently_unused(tmp_path):
     with observer_under_test(tmp_path, publish=(GYRO,)) as run:
         node = run.probe.node
@@ -37,6 +39,7 @@ def test_a_best_effort_command_publisher_is_reported_not_silently_unused(tmp_pat
                              what='the problem no longer reported')
 
 
+@pytest.mark.ros
 def test_a_publisher_of_another_type_on_a_sensor_topic_is_named(tmp_path):
     with observer_under_test(tmp_path, publish=(COMMANDS,)) as run:
         run.probe.node.create_publisher(Float64, GYRO[0], 10)

@@ -108,6 +108,7 @@ def _opens(bag):
         return False
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
 @pytest.mark.parametrize('sig', [signal.SIGTERM, signal.SIGINT], ids=['SIGTERM', 'SIGINT'])
 def test_a_signal_closes_the_bag_with_every_message(tmp_path, feeder, storage, sig):
@@ -132,6 +133,7 @@ def test_a_signal_closes_the_bag_with_every_message(tmp_path, feeder, storage, s
             assert opened.info.chunk_crcs and all(opened.info.chunk_crcs)
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
 def test_sigkill_loses_at_most_what_came_after_the_last_flush(tmp_path, feeder, storage):
     bag = tmp_path / 'bag'
@@ -161,6 +163,7 @@ def test_sigkill_loses_at_most_what_came_after_the_last_flush(tmp_path, feeder, 
     assert not again['repaired'] and _numbers(bag) == numbers
 
 
+@pytest.mark.ros
 def test_recover_command_line(tmp_path, feeder):
     bag = tmp_path / 'bag'
     rec = _recorder(bag, 'mcap', 'flush_period:=0.1', log_dir=tmp_path)
@@ -182,6 +185,7 @@ def test_recover_command_line(tmp_path, feeder):
     assert bad.returncode == 2 and 'not a bag directory' in bad.stderr
 
 
+@pytest.mark.ros
 def test_an_existing_bag_is_never_overwritten(tmp_path):
     bag = tmp_path / 'bag'
     bag.mkdir()
@@ -203,6 +207,7 @@ def small_disk(tmp_path):
         yield disk
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
 def test_a_full_disk_stops_the_recorder_with_a_clear_error(tmp_path, feeder, small_disk,
                                                            storage):
@@ -247,6 +252,7 @@ def test_recovery_refuses_what_is_not_a_bag(tmp_path):
         recover_bag(tmp_path / 'junk')
 
 
+@pytest.mark.ros
 def test_a_bag_being_recorded_is_refused_by_recovery_and_evaluation(tmp_path, feeder):
     """The recorder's lock: recovery and evaluation refuse it; once killed, recovery works."""
     bag = tmp_path / 'bag'

@@ -36,6 +36,7 @@ def test_domain_ids(value, ok):
             check_domain_id({'ROS_DOMAIN_ID': value})
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize('argv', [
     ['observer_ros.nodes.observer_node', '--ros-args', '--params-file',
      str(CONFIG / 'submarine.yaml')],
@@ -76,6 +77,7 @@ def test_parameter_overrides_are_read_by_rcl_before_anything_starts(text, reason
         check_parameter_override(text)
 
 
+@pytest.mark.ros
 def test_observer_run_refuses_an_override_rcl_cannot_parse_before_any_process(tmp_path,
                                                                               capsys):
     from observer_ros.tools.run_closed_loop import main as run_main

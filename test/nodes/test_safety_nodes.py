@@ -65,6 +65,7 @@ def _bad_stamp(sec, nanosec):
     return msg
 
 
+@pytest.mark.ros
 def test_malformed_stamps_are_refused_counted_and_never_reset_the_estimate(tmp_path):
     """Row 6: nanosec >= 1e9, negative sec, 0 s + 1 ns; future, negative and late commands."""
     with _observer(tmp_path) as (procs, probe, listener, pub, cmd):
@@ -113,6 +114,7 @@ def test_malformed_stamps_are_refused_counted_and_never_reset_the_estimate(tmp_p
     assert 'estimator restarted at the measurement' in procs[0].output()
 
 
+@pytest.mark.ros
 def test_a_huge_command_is_refused_by_its_size_first(tmp_path):
     """Row 7: 10^6 elements: refused from its size, short log lines, no reset, RSS bounded."""
     with _observer(tmp_path) as (procs, probe, listener, pub, cmd):
@@ -169,6 +171,7 @@ def test_command_gate():
     assert '2 values for 1 inputs' in command_problem([0.0, 0.0], 1)
 
 
+@pytest.mark.ros
 def test_the_compensator_sends_only_finite_commands_inside_the_limits(tmp_path):
     """Row 5: an estimate beyond the envelope is refused at once: the safe command, ERROR."""
     with _compensator(tmp_path, ['controller.stale_timeout:=60.0']) as (procs, probe, listener,
@@ -196,6 +199,7 @@ def test_the_compensator_sends_only_finite_commands_inside_the_limits(tmp_path):
         assert listener.counter('compensator', 'refused_commands') == 0
 
 
+@pytest.mark.ros
 def test_the_compensator_saturates_inside_the_limits(tmp_path):
     """Row 5: with controller.u_min/u_max every command sent lies inside them."""
     limits = ('controller.u_min:=[-0.3]', 'controller.u_max:=[0.3]')
@@ -211,6 +215,7 @@ def test_the_compensator_saturates_inside_the_limits(tmp_path):
         assert listener.counter('compensator', 'refused_commands') == 0
 
 
+@pytest.mark.ros
 def test_a_second_publisher_of_the_estimate_is_an_error(tmp_path):
     """Row 8: two observers with one name: both they and the compensator report an ERROR."""
     with nodes_under_test(tmp_path, 'observer_node', 'observer_node', 'compensator',

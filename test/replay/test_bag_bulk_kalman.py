@@ -1,4 +1,4 @@
-# test/test_bag_bulk_kalman.py: the Kalman filter replayed in bulk equals its own calls.
+# test/replay/test_bag_bulk_kalman.py: the Kalman filter replayed in bulk equals its own calls.
 """
 A Kalman filter replayed in bulk (observer_ros/replay/bulk_kalman.py) equals its calls.
 
@@ -20,7 +20,7 @@ from observer_ros.replay.replay import replay
 from observer_ros.vehicle import load_vehicle
 import pytest
 
-SAMPLES = Path(__file__).resolve().parents[1] / 'bags' / 'samples'
+SAMPLES = Path(__file__).resolve().parents[2] / 'bags' / 'samples'
 
 KALMAN = {
     'submarine': ['observer.type:=kalman',

@@ -1,4 +1,4 @@
-# test/test_bag_jitter.py: replay of a bag whose stamps jitter (a new step length each message).
+# test_bag_jitter.py: replay of a bag whose stamps jitter (a new step length each message).
 """
 Jittered stamps and long stretches: the bulk replay gives the estimator's own answers.
 

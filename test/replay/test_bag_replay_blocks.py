@@ -1,4 +1,4 @@
-# test/test_bag_replay_blocks.py: the bulk stretches found a block at a time.
+# test/replay/test_bag_replay_blocks.py: the bulk stretches found a block at a time.
 """
 The replay finds its bulk stretches a block of steps at a time (``bulk_runs._Runs``).
 

@@ -1,4 +1,4 @@
-# test/test_bag_spill.py: the replay's rows spilled to temporary files, a block at a time.
+# test/replay/test_bag_spill.py: the replay's rows spilled to temporary files, a block at a time.
 """
 A replay whose rows are spilled (``replay(..., spill=...)``, observer-eval's default).
 

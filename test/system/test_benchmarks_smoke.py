@@ -7,7 +7,11 @@ import re
 import subprocess
 import sys
 
-REPO = Path(__file__).resolve().parents[1]
+import pytest
+
+pytestmark = pytest.mark.ros      # processes or DDS participants
+
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_run_all_smoke_prints_every_ratio():

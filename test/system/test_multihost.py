@@ -21,7 +21,10 @@ import threading
 from netns import env, ip, VETH_SIM
 import numpy as np
 from observer_ros.tools.run_closed_loop import node_command, stop_process
+import pytest
 from ros_helpers import CONFIG, WAIT
+
+pytestmark = pytest.mark.ros      # processes or DDS participants
 
 VEHICLE = CONFIG / 'submarine.yaml'
 SIM = ['simulator.mode:=realtime', 'simulator.realtime_factor:=2.0',
@@ -193,5 +196,5 @@ def _probe_main():
 
 
 if __name__ == '__main__' and '--probe' in sys.argv:
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))     # test/: ros_helpers
     _probe_main()

@@ -15,6 +15,8 @@ from ros_helpers import CONFIG, domain_env
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
 
+pytestmark = pytest.mark.ros      # processes or DDS participants
+
 NOISE_OFF = 'simulator.noise:=false'
 
 

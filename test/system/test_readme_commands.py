@@ -249,6 +249,7 @@ def test_the_parser_reads_marks_and_continuations(tmp_path):
         'observer-run a.yaml -p simulator.duration:=500.0'
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize('block', RUN, ids=[f'{b["file"]}:{b["line"]}' for b in RUN])
 def test_documented_commands_run_as_written(block, workdir):
     runnable = [(line, c) for line, c in block['commands'] if _skipped(block, c) is None]

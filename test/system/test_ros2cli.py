@@ -201,6 +201,7 @@ def test_readme_commands_are_the_tested_ones():
         assert command in block, command
 
 
+@pytest.mark.ros
 def test_each_executable_listed_once_and_runs(ros2env):
     result = _ros2(ros2env, 'ros2 pkg executables observer_ros')
     assert result.returncode == 0, result.stderr
@@ -211,6 +212,7 @@ def test_each_executable_listed_once_and_runs(ros2env):
     assert result.returncode == 2 and 'error: no vehicle parameters' in result.stderr
 
 
+@pytest.mark.ros
 def test_closed_loop_launch_params_and_one_clock(ros2env, tmp_path):
     first = Launch(ros2env, LAUNCH, tmp_path / 'first.log')
     second = None
@@ -282,6 +284,7 @@ def _check_parameters(env, tmp_path):
         'poles'] == [-1.0, -1.1, -1.2]
 
 
+@pytest.mark.ros
 def test_observer_launch_follows_the_remaps(ros2env, tmp_path):
     launch = Launch(ros2env, ROBOT, tmp_path / 'robot.log')
     pub = None
@@ -304,6 +307,7 @@ def test_observer_launch_follows_the_remaps(ros2env, tmp_path):
             _assert_stopped_cleanly(launch, 1)
 
 
+@pytest.mark.ros
 def test_recorded_lockstep_launch(ros2env, tmp_path):
     """The lock-step loop with the recorder: the run ends, and the launch with it."""
     launch = Launch(ros2env, RECORD, tmp_path / 'record.log')
@@ -362,6 +366,7 @@ def _signal_moments(tries, seed):
             for i in range(tries)]
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize('phase, delay', _signal_moments(SIGNAL_TRIES, os.getpid()))
 def test_ctrl_c_at_a_random_moment_stops_every_node_cleanly(ros2env, tmp_path, phase, delay):
     """SIGINT to the launch's process group while the nodes start or while the loop runs."""
@@ -385,6 +390,7 @@ def test_ctrl_c_at_a_random_moment_stops_every_node_cleanly(ros2env, tmp_path, p
     assert 'FATAL' not in out and 'Exception in' not in out, out[-3000:]
 
 
+@pytest.mark.ros
 def test_managed_nodes_with_the_real_lifecycle_client(ros2env, tmp_path):
     """autostart:=false: the user brings the nodes up with `ros2 lifecycle set`."""
     launch = Launch(ros2env, MANAGED, tmp_path / 'managed.log')
@@ -433,6 +439,7 @@ def test_managed_nodes_with_the_real_lifecycle_client(ros2env, tmp_path):
         _assert_stopped_cleanly(launch, 3)
 
 
+@pytest.mark.ros
 def test_a_vehicle_file_no_node_can_use_stops_the_launch(ros2env, tmp_path):
     """Checked before any node starts: one error naming the field, exit status 1."""
     bad = tmp_path / 'bad.yaml'

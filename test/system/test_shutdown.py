@@ -19,6 +19,8 @@ import time
 import pytest
 from ros_helpers import CONFIG, ros_env, WAIT
 
+pytestmark = pytest.mark.ros      # processes or DDS participants
+
 TRIES = int(os.environ.get('OBSERVER_ROS_SIGNAL_TRIES', '4'))
 NODES = ('plant_simulator', 'observer_node', 'compensator', 'recorder')
 BAD = ('Traceback', 'FATAL', 'Exception in')

@@ -20,7 +20,7 @@ from observer_ros.tuning.tune import main as tune_main
 import pytest
 from ros_helpers import tmpfs, WAIT
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SAMPLE = REPO / 'bags' / 'samples' / 'submarine'
 VEHICLE = REPO / 'config' / 'submarine.yaml'
 TUNE = [str(SAMPLE), '--vehicle', str(VEHICLE), '--namespace', '/', '--no-als', '--search',
@@ -68,6 +68,7 @@ def test_an_interrupted_tune_leaves_its_earlier_output_and_the_rerun_replaces_it
     assert not _stages(out)
 
 
+@pytest.mark.ros
 def test_a_tool_terminated_while_writing_leaves_no_mix_and_no_stage(tmp_path):
     out = tmp_path / 'tune'
     assert tune_main(TUNE + ['--out', str(out)]) == 0
@@ -104,6 +105,7 @@ def test_an_evaluation_that_cannot_finish_writing_keeps_the_earlier_output(
     assert _tree(out) == before and not _stages(out)
 
 
+@pytest.mark.ros
 def test_a_stage_left_by_a_killed_run_is_removed_and_an_old_folder_restored(tmp_path):
     out = tmp_path / 'eval'
     code = ('import os, signal, sys\n'
@@ -141,6 +143,7 @@ def read_only(tmp_path):
         yield path
 
 
+@pytest.mark.ros
 def test_a_read_only_output_is_one_line_before_the_work(read_only, capsys):
     start = time.monotonic()
     assert eval_main(EVAL + ['--out', str(read_only / 'ev')]) == 2

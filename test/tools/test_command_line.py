@@ -32,6 +32,7 @@ def test_every_console_script_is_covered():
         assert f"'{name} = " in text, name
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize('name', sorted(NODES))
 def test_node_help_gives_usage_params_file_and_topics(name):
     result = _run(NODES[name], '--help')
@@ -42,6 +43,7 @@ def test_node_help_gives_usage_params_file_and_topics(name):
     assert 'control/u' in result.stdout or 'observer' in result.stdout, result.stdout
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize('name', sorted(TOOLS))
 def test_tool_help(name):
     result = _run(TOOLS[name], '--help')
@@ -57,11 +59,13 @@ def _one_error(result):
     return errors[0]
 
 
+@pytest.mark.ros
 def test_node_without_params_file_says_how_to_start(tmp_path):
     line = _one_error(_run(NODES['observer']))
     assert '--params-file config/<vehicle>.yaml' in line
 
 
+@pytest.mark.ros
 def test_params_file_without_vehicle_sections_is_named(tmp_path):
     # a file ROS accepts (a scalar; parameters of another node) that holds no vehicle
     for name, text in (('scalar.yaml', '42\n'),
@@ -73,12 +77,14 @@ def test_params_file_without_vehicle_sections_is_named(tmp_path):
         assert 'vehicle, model, sensors, observer, controller, simulator' in line, line
 
 
+@pytest.mark.ros
 def test_missing_params_file(tmp_path):
     line = _one_error(_run(NODES['observer'], '--ros-args', '--params-file',
                            str(tmp_path / 'nope.yaml')))
     assert 'nope.yaml' in line and 'No such file' in line
 
 
+@pytest.mark.ros
 def test_params_file_ros_refuses_is_one_line_not_a_traceback(tmp_path):
     # valid YAML for our loader, refused by ROS's parser (an array of mixed types)
     path = tmp_path / 'mixed.yaml'
@@ -87,6 +93,7 @@ def test_params_file_ros_refuses_is_one_line_not_a_traceback(tmp_path):
     assert 'mixed.yaml' in line, line
 
 
+@pytest.mark.ros
 def test_observer_run_no_clock_turns_the_simulators_clock_off(monkeypatch, tmp_path, capsys):
     from observer_ros.core.errors import ObserverError
     from observer_ros.tools import run_closed_loop as tool

@@ -17,7 +17,7 @@ from observer_ros.vehicle import load_vehicle
 import pytest
 from ros_helpers import Proc
 
-CONFIG = Path(__file__).resolve().parents[1] / 'config'
+CONFIG = Path(__file__).resolve().parents[2] / 'config'
 
 
 def _tree(root):
@@ -142,6 +142,7 @@ def _recover_cli(*bags):
                            *map(str, bags)], capture_output=True, text=True, timeout=120)
 
 
+@pytest.mark.ros
 def test_recover_never_writes_through_a_linked_mcap(sub_bag, tmp_path):
     """Row 2: a .mcap that is a link to a file outside the bag: refused, the file unchanged."""
     outside = tmp_path / 'elsewhere' / 'big.mcap'
@@ -164,6 +165,7 @@ def test_recover_never_writes_through_a_linked_mcap(sub_bag, tmp_path):
         recover_bag(bag)
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
 def test_recover_leaves_an_intact_bag_alone(tmp_path, storage):
     """Row 2: an intact bag: neither its storage nor its metadata.yaml is rewritten."""
@@ -180,6 +182,7 @@ def test_recover_leaves_an_intact_bag_alone(tmp_path, storage):
     assert report['total'] == sum(report['messages'].values()) > 0
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize('params, message', [
     (['disk_reserve:=1000000000000000'], 'is not less than the free space'),
     (['flush_period:=0.0'], 'flush_period must be > 0 s'),
@@ -207,6 +210,7 @@ def test_recorder_refusals_leave_no_bag_folder(tmp_path, params, message):
     assert not bag.exists() and not bag.parent.exists()
 
 
+@pytest.mark.ros
 def test_observer_run_never_overwrites_logs_and_checks_every_output_first(tmp_path, capsys):
     """Row 4: existing logs, <bag>_slow_poles.yaml, <bag>_eval: refused before any process."""
     bag = tmp_path / 'runs' / 'dive'
@@ -266,6 +270,7 @@ def test_observer_run_refuses_a_namespace_ros_refuses_before_anything_starts(
     assert not (tmp_path / 'runs').exists()        # no bag, no logs: nothing started
 
 
+@pytest.mark.ros
 def test_observer_run_replaces_its_own_logs_of_a_run_that_left_no_bag(tmp_path):
     """A run whose recorder refused to start leaves logs; the rerun is not blocked by them."""
     from ros_helpers import domain_env

@@ -1,4 +1,4 @@
-# test/test_bag_tune.py: observer-tune (ALS noise identification, gain search, tuned file).
+# test/tuning/test_bag_tune.py: observer-tune (ALS noise identification, gain search, tuned file).
 """
 Noise identification and tuning from bags with known noise.
 
@@ -313,7 +313,7 @@ def test_observer_tune_errors(noisy_bags, tmp_path, capsys):
 
 
 def test_observer_tune_entry_points_and_help(capsys):
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     # one console script (ros2 run's name); the dash name is the venv's alias (Makefile)
     assert "'observer_tune = observer_ros.tuning.tune:main'" in (root / 'setup.py').read_text()
     assert 'observer_tune' in (root / 'Makefile').read_text()

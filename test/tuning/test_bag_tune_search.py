@@ -1,4 +1,4 @@
-# test/test_bag_tune_search.py: observer-tune's gain searches over several different bags.
+# test/tuning/test_bag_tune_search.py: observer-tune's gain searches over several different bags.
 """
 The per-pole search, and the searches over two different bags (serially and on Dask).
 
@@ -182,7 +182,7 @@ def test_the_same_filter_is_replayed_once(monkeypatch):
         calls.append(tuple(overrides))
         return real(recording, vehicle, name, overrides, **kw)
     monkeypatch.setattr(evaluate, 'replay', counting)
-    bag = Path(__file__).resolve().parents[1] / 'bags' / 'samples' / 'submarine'
+    bag = Path(__file__).resolve().parents[2] / 'bags' / 'samples' / 'submarine'
     zero = ['observer.type:=kalman', 'observer.Qd:=[0.0,0.0,0.0, 0.0,0.0,0.0, 0.0,0.0,0.0]']
     other = ['observer.type:=kalman',
              'observer.Qd:=[1.0e-6,0.0,0.0, 0.0,1.0e-4,0.0, 0.0,0.0,1.0e-4]']

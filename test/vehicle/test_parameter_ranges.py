@@ -21,6 +21,8 @@ from observer_ros.vehicle.schema import interval_text, known_keys, NODE_KEYS, ro
 import pytest
 from ros_helpers import DOMAIN_ID, python, REPO, SUBMARINE, WAIT
 
+pytestmark = pytest.mark.ros      # processes or DDS participants
+
 NODES = {
     'observer': ('clock_jump_tolerance', 'future_tolerance', 'diagnostics_period'),
     'compensator': ('clock_jump_tolerance', 'diagnostics_period', 'command_lead_steps'),

@@ -96,6 +96,7 @@ def _run(module, *args):
     return result, time.monotonic() - start
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize('make', ['bomb', 'big', 'long'])
 def test_node_refuses_a_file_as_the_tool_does(tmp_path, make):
     path = tmp_path / f'{make}.yaml'
@@ -132,6 +133,7 @@ def test_a_fifo_without_a_writer_is_refused_not_waited_on(tmp_path):
     assert time.monotonic() - start < STREAM_TIMEOUT + 30.0     # bounded, not forever
 
 
+@pytest.mark.ros
 def test_a_pipe_with_a_writer_is_read_once_and_copied_for_rclpy(tmp_path):
     path = _fifo(tmp_path)
     writer = subprocess.Popen(['sh', '-c', f'cat "{CONFIG / "submarine.yaml"}" > "{path}"'])
@@ -156,6 +158,7 @@ def test_devices_and_folders_are_refused_unopened(path, kind):
         load_parameters(path)
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize('entry', [
     ['observer_ros.tools.design_report', '{}'],
     ['observer_ros.evaluation.evaluate', str(SAMPLE), '--vehicle', '{}'],
@@ -174,6 +177,7 @@ def test_every_entry_point_refuses_a_fifo_without_a_writer_in_one_line(tmp_path,
     assert 'a pipe, and no writer gave it any text' in errors[0], result.stderr
 
 
+@pytest.mark.ros
 def test_process_substitution_works_for_a_tool_and_a_node(tmp_path):
     vehicle = CONFIG / 'submarine.yaml'
     tool = subprocess.run(['bash', '-c', f'"{sys.executable}" -W ignore -m '
@@ -198,6 +202,7 @@ def test_process_substitution_works_for_a_tool_and_a_node(tmp_path):
         assert node.wait(timeout=WAIT) == 0
 
 
+@pytest.mark.ros
 def test_a_compare_file_may_be_a_pipe_and_a_fifo_without_a_writer_is_named_as_one(tmp_path):
     from observer_ros.evaluation.evaluator import parse_compare
     from observer_ros.core.errors import ObserverError

@@ -20,7 +20,7 @@ from observer_ros.vehicle import (apply_overrides, KNOWN_KEYS, load_parameters,
 from plants import GYRO_C, SUBMARINE_A, SUBMARINE_B
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = sorted((ROOT / 'config').glob('*.yaml'))
 SUBMARINE = ROOT / 'config' / 'submarine.yaml'
 

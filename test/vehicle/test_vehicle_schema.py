@@ -18,7 +18,7 @@ from observer_ros.vehicle.schema import (bound_problem, MAX_RATE_HZ, MAX_STATE_M
 import pytest
 import yaml
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DOC = ROOT / 'docs' / 'vehicle_schema.md'
 CONFIGS = sorted((ROOT / 'config').glob('*.yaml'))
 
@@ -97,6 +97,7 @@ def test_doc_rows_say_what_the_loader_and_descriptors_use():
         assert (low, high, is_open) == (spec.low, spec.high, spec.low_open), key
 
 
+@pytest.mark.ros
 def test_vehicle_package_does_not_import_rclpy():
     code = ('import sys, observer_ros.vehicle, observer_ros.vehicle.doc, observer_ros.sensors; '
             'assert "rclpy" not in sys.modules, "rclpy imported"; '
