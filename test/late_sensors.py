@@ -1,6 +1,6 @@
 # test/late_sensors.py: the two-sensor submarine whose sensors have different latencies.
 """
-The submarine of issue 13: a gyro and a pitch sensor of different rates and latencies.
+The two-sensor submarine: a gyro and a pitch sensor of different rates and latencies.
 
 A rate gyro (q, 100 Hz, 1 ms latency) and a pitch sensor (theta, 20 Hz, 40 ms latency),
 for the node, bag replay and innovation tests.

@@ -55,7 +55,7 @@ def two_hosts():
 
 
 def env():
-    """Return the environment of a process on a "host": UDP only, this session's domain."""
+    """Return the environment of a process on a "host": UDP only, this test process's domain."""
     env = dict(os.environ)
     env.update(ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONUNBUFFERED='1',
                FASTDDS_BUILTIN_TRANSPORTS='UDPv4', ROS_AUTOMATIC_DISCOVERY_RANGE='SUBNET')

@@ -72,7 +72,7 @@ def _die_with_parent():
 
 
 def ros_env():
-    """Environment of the processes a test starts: this session's DDS domain."""
+    """Environment of the processes a test starts: this test process's DDS domain."""
     env = dict(os.environ)
     env['ROS_DOMAIN_ID'] = str(DOMAIN_ID)
     env['PYTHONUNBUFFERED'] = '1'
@@ -81,7 +81,7 @@ def ros_env():
 
 @contextlib.contextmanager
 def domain_env():
-    """Run code (e.g. run_closed_loop) with this session's domain in os.environ."""
+    """Run code (e.g. run_closed_loop) with this test process's domain in os.environ."""
     old = os.environ.get('ROS_DOMAIN_ID')
     os.environ['ROS_DOMAIN_ID'] = str(DOMAIN_ID)
     try:
@@ -129,7 +129,7 @@ class Proc:
 
 
 class Probe:
-    """An in-process node in this session's domain, with waits that spin it."""
+    """An in-process node in this test process's domain, with waits that spin it."""
 
     def __init__(self, name='probe'):
         warnings.filterwarnings('ignore', category=DeprecationWarning)

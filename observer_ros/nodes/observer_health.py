@@ -1,6 +1,6 @@
 # observer_ros.nodes.observer_health: the observer's overload, divergence and gap checks.
 """
-What the observer node checks about itself (issue 16), as a mixin of ObserverNode.
+What the observer node checks about itself, as a mixin of ObserverNode.
 
 Overload (core.health.LoadMeter: busy fraction, messages missed by their stamps), a
 diverging estimate (core.health.Envelope: reported, never OK), and a measurement after a

@@ -516,7 +516,7 @@ def silence_watch_period(rate_hz, timeouts):
     A tenth of the shortest sensor timeout, never faster than the prediction rate: the
     first prediction comes at most that much after the timeout. (Watched at the
     prediction rate, 1 kHz in P2, the timer's calls alone were 15 % of the observer's CPU
-    while every measurement was answered; benchmarks/README.md, session 9.)
+    while every measurement was answered; benchmarks/README.md.)
 
     Parameters
     ----------

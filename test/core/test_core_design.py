@@ -228,7 +228,7 @@ def test_discrete_detectability_uses_unit_circle():
 
 def test_uncontrollable_plant():
     B = np.array([[3.0], [0.0], [-1.0]])                     # x2 not moved by u
-    # the observer's rule (issue #11): one pole per controllable mode, a DimensionError
+    # the observer's rule: one pole per controllable mode, a DimensionError
     # that names the count and the kept mode
     with pytest.raises(DimensionError, match='expected 2.*eigenvalue -1 \\(stable\\): x2'):
         controller_gain(A515, B, [-1.0, -2.0, -3.0])

@@ -1,4 +1,4 @@
-# test/core/test_core_sampled.py: the sampled gains the loop runs are verified (issue 11).
+# test/core/test_core_sampled.py: the sampled gains the loop runs are verified.
 """
 Per-step gains pass the achieved-pole check; design_vehicle checks them at the sensor rates.
 

@@ -1,4 +1,4 @@
-"""Every design is verified before it is used (issue #11): findings, rule, property tests."""
+"""Every design is verified before it is used: findings, rule, property tests."""
 
 import json
 from pathlib import Path

@@ -101,7 +101,7 @@ def test_spilled_variants_keep_about_a_byte_per_estimate(p3_bag, small_blocks):
     per_variant = (kept4 - kept1) / 3 / len(one.variants['s0'].replay)
     print('observer-eval, spilled: %.2f bytes kept per estimate and variant' % per_variant)
     # the matched flags (1 byte) and the spilled columns' file objects; the truth's
-    # sorted copy is shared by the variants (before: one copy each, ~40 bytes)
+    # sorted copy is shared by the variants
     assert per_variant < 3.0, per_variant
 
 

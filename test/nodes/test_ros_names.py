@@ -44,7 +44,7 @@ def test_domain_ids(value, ok):
     ['observer_ros.bag.play', str(SAMPLE)],
 ])
 def test_a_domain_id_fast_dds_refuses_is_one_line_in_each_entry_point(tmp_path, argv):
-    env = dict(ros_env(), ROS_DOMAIN_ID='300')    # before: Fast DDS's log line, exit 1
+    env = dict(ros_env(), ROS_DOMAIN_ID='300')
     argv = [a.format(tmp=tmp_path / 'run') for a in argv]
     done = subprocess.run([sys.executable, '-W', 'ignore', '-m', *argv], env=env,
                           capture_output=True, text=True, timeout=300)
@@ -82,7 +82,6 @@ def test_observer_run_refuses_an_override_rcl_cannot_parse_before_any_process(tm
                                                                               capsys):
     from observer_ros.tools.run_closed_loop import main as run_main
     out = tmp_path / 'runs' / 'dive'
-    # before: the four nodes started, the observer exited 2 some 20 s later
     assert run_main([str(CONFIG / 'submarine.yaml'), '--out', str(out),
                      '-p', 'observer.0x:=1.0']) == 2
     assert capsys.readouterr().err.splitlines() == [

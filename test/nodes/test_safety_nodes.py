@@ -1,4 +1,4 @@
-# Issue #15, nodes: never send a non-finite command, never trust a malformed stamp.
+# Nodes: never send a non-finite command, never trust a malformed stamp.
 """Each row of the issue about commands and stamps, asserted on the topics afterwards."""
 
 import contextlib

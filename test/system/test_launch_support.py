@@ -54,7 +54,7 @@ def test_a_vehicle_pipe_is_read_once_for_every_node_and_a_folder_is_refused(tmp_
         copy = vehicle_file(f'/proc/self/fd/{read}')
     finally:
         os.close(read)
-    # a regular file every node can read (before: "no such file", the pipe resolved away)
+    # a regular file every node can read
     assert os.path.isfile(copy) and open(copy).read() == text
     with pytest.raises(ObserverError, match=f'{tmp_path}: a folder, not a parameters file'):
         vehicle_file(f'{tmp_path}/')

@@ -1,5 +1,5 @@
 # Closed-loop runs over DDS: four processes, recorded to a bag, checked from the bag.
-"""The plant simulator, observer, compensator and recorder in closed loop (issue 4)."""
+"""The plant simulator, observer, compensator and recorder in closed loop."""
 
 import concurrent.futures
 

@@ -5,7 +5,7 @@ The fenced shell blocks of README.md and docs/*.md, run as written on the shippe
 Each block whose info string is ``sh``, ``bash``, ``shell`` or ``console`` is one test:
 its commands run one after the other with ``bash``, in a scratch copy of the repository
 (``config/``, ``bags/samples/`` and the rest linked or copied, ``.venv/bin`` first on
-PATH as for a user who activated the environment, this session's ROS_DOMAIN_ID), and
+PATH as for a user who activated the environment, this test process's ROS_DOMAIN_ID), and
 each must exit 0 and print the verdict its program prints on success (``VERDICTS``; a
 command whose program has none here fails the test until one is added).
 

@@ -1,4 +1,4 @@
-"""observer-run's summary: lost or timed-out steps and divergence are failures (issue #11)."""
+"""observer-run's summary: lost or timed-out steps and divergence are failures."""
 
 from bag_synth import CONFIG, simulate, write_bag
 import numpy as np
@@ -72,7 +72,7 @@ def test_a_move_from_rest_to_the_reference_converges():
 
 
 def test_eval_variant_gains_are_verified_before_replay(tmp_path):
-    """observer-eval's variants pass the same design verification (issue #11)."""
+    """observer-eval's variants pass the same design verification."""
     vehicle = load_vehicle(str(CONFIG / 'submarine.yaml'), overrides=['simulator.duration:=1.0'])
     path = tmp_path / 'bag'
     write_bag(path, simulate(vehicle)['messages'])

@@ -1,4 +1,4 @@
-# Issue #15, files: every tool deletes or rewrites only what it wrote, and refuses up front.
+# Files: every tool deletes or rewrites only what it wrote, and refuses up front.
 """Each row of "never destroy what it does not own", asserted on the file system afterwards."""
 
 import os

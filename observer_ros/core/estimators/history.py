@@ -30,7 +30,7 @@ once. So the measurements that come before its stamp are in order, not late (no 
 and the result is that of the stamp order all the same.
 
 A measurement newer than everything held costs little more than the estimator's own step
-(benchmarks/README.md, session 6): its entry is a plain list placed without a sort key,
+(benchmarks/README.md): its entry is a plain list placed without a sort key,
 and the old entries are dropped when the oldest checkpoint (kept in a deque) leaves the
 window, not searched for per message. How a late message is inserted (a rewind from a
 checkpoint; for a late command of most estimators, superposition) is :mod:`.rewind`'s.

@@ -10,7 +10,7 @@ it, the message applied, and every later entry applied again, once
 
 A message stamped a few entries before the newest (the closed loop's command, a step or
 a few late) turns on dense checkpoints (:data:`DENSE_DEPTH`): the next such message
-re-applies only the entries after it (benchmarks/README.md, session 7).
+re-applies only the entries after it (benchmarks/README.md).
 
 A late command is not even applied again with the entries after it where the estimator
 is linear with gains that do not depend on the input (observers given poles, the Kalman

@@ -15,7 +15,7 @@ over a step split at the command's stamp is ``Ad(b) Ad(a)`` instead of ``Ad(a + 
 
 The closed loop sends such a command every step: the command answering the estimate at
 t_k is stamped t_k and arrives after the measurements of the next few steps
-(benchmarks/README.md, session 8).
+(benchmarks/README.md).
 
 An estimator kind that can be shifted sets ``_superposable``, gives
 ``_shift_correction`` and names in ``_MOVED`` the parts of its state besides x and
