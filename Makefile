@@ -45,9 +45,12 @@ TEST_WORKERS ?= 4
 test: $(STAMP)
 	$(PY) -W ignore::DeprecationWarning -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) test
 
-# after each change: every test that starts no process and no DDS participant
+# after each change: every test that starts no process and no DDS participant, one worker
+# per core
+CHECK_WORKERS ?= 2
 check: $(STAMP)
-	$(PY) -W ignore::DeprecationWarning -m pytest -q -p no:cacheprovider -m "not ros" test
+	$(PY) -W ignore::DeprecationWarning -m pytest -q -p no:cacheprovider -n $(CHECK_WORKERS) \
+	  -m "not ros" test
 
 bench: $(STAMP)
 	$(PY) benchmarks/run_all.py

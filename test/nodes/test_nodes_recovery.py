@@ -18,6 +18,8 @@ from rcl_interfaces.srv import SetParameters
 from ros_helpers import compensator_under_test, CONFIG, ESTIMATES, imu_msg, Probe, Proc, WAIT
 from sensor_msgs.msg import JointState
 
+pytestmark = pytest.mark.ros      # processes or DDS participants
+
 REALTIME = ['simulator.mode:=realtime', 'simulator.duration:=3000.0']
 # the vehicle, its reference, the realtime factor, and |x - x_d| that counts as converged
 LOOPS = {
@@ -179,7 +181,6 @@ def test_a_second_observer_with_the_same_name_does_not_move_the_cart(loop_of):
         assert 'truth value of an array' not in proc.output()
 
 
-@pytest.mark.ros
 def test_compensator_predicts_a_late_estimate_to_when_its_command_applies(tmp_path):
     cart = CONFIG / 'cart_pendulum.yaml'
     encoder = ('joint_states', JointState, SENSOR_QOS)
@@ -243,7 +244,6 @@ def _set(probe, node, name, value):
     return future.result().results[0]
 
 
-@pytest.mark.ros
 def test_observer_refuses_tolerances_and_poles_that_stop_it(observer_setup):
     proc, probe, listener, pub, cmd = observer_setup
     for name, value, words in (
@@ -260,7 +260,6 @@ def test_observer_refuses_tolerances_and_poles_that_stop_it(observer_setup):
     assert np.all(np.isfinite(listener.estimate_at(300.0)))
 
 
-@pytest.mark.ros
 def test_observer_reports_a_diverging_estimate(observer_setup):
     proc, probe, listener, pub, cmd = observer_setup
     t = 400.0
@@ -277,7 +276,6 @@ def test_observer_reports_a_diverging_estimate(observer_setup):
     assert proc.alive()
 
 
-@pytest.mark.ros
 def test_compensator_reports_divergence_and_sends_the_safe_command(
         compensator_setup):
     proc, probe, listener, est = compensator_setup
@@ -303,7 +301,6 @@ def test_compensator_reports_divergence_and_sends_the_safe_command(
         (stamp_to_sec(m.header.stamp), m.position[0]) for m in last]
 
 
-@pytest.mark.ros
 def test_after_an_outage_estimates_are_gated_and_the_loop_closes_again(
         compensator_setup):
     proc, probe, listener, est = compensator_setup
@@ -331,7 +328,6 @@ def test_after_an_outage_estimates_are_gated_and_the_loop_closes_again(
     assert listener.counter('compensator', 'commands') >= 3
 
 
-@pytest.mark.ros
 def test_overloaded_observer_says_so(observer_setup):
     proc, probe, listener, pub, cmd = observer_setup
     t = 500.0

@@ -15,6 +15,8 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
 from sensor_msgs.msg import JointState
 
+pytestmark = pytest.mark.ros      # processes or DDS participants
+
 VEHICLE = CONFIG / 'submarine.yaml'
 # realtime for every node (nobody waits for anybody), 2x faster than the wall clock, noise
 # free so that convergence is exact, and long enough never to end during a test

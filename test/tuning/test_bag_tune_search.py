@@ -101,6 +101,7 @@ def test_search_over_two_different_bags_is_the_mean_of_each(two_bags):
     assert both.metric.startswith('error_rms')
 
 
+@pytest.mark.ros
 def test_search_on_dask_gives_the_serial_numbers(two_bags, tmp_path, capsys):
     # without state/true: the residual metric, relative to the scale nearest 1
     bags = two_bags['submarine_no_truth']
