@@ -10,9 +10,7 @@ Monte Carlo, and the identification of known noise with its standard errors.
 
 """
 
-from pathlib import Path
-import sys
-
+import irregular_bags
 import numpy as np
 from numpy.testing import assert_allclose
 from observer_ros.core.als import (als_matrix, ALSError, choose_lags, identify_noise,
@@ -28,8 +26,6 @@ from observer_ros.core.step_matrices import noise_steps, zoh_steps
 import pytest
 import scipy.linalg
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import irregular_bags  # noqa: E402,I100
 
 SUB = irregular_bags.submarine([1e-4, 4e-4])
 H = SUB.h

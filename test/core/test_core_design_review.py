@@ -18,7 +18,7 @@ from observer_ros.tools.design_report import main as design_main
 from observer_ros.vehicle import load_vehicle
 import pytest
 
-CONFIG = Path(__file__).resolve().parents[1] / 'config'
+CONFIG = Path(__file__).resolve().parents[2] / 'config'
 
 
 def reviewed(vehicle):

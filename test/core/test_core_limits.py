@@ -37,7 +37,7 @@ def test_cart_with_the_encoder_alone_every_controller_has_ms_42():
 def test_the_seed_design_and_any_other_respect_the_bound(tmp_path):
     from observer_ros.vehicle import load_vehicle
     from pathlib import Path
-    v = load_vehicle(Path(__file__).resolve().parents[1] / 'config' / 'cart_pendulum.yaml')
+    v = load_vehicle(Path(__file__).resolve().parents[2] / 'config' / 'cart_pendulum.yaml')
     P = control.ss(v.plant.A, v.plant.B, v.plant.C, v.plant.D)
     lim = fundamental_limit(v.plant.A, v.plant.B, v.plant.C)
     rng = np.random.default_rng(0)

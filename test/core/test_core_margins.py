@@ -15,7 +15,7 @@ from observer_ros.vehicle import load_vehicle
 import pytest
 import scipy.linalg
 
-CONFIG = Path(__file__).resolve().parents[1] / 'config'
+CONFIG = Path(__file__).resolve().parents[2] / 'config'
 
 
 def cart():

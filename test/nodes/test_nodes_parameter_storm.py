@@ -20,6 +20,8 @@ import pytest
 from ros_helpers import CONFIG, Probe, Proc, ros_env, WAIT
 from sensor_msgs.msg import JointState
 
+pytestmark = pytest.mark.ros      # processes or DDS participants
+
 STORM = """
 import sys, time, warnings
 warnings.filterwarnings('ignore')

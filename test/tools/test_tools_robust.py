@@ -13,7 +13,7 @@ from observer_ros.vehicle import load_parameters, load_vehicle
 import pytest
 import yaml
 
-CONFIG = Path(__file__).resolve().parents[1] / 'config'
+CONFIG = Path(__file__).resolve().parents[2] / 'config'
 
 
 def figures(path):

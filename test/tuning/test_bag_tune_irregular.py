@@ -22,7 +22,7 @@ from observer_ros.tuning.tune import main
 from observer_ros.vehicle import load_vehicle
 import pytest
 
-CONFIG = Path(__file__).resolve().parents[1] / 'config'
+CONFIG = Path(__file__).resolve().parents[2] / 'config'
 
 
 def _floats(values):
