@@ -9,10 +9,10 @@ from bag_synth import (blank, CONFIG, control_law, IMU, JOINT_STATE, simulate, v
                        write_bag)
 import late_sensors
 import numpy as np
-from observer_ros.bag import evaluate
 from observer_ros.core.estimators import make_estimator, process_noise_covariance
 from observer_ros.core.innovation import InnovationMonitor, transient_time
 from observer_ros.core.model import zoh_matrices
+from observer_ros.evaluation import evaluator as evaluate
 from observer_ros.sensors import fill_measurement
 from observer_ros.vehicle import load_vehicle
 
