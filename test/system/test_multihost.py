@@ -12,6 +12,7 @@ prints what it sees as JSON lines. Needs root and ``ip``; skipped otherwise.
 """
 
 import json
+import os
 from pathlib import Path
 import signal
 import subprocess
@@ -27,6 +28,7 @@ from ros_helpers import CONFIG, WAIT
 pytestmark = pytest.mark.ros      # processes or DDS participants
 
 VEHICLE = CONFIG / 'submarine.yaml'
+TEST = Path(__file__).resolve().parents[1]       # test/: the helper modules
 SIM = ['simulator.mode:=realtime', 'simulator.realtime_factor:=2.0',
        'simulator.noise:=false', 'simulator.duration:=3000.0']
 CLIENT = SIM + ['use_sim_time:=true']
@@ -39,9 +41,11 @@ class Watch:
         self.cond = threading.Condition()
         self.true, self.estimates, self.diagnostics = {}, [], []
         self.log = open(log_path, 'w')
+        # the probe is this file run as a script: test/'s helper modules on its path
+        path = os.pathsep.join(filter(None, [str(TEST), os.environ.get('PYTHONPATH')]))
         self.proc = subprocess.Popen(
             ['ip', 'netns', 'exec', ns, sys.executable, '-W', 'ignore', __file__, '--probe'],
-            stdout=subprocess.PIPE, stderr=self.log, text=True, env=env())
+            stdout=subprocess.PIPE, stderr=self.log, text=True, env=dict(env(), PYTHONPATH=path))
         self.thread = threading.Thread(target=self._read, daemon=True)
         self.thread.start()
 
@@ -196,5 +200,4 @@ def _probe_main():
 
 
 if __name__ == '__main__' and '--probe' in sys.argv:
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))     # test/: ros_helpers
     _probe_main()
