@@ -58,6 +58,10 @@ def _domain_id():
 # One DDS domain per test process, so concurrent runs on the machine do not cross-talk.
 DOMAIN_ID = _domain_id()
 
+# A seed for the moments tests draw at random, the same in every xdist worker of one run
+# (xdist requires every worker to collect the same test ids), new for each run.
+RUN_SEED = os.environ.get('PYTEST_XDIST_TESTRUNUID') or str(os.getpid())
+
 # s: the one deadline of every wait on a condition (discovery, a message, a counter on
 # /diagnostics). CI runs 800 tests on a loaded 2-core machine, where discovery alone took
 # seconds; every wait ends as soon as its condition holds, so a long deadline costs a

@@ -13,7 +13,7 @@ import sys
 import time
 
 import pytest
-from ros_helpers import DOMAIN_ID, REPO
+from ros_helpers import DOMAIN_ID, REPO, RUN_SEED
 import yaml
 
 README = (REPO / 'README.md').read_text()
@@ -367,7 +367,7 @@ def _signal_moments(tries, seed):
 
 
 @pytest.mark.ros
-@pytest.mark.parametrize('phase, delay', _signal_moments(SIGNAL_TRIES, os.getpid()))
+@pytest.mark.parametrize('phase, delay', _signal_moments(SIGNAL_TRIES, RUN_SEED))
 def test_ctrl_c_at_a_random_moment_stops_every_node_cleanly(ros2env, tmp_path, phase, delay):
     """SIGINT to the launch's process group while the nodes start or while the loop runs."""
     launch = Launch(ros2env, LAUNCH, tmp_path / 'launch.log')

@@ -17,7 +17,7 @@ import subprocess
 import time
 
 import pytest
-from ros_helpers import CONFIG, ros_env, WAIT
+from ros_helpers import CONFIG, ros_env, RUN_SEED, WAIT
 
 pytestmark = pytest.mark.ros      # processes or DDS participants
 
@@ -54,7 +54,7 @@ def _moments(tries, seed):
             for i in range(tries)]
 
 
-@pytest.mark.parametrize('sig, phase, delay', _moments(TRIES, os.getpid()))
+@pytest.mark.parametrize('sig, phase, delay', _moments(TRIES, RUN_SEED))
 def test_observer_run_stops_cleanly_on_a_signal(tmp_path, sig, phase, delay):
     bag = tmp_path / 'run'
     logs = Path(str(bag) + '_logs')
