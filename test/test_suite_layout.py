@@ -1,0 +1,43 @@
+# The suite's own rules: folders that mirror the package, fixtures shared through conftest.py.
+"""Test modules import helpers, never another test module; each folder names a concern."""
+
+import ast
+from pathlib import Path
+
+TEST = Path(__file__).resolve().parent
+PACKAGE = TEST.parent / 'observer_ros'
+# test folders that are not a package of observer_ros: the whole system, and the tools'
+# command lines and outputs (observer_ros/tools and observer_ros/outputs)
+OTHER_FOLDERS = {'system', 'tools'}
+
+
+def _modules():
+    return sorted(p for p in TEST.rglob('*.py') if '__pycache__' not in p.parts)
+
+
+def test_no_test_module_imports_another():
+    offenders = []
+    for path in _modules():
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names = [node.module]
+            offenders += [f'{path.relative_to(TEST)}:{node.lineno}: {name}'
+                          for name in names if name.split('.')[0].startswith('test_')]
+    assert not offenders, 'shared code goes to a helper module or conftest.py: ' + \
+        ', '.join(offenders)
+
+
+def test_every_test_folder_mirrors_a_package_folder():
+    folders = {p.name for p in TEST.iterdir() if p.is_dir() and p.name != '__pycache__'}
+    packages = {p.name for p in PACKAGE.iterdir() if (p / '__init__.py').is_file()}
+    assert folders - OTHER_FOLDERS <= packages, folders - OTHER_FOLDERS - packages
+    assert all(any(p.glob('test_*.py')) for p in map(TEST.joinpath, folders))
+
+
+def test_module_basenames_are_unique():
+    # test/ has no __init__.py: pytest imports each module by its file name alone
+    names = [p.name for p in _modules()]
+    assert len(names) == len(set(names)), sorted(n for n in names if names.count(n) > 1)
