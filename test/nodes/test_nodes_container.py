@@ -65,6 +65,7 @@ def test_stop_signals_are_recorded_never_raised():
         signals.RECEIVED.clear()
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize('when', ['during', 'before'])
 def test_a_stop_while_the_modules_import_ends_the_process_at_once(when):
     """Nothing is open while a node's modules import: a stop signal exits with status 0."""
