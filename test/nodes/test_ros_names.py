@@ -110,6 +110,7 @@ def test_a_nodes_ros_arguments_are_checked_by_ros_rules():
         assert str(err.value).startswith(words), str(err.value)
 
 
+@pytest.mark.ros
 def test_a_node_refuses_a_namespace_ros_refuses_in_one_line():
     # before: rcl's WARN and ERROR log lines, then "Couldn't parse remap rule ... Expected
     # lexeme type (1) not found, search ended at index 8, at /project/src/rcl/lexer..."

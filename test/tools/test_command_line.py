@@ -110,6 +110,7 @@ def test_observer_run_no_clock_turns_the_simulators_clock_off(monkeypatch, tmp_p
     assert 'simulator.publish_clock:=false' in seen['overrides']
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize('name', ['observer_design', 'observer_eval'])
 def test_a_reader_that_left_ends_a_tool_quietly_and_its_outputs_stay(tmp_path, name):
     import os
