@@ -12,7 +12,7 @@ import numpy as np
 from observer_ros.core.estimators import make_estimator, process_noise_covariance
 from observer_ros.core.innovation import InnovationMonitor, transient_time
 from observer_ros.core.model import zoh_matrices
-from observer_ros.evaluation import evaluator as evaluate
+from observer_ros.evaluation import evaluate as evaluate_cli, evaluator as evaluate
 from observer_ros.sensors import fill_measurement
 from observer_ros.vehicle import load_vehicle
 
@@ -209,7 +209,9 @@ def spy_on_spill(monkeypatch):
     def recorded(*args, **kwargs):
         spills.append(kwargs.get('spill'))
         return evaluate_bag(*args, **kwargs)
-    monkeypatch.setattr(evaluate, 'evaluate_bag', recorded)
+    # the evaluator's own name (jobs, gain search) and the one observer-eval's main calls
+    for module in (evaluate, evaluate_cli):
+        monkeypatch.setattr(module, 'evaluate_bag', recorded)
     return spills
 
 

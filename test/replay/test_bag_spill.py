@@ -22,7 +22,7 @@ import numpy as np
 from numpy.testing import assert_array_equal
 from observer_ros.bag import spill as spill_mod
 from observer_ros.bag.reader import read_recording
-from observer_ros.evaluation import evaluator as evaluate
+from observer_ros.evaluation import evaluate as evaluate_cli, evaluator as evaluate
 from observer_ros.evaluation.report import write_results
 from observer_ros.replay import bulk_runs, health as replay_health, rows as replay_outputs
 from observer_ros.replay.replay import replay
@@ -142,7 +142,7 @@ def test_observer_eval_spills_by_default_with_the_same_files(tmp_path, monkeypat
         out = tmp_path / f'out{len(files)}'
         argv = [str(SAMPLES / 'submarine'), '--vehicle', str(CONFIG / 'submarine.yaml'),
                 '--out', str(out), '--variant', 'k:' + ','.join(KALMAN), *extra]
-        assert evaluate.main(argv) == 0
+        assert evaluate_cli.main(argv) == 0
         files.append({str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob('*'))
                       if p.is_file() and p.suffix in ('.txt', '.csv', '.png', '.mcap')})
     assert spills == [True, None]
@@ -204,12 +204,12 @@ def test_observer_eval_says_when_it_cannot_write_its_temporary_files(
     monkeypatch.setattr(tempfile, 'tempdir', str(tmp_path / 'missing'))
     argv = [str(SAMPLES / 'submarine'), '--vehicle', str(CONFIG / 'submarine.yaml'),
             '--out', str(tmp_path / 'out'), '--no-plots']
-    assert evaluate.main(argv) == 2
+    assert evaluate_cli.main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith('error: ') and 'temporary files' in err[-1], err
     assert str(tmp_path / 'missing') in err[-1] and 'TMPDIR' in err[-1]
     assert not (tmp_path / 'out').exists()
-    assert evaluate.main([*argv, '--in-memory']) == 0
+    assert evaluate_cli.main([*argv, '--in-memory']) == 0
 
 
 def test_observer_eval_says_when_its_disk_fills(tmp_path, monkeypatch, capsys):
@@ -219,7 +219,7 @@ def test_observer_eval_says_when_its_disk_fills(tmp_path, monkeypatch, capsys):
                         lambda **kwargs: open('/dev/full', 'w+b', buffering=0))
     argv = [str(SAMPLES / 'submarine'), '--vehicle', str(CONFIG / 'submarine.yaml'),
             '--out', str(tmp_path / 'out'), '--no-plots']
-    assert evaluate.main(argv) == 2
+    assert evaluate_cli.main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith('error: ') and 'temporary files' in err[-1], err
     assert 'No space left' in err[-1] and '--in-memory' in err[-1], err[-1]
