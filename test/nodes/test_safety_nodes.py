@@ -145,7 +145,11 @@ def test_a_huge_command_is_refused_by_its_size_first(tmp_path):
         assert listener.counter('observer', 'estimator_resets') == 0
         print(f'observer RSS {rss_before / 1024:.0f} -> {rss_after / 1024:.0f} MiB after '
               'three 10^6-element commands')
-        assert rss_after - rss_before < 100 * 1024, (rss_before, rss_after)
+        # rclpy builds each message's Python object (10^6 names and positions: about 90 MiB)
+        # before any callback sees it, and the allocator keeps some of it; three such
+        # commands kept must exceed two messages' worth. Measured +53 MiB alone on an idle
+        # host, +117 MiB beside three other test workers (2026-11-27).
+        assert rss_after - rss_before < 200 * 1024, (rss_before, rss_after)
     out = procs[0].output()
     assert 'control/u: 1000000 components, more than the 64 accepted' in out, out[-2000:]
     assert 'control/u: control/u:' not in out           # the topic said once
