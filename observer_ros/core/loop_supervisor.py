@@ -58,6 +58,7 @@ import numpy as np
 from .control_law import ControlLaw
 from .delay_compensation import DelayCompensation
 from .health import divergence_envelopes, ENVELOPE_PERSIST, SettleCheck, settling_time
+from .plant_clock import PlantClock
 from .safe_command import SafeCommand
 from .standby import StandbyObserver, unstable_plant
 
@@ -197,6 +198,9 @@ class LoopSupervisor:
         self.delay = DelayCompensation(
             self.safe.Ad, self.safe.Bd, self.dt, vehicle.observer.history_length,
             self.lead_steps) if c.delay_compensation and realtime else None
+        # the plant's time from the wall clock: measurements taken late (a stall of this
+        # process) do not make the commands answering them late
+        self.plant_clock = None if self.delay is None else PlantClock(self.time_rate)
         wanted = realtime and unstable_plant(plant) if standby is None else \
             bool(standby) and realtime
         if wanted and self.standby is None:
@@ -260,7 +264,7 @@ class LoopSupervisor:
             elif t == self._answered and self._answer is not None:
                 return self._answer
             return None
-        steps = self._steps_late(t)
+        steps = self._steps_late(t, now)
         if steps is None:
             # too late to predict from: the safe command (or the standby), ERROR
             self._count('too_late_estimates')
@@ -312,9 +316,13 @@ class LoopSupervisor:
         if t < self._sensor_time.get(sensor, t) - self.jump_tolerance:
             self._sensor_time.clear()        # that sensor's clock started over
             self.plant_time = None
+            if self.plant_clock is not None:
+                self.plant_clock.reset()
             if self.standby is not None:
                 self.standby.reset()
         self._sensor_time[sensor] = t
+        if self.plant_clock is not None:
+            self.plant_clock.seen(t, now)
         if self.plant_time is None or t > self.plant_time:
             self.plant_time = t
         standby = self.standby
@@ -518,7 +526,7 @@ class LoopSupervisor:
             return self._safe_command(t)
         # stamped as the observer's would be: at the plant's time plus the lead, never
         # before a command already sent (the plant would ignore it; the observers not)
-        steps = self._steps_late(t)
+        steps = self._steps_late(t, now)
         if steps is None:
             return None
         return self._close(t, x_list, 'standby', steps)
@@ -568,27 +576,53 @@ class LoopSupervisor:
         self.safe.reset()
         if self.delay is not None:
             self.delay.reset()
+            self.plant_clock.reset()
         if self.standby is not None:
             self.standby.reset()
         self.x_envelope.reset()
         self.u_envelope.reset()
 
-    def _steps_late(self, t):
-        """Return the steps the estimate stamped t is late (0 uncompensated; None: too late)."""
+    def _steps_late(self, t, now=None):
+        """
+        Return the steps the estimate stamped t is late (0 uncompensated; None: too late).
+
+        Too late by the stamps: later than ``observer.history_length`` behind the newest
+        sensor stamp. The steps are counted to the plant's time at wall time now
+        (:meth:`_plant_now`; without ``now``, the newest sensor stamp).
+        """
         if self.delay is None:
             return 0
-        return self.delay.steps_late(self.plant_time, t)
+        steps = self.delay.steps_late(self.plant_time, t)
+        plant = self._plant_now(now)
+        if steps is None or plant == self.plant_time:
+            return steps
+        return self.delay.steps_late(min(plant, t + self.delay.max_delay), t)
+
+    def _plant_now(self, now):
+        """
+        Return the plant's time at wall time now (realtime, delay compensation).
+
+        The newest sensor stamp; later by the wall clock (:class:`.plant_clock.PlantClock`)
+        when the measurements queued for this process (it did not run for a while) by
+        more than a step, so that a command answering one still reaches the plant before
+        its stamp; at most ``observer.history_length`` later.
+        """
+        plant = self.plant_time
+        if plant is None or now is None or self.plant_clock is None:
+            return plant
+        behind = self.plant_clock.behind(plant, now) - self.dt
+        return plant if behind <= 0.0 else plant + min(behind, self.delay.max_delay)
 
     def _estimate_clock(self, now):
         """
         Now on the estimates' time base (their last stamp plus the time since).
 
-        With delay compensation: the plant's time (the newest sensor stamp) plus the lead,
+        With delay compensation: the plant's time (:meth:`_plant_now`) plus the lead,
         when the command takes effect (a simulator slower than the wall clock would
         otherwise get safe commands stamped ahead of it).
         """
         if self.delay is not None and self.plant_time is not None:
-            return self.plant_time + self.delay.lead * self.dt
+            return self._plant_now(now) + self.delay.lead * self.dt
         if self._last_stamp is None:
             return self._clock()
         return self._last_stamp + (now - self._last_wall) * self.time_rate

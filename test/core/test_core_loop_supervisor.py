@@ -8,6 +8,7 @@ observer node runs) fed with the measurements and the commands; the supervisor g
 both, with wall times equal to the stamps.
 """
 
+import itertools
 import math
 import random
 
@@ -48,9 +49,11 @@ class CartLoop:
     it was decided; ``lag`` draws from 0 to ``jitter`` s (a loaded host: several sample
     times). The plant applies a command from its stamp, or from when it arrives if that
     is later, and ignores one older than the newest it has (the realtime simulator).
+    ``stalls``: (from, to) when the compensator's process does not run (a busy host): the
+    messages that reach it meanwhile are taken at the end, one after the other.
     """
 
-    def __init__(self, seed=0, jitter=0.0):
+    def __init__(self, seed=0, jitter=0.0, stalls=()):
         self.sup, self.counts, self.logs = supervisor('cart_pendulum',
                                                       'simulator.mode:=realtime')
         v = self.v = self.sup.vehicle
@@ -58,11 +61,14 @@ class CartLoop:
         self.Ad, self.Bd = zoh_matrices(v.plant.A, v.plant.B, self.dt)
         self.rng = np.random.default_rng(seed)
         self.jitter = jitter
+        self.stalls = list(stalls)
+        self.late = []              # commands applied after their stamp: (stamp, arrival)
         self.x = np.zeros(4)
         self.u, self.newest = np.zeros(1), -math.inf
         self.at_plant = []          # commands on their way: (arrival, stamp, u)
         self.scheduled = []         # arrived, applied from: (time, u)
         self.events = []            # (arrival, seq, what, payload)
+        self._seq = itertools.count()
         self.observers = []         # [History, started at, paused (from, to)]
         self.trace = []             # (t, x, mode)
         self.commands = []
@@ -89,8 +95,15 @@ class CartLoop:
             obs.reset(x0 + np.linalg.pinv(C) @ (y - C @ x0), None)
         return np.array(obs.correct(t, y, (0,)))
 
+    def _stalled(self, when):
+        return next((b for a, b in self.stalls if a <= when < b), None)
+
     def _at(self, when, what, payload):
-        self.events.append((when, len(self.events), what, payload))
+        if what in ('measurement', 'estimate'):
+            end = self._stalled(when)
+            if end is not None:
+                when = end      # queued for the compensator, taken in the order they came
+        self.events.append((when, next(self._seq), what, payload))
 
     def _handle(self, now, what, payload, spike):
         sup = self.sup
@@ -132,8 +145,11 @@ class CartLoop:
             if t > until:
                 return
             # the plant's command at t: those arrived by t, each from its stamp
-            for entry in sorted(e for e in self.at_plant if e[0] <= t + 1e-9):
+            for entry in sorted((e for e in self.at_plant if e[0] <= t + 1e-9),
+                                key=lambda e: e[0]):     # in the order sent at one time
                 self.at_plant.remove(entry)
+                if entry[0] > entry[1] + 0.25 * self.dt:
+                    self.late.append((entry[1], entry[0]))
                 if entry[1] >= self.newest - 0.25 * self.dt:
                     self.newest = max(self.newest, entry[1])
                     self.scheduled.append((max(entry[1], entry[0]), entry[2]))
@@ -154,8 +170,9 @@ class CartLoop:
                 event = ready[0]
                 self.events.remove(event)
                 self._handle(event[0], event[2], event[3], spike)
-            sup.watchdog(end)
-            self._handle(end, 'tick', None, spike)
+            if self._stalled(end) is None:
+                sup.watchdog(end)
+                self._handle(end, 'tick', None, spike)
             self.x = self.Ad @ self.x + self.Bd @ self.u
             self.trace.append((t, self.x.copy(), sup.mode))
 
@@ -187,6 +204,7 @@ def test_plant_time_is_the_newest_sensor_stamp_started_over_on_a_clock_jump():
         sup.measurement(name, t, None, float(k))
         assert sup.plant_time == plant, (k, sup.plant_time, plant)
         assert sup._steps_late(t - 0.05) == sup.delay.steps_late(plant, t - 0.05), k
+        assert sup._steps_late(t - 0.05, float(k)) == sup._steps_late(t - 0.05), k
     assert jumps >= 5, jumps
 
 
@@ -346,6 +364,50 @@ def test_the_standby_holds_the_cart_when_messages_are_late(seed):
     bare.observer(pause=(12.0, 15.0))
     bare.run(15.0)
     assert bare.worst(12.0, 15.0)[0] > 1.0
+
+
+@pytest.mark.parametrize('stall', [0.08, 0.2])
+@pytest.mark.parametrize('at', [12.105, 13.0])
+def test_a_stalled_compensator_stamps_its_commands_where_the_plant_will_be(stall, at):
+    """
+    The compensator's process stalls while the standby closes the loop (as it takes over).
+
+    The measurements queued meanwhile are taken one after the other: the commands
+    answering them are stamped after the plant's time by the wall clock, not their
+    stamps, so none is applied after its stamp and the cart stays near x_d.
+    """
+    loop = CartLoop(stalls=[(at, at + stall)])
+    loop.observer(pause=(12.0, 15.0))
+    loop.run(16.0)
+    theta, dx = loop.worst(12.0, 16.0)
+    assert theta < 0.03 and dx < 0.05, (theta, dx)
+    assert loop.late == [], loop.late[:5]
+    assert loop.counts['standby_commands'] >= 250
+
+
+def test_the_plant_clock_moves_stamps_only_when_measurements_queued():
+    """On time, a command is stamped its measurement's stamp plus the lead; queued, later."""
+    sup, _, _ = supervisor('cart_pendulum', 'simulator.mode:=realtime')
+    lead = sup.delay.lead
+    x = [0.0, 1.0, 0.0, 0.0]
+    for k in range(5):
+        t = 1.0 + 0.01 * k
+        sup.measurement('encoder', t, None, 100.0 + 0.01 * k + 0.002)
+        command = sup.estimate(t, x, 100.0 + 0.01 * k + 0.003)
+        assert abs(command.t - (t + lead * 0.01)) < 1e-9, command
+    # then 0.1 s without this process running: the next measurement is taken 0.1 s late
+    t = 1.05
+    sup.measurement('encoder', t, None, 100.15 + 0.002)
+    command = sup.estimate(t, x, 100.15 + 0.003)
+    assert abs(command.t - (t + (lead + 9) * 0.01)) < 1e-9, command
+    # the queue drained: on time again
+    for k in range(6, 9):
+        t = 1.0 + 0.01 * k
+        sup.measurement('encoder', t, None, 100.15 + 0.0002 * k)
+    t = 1.18
+    sup.measurement('encoder', t, None, 100.182)
+    command = sup.estimate(t, x, 100.183)
+    assert abs(command.t - (t + lead * 0.01)) < 1e-9, command
 
 
 def test_a_second_observer_with_the_same_topic_does_not_move_the_cart():
