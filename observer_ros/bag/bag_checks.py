@@ -32,6 +32,7 @@ import time
 import yaml
 
 from .errors import BagToolError
+from .mcap_records import MAGIC as MCAP_MAGIC
 
 __all__ = ['LOCK_NAME', 'MAX_METADATA_BYTES', 'RECENT', 'check_regular', 'check_metadata_file',
            'hold_recording_lock', 'recording_holder', 'still_growing',
@@ -45,7 +46,7 @@ RECENT = 5.0
 # s: how long it is watched for growth (more than the recorder's flush period, 1 s)
 WATCH = 2.0
 # the first bytes of each storage rosbag2 writes
-_MAGIC = {b'\x89MCAP0\r\n': 'mcap', b'SQLite format 3\x00': 'sqlite3'}
+_MAGIC = {MCAP_MAGIC: 'mcap', b'SQLite format 3\x00': 'sqlite3'}
 
 
 def _kind(mode):

@@ -8,26 +8,24 @@ is read back silently. :class:`CrcWriter` is rosbags' ``Writer`` whose MCAP stor
 that field in: it computes the CRC32 of each chunk's records (the uncompressed bytes, as
 the specification defines it) and writes it into the chunk's header once rosbags has
 written the chunk. The file is otherwise byte for byte rosbags' own, so it opens with
-rosbags and any MCAP reader, and rosbags' reader (``decompress``) then checks it.
+rosbags and any MCAP reader, and the readers (rosbags' and :mod:`.mcap_records`, the
+MCAP parser behind the chunk by chunk reader) then check it.
 
 :func:`chunk_crcs` reads the field of every chunk of a bag, for the evaluation's
 "this bag has no checksums" note.
 
 """
 
-from binascii import crc32
 from pathlib import Path
 import struct
 
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.rosbag2.storage_mcap import McapWriter
 
+from .mcap_records import chunk_crc, CRC_OFFSET, read_chunk, read_chunk_crc
+
 __all__ = ['CrcWriter', 'CrcMcapWriter', 'chunk_crcs', 'fill_chunk_crcs', 'checksum_note',
            'CRC_OFFSET']
-
-# A Chunk record: opcode (1), length (8), message_start_time (8), message_end_time (8),
-# uncompressed_size (8), uncompressed_crc (4), compression, records.
-CRC_OFFSET = 1 + 8 + 8 + 8 + 8
 
 
 class CrcMcapWriter(McapWriter):
@@ -35,7 +33,7 @@ class CrcMcapWriter(McapWriter):
 
     def close_chunk(self):
         """Close the pending chunk as rosbags does, then write its CRC into its header."""
-        crc = crc32(self.chunk.bio.getbuffer())
+        crc = chunk_crc(self.chunk.bio.getbuffer())
         start = self.bio.tell()
         super().close_chunk()
         end = self.bio.tell()
@@ -70,15 +68,7 @@ def chunk_crcs(storage):
         One per chunk, in file order; 0 means the chunk has no checksum.
 
     """
-    out = []
-    bio = storage.bio
-    for chunk in storage.chunks:
-        bio.seek(chunk.chunk_start_offset + CRC_OFFSET)
-        raw = bio.read(4)
-        if len(raw) != 4:
-            raise ValueError(f'truncated chunk header at offset {chunk.chunk_start_offset}')
-        out.append(struct.unpack('<I', raw)[0])
-    return out
+    return [read_chunk_crc(storage.bio, chunk.chunk_start_offset) for chunk in storage.chunks]
 
 
 def fill_chunk_crcs(path):
@@ -90,7 +80,7 @@ def fill_chunk_crcs(path):
     A chunk that already has a CRC keeps it. Returns the number of chunks filled.
 
     """
-    from rosbags.rosbag2.storage_mcap import decompress, McapReader
+    from rosbags.rosbag2.storage_mcap import McapReader
     reader = McapReader(Path(path))
     reader.open()
     try:
@@ -99,10 +89,10 @@ def fill_chunk_crcs(path):
         for chunk, crc in zip(reader.chunks, chunk_crcs(reader)):
             if crc:
                 continue
-            bio.seek(chunk.chunk_start_offset + 9 + 40 + len(chunk.compression))
-            data = decompress(bio.read(chunk.compressed_size), chunk.compression,
-                              chunk.uncompressed_size, 0)
-            todo.append((chunk.chunk_start_offset + CRC_OFFSET, crc32(data)))
+            data = read_chunk(bio, chunk.chunk_start_offset, chunk.compression,
+                              chunk.compressed_size, chunk.uncompressed_size,
+                              check_crc=False)
+            todo.append((chunk.chunk_start_offset + CRC_OFFSET, chunk_crc(data)))
     finally:
         reader.close()
     with open(path, 'r+b') as f:

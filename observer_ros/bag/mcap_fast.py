@@ -6,23 +6,20 @@ rosbags' MCAP reader reads every record through ``BytesIO`` calls and merges the
 with ``heapq``: about 4 us per message, most of observer-eval's time on a large bag
 (benchmarks/README.md, P3). When the chunks do not overlap in time (every bag rosbags
 or ``ros2 bag record`` writes), the merged order is the file order with each chunk
-stably sorted by log time, so a chunk can be decompressed (by rosbags' own
-``decompress``, which checks the CRC) and its record headers scanned in one loop.
-:func:`fast_messages` returns None when it cannot give exactly rosbags' stream
-(unindexed file, overlapping chunks, per-message compression, an unknown rosbags
-layout), and the caller reads through rosbags.
+stably sorted by log time, so a chunk can be decompressed (its CRC checked) and its
+message records found from its MessageIndex records, or one walk over its records
+(:mod:`.mcap_records`, the MCAP parser). :func:`fast_messages` returns None when it
+cannot give exactly rosbags' stream (unindexed file, overlapping chunks, per-message
+compression, an unknown rosbags layout), and the caller reads through rosbags.
 
 """
 
-import struct
-
 import numpy as np
 
-__all__ = ['fast_messages', 'fast_chunks']
+from .mcap_records import (message_fields, MESSAGE_HEAD, message_offsets, OP_MESSAGE,
+                           read_chunk, read_message_index)
 
-_RECORD = struct.Struct('<BQ')          # opcode, length
-_MESSAGE = 0x05
-_HEADER = 1 + 8 + 2 + 4 + 8 + 8         # op, len, channel, sequence, log_time, publish_time
+__all__ = ['fast_messages', 'fast_chunks']
 
 
 def _storage(reader):
@@ -71,11 +68,7 @@ def fast_chunks(reader, connections, start=None, pad=512):
 
 
 def _plan(reader, connections):
-    """(storage, chunks, channels, decompress) for reading chunk by chunk, or None."""
-    try:
-        from rosbags.rosbag2.storage_mcap import decompress
-    except ImportError:
-        return None
+    """(storage, chunks, channels) for reading chunk by chunk, or None."""
     storage = _storage(reader)
     if storage is None:
         return None
@@ -84,7 +77,7 @@ def _plan(reader, connections):
         if b.message_start_time < a.message_end_time or \
                 b.chunk_start_offset < a.chunk_start_offset:
             return None                 # overlapping chunks: rosbags merges them
-    return storage, chunks, _connection_map(storage, connections), decompress
+    return storage, chunks, _connection_map(storage, connections)
 
 
 def fast_messages(reader, connections, start=None):
@@ -112,7 +105,7 @@ def fast_messages(reader, connections, start=None):
     return _generate(*plan, start)
 
 
-def _chunk_buffers(storage, chunks, channels, decompress, start):
+def _chunk_buffers(storage, chunks, channels, start):
     """Yield (decompressed chunk, message offsets from its index or None) of the chunks."""
     bio = storage.bio
     for chunk in chunks:
@@ -121,28 +114,23 @@ def _chunk_buffers(storage, chunks, channels, decompress, start):
         present = [cid for cid in channels if chunk.channel_count.get(cid, 0)]
         if not present:
             continue
-        bio.seek(chunk.chunk_start_offset + 9 + 24)
-        (crc,) = struct.unpack('<I', bio.read(4))
-        bio.seek(chunk.chunk_start_offset + 9 + 40 + len(chunk.compression))
-        data = bio.read(chunk.compressed_size)
-        if len(data) != chunk.compressed_size:
-            raise ValueError(f'truncated chunk at offset {chunk.chunk_start_offset}')
         try:
-            buf = decompress(data, chunk.compression, chunk.uncompressed_size, crc)
-        except Exception as err:   # noqa: BLE001 - rosbags' ReaderError
+            buf = read_chunk(bio, chunk.chunk_start_offset, chunk.compression,
+                             chunk.compressed_size, chunk.uncompressed_size)
+        except Exception as err:   # noqa: BLE001 - the decompressors raise their own types
             raise ValueError(f'chunk at byte {chunk.chunk_start_offset}: {err}') from None
         yield buf, _indexed_offsets(bio, chunk, present)
 
 
-def _generate(storage, chunks, channels, decompress, start):
+def _generate(storage, chunks, channels, start):
     wanted = np.array(sorted(channels), dtype=np.int64)
-    for buf, offsets in _chunk_buffers(storage, chunks, channels, decompress, start):
+    for buf, offsets in _chunk_buffers(storage, chunks, channels, start):
         yield from _chunk_messages(buf, channels, wanted, start, offsets)
 
 
-def _generate_arrays(storage, chunks, channels, decompress, start, pad):
+def _generate_arrays(storage, chunks, channels, start, pad):
     wanted = np.array(sorted(channels), dtype=np.int64)
-    for buf, offsets in _chunk_buffers(storage, chunks, channels, decompress, start):
+    for buf, offsets in _chunk_buffers(storage, chunks, channels, start):
         flat = np.frombuffer(buf, dtype=np.uint8)
         channel, log, begin, length = _chunk_arrays(flat, buf, wanted, start, offsets)
         if not begin.size:
@@ -160,32 +148,11 @@ def _indexed_offsets(bio, chunk, present):
         return None
     parts = []
     for cid in present:
-        bio.seek(index[cid])
-        head = bio.read(9 + 2 + 4)
-        if len(head) != 15 or head[0] != 0x07:
+        offsets = read_message_index(bio, index[cid])
+        if offsets is None:
             return None
-        (size,) = struct.unpack_from('<I', head, 11)
-        body = bio.read(size)
-        if len(body) != size or size % 16:
-            return None
-        parts.append(np.frombuffer(body, dtype='<u8').reshape(-1, 2)[:, 1])
+        parts.append(offsets)
     return np.concatenate(parts).astype(np.int64) if parts else None
-
-
-def _scan(buf):
-    """Offsets of the message records of a chunk, by walking the record headers."""
-    unpack = _RECORD.unpack_from
-    end = len(buf)
-    offsets = []
-    pos = 0
-    while pos < end:
-        op, length = unpack(buf, pos)
-        if op == _MESSAGE:
-            offsets.append(pos)
-        pos += 9 + length
-    if pos != end:
-        raise ValueError('truncated record in a chunk')
-    return np.array(offsets, dtype=np.int64)
 
 
 def _chunk_messages(buf, channels, wanted, start, offsets=None):
@@ -204,26 +171,19 @@ def _chunk_arrays(flat, buf, wanted, start, offsets=None):
     rosbags sorts the messages of a chunk stably by log time.
 
     """
-    off = _scan(buf) if offsets is None else np.sort(offsets)
+    off = message_offsets(buf) if offsets is None else np.sort(offsets)
     if not off.size:
         empty = np.zeros(0, dtype=np.int64)
         return empty, empty, empty, empty
-    if offsets is not None and (off[-1] + _HEADER > flat.size or
-                                np.any(flat[off] != _MESSAGE)):
-        off = _scan(buf)                # an index that does not match: walk the chunk
-    length = np.ascontiguousarray(flat[off[:, None] + np.arange(1, 9)]).view('<u8')
-    length = length.reshape(-1).astype(np.int64)
-    channel = np.ascontiguousarray(flat[off[:, None] + np.arange(9, 11)]).view('<u2')
-    channel = channel.reshape(-1).astype(np.int64)
-    log = np.ascontiguousarray(flat[off[:, None] + np.arange(15, 23)]).view('<u8')
-    log = log.reshape(-1).astype(np.int64)
-    if np.any(off + 9 + length > flat.size):
-        raise ValueError('truncated message record in a chunk')
+    if offsets is not None and (off[-1] + MESSAGE_HEAD > flat.size or
+                                np.any(flat[off] != OP_MESSAGE)):
+        off = message_offsets(buf)      # an index that does not match: walk the chunk
+    channel, log, length = message_fields(flat, off)
     keep = np.isin(channel, wanted)
     if start is not None:
         keep &= log >= start
     sel = np.flatnonzero(keep)
     if sel.size > 1 and np.any(np.diff(log[sel]) < 0):
         sel = sel[np.argsort(log[sel], kind='stable')]      # rosbags sorts each chunk
-    begin = off[sel] + _HEADER
+    begin = off[sel] + MESSAGE_HEAD
     return channel[sel], log[sel], begin, off[sel] + 9 + length[sel] - begin

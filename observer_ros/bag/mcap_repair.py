@@ -9,31 +9,26 @@ messages' times and offsets) and where to cut. :func:`repair_mcap` cuts the file
 rebuilds the last chunk's message indexes when they are missing, and appends a summary
 (schemas, channels, chunk indexes, metadata, statistics, summary offsets) and the footer;
 earlier bytes are not rewritten. Used by :mod:`observer_ros.bag.recover`
-(``observer-bag-recover``). https://mcap.dev/spec
+(``observer-bag-recover``). Records are read by :mod:`.mcap_records` (the MCAP parser);
+this module writes the summary. https://mcap.dev/spec
 
 """
 
-from binascii import crc32
 import io
 import os
 import struct
-import sys
 
 from .errors import BagRecoveryError
+from .mcap_records import (decompress_chunk, iter_records, MAGIC, MAX_CHUNK_BYTES,
+                           OP_CHANNEL, OP_CHUNK, OP_CHUNK_INDEX, OP_DATA_END, OP_FOOTER,
+                           OP_HEADER, OP_MESSAGE, OP_MESSAGE_INDEX, OP_METADATA,
+                           OP_METADATA_INDEX, OP_SCHEMA, OP_STATISTICS, OP_SUMMARY_OFFSET,
+                           read_channel, read_chunk_header, read_message_time, read_schema,
+                           RECORD_HEAD, record_head)
 
 __all__ = ['MAGIC', 'MAX_CHUNK_BYTES', 'scan_mcap', 'repair_mcap', 'channel_counts',
            'time_range']
 
-# a chunk's records, uncompressed: rosbags and rosbag2 write chunks of about 1 MiB; a length
-# beyond this is damage, and is not allocated
-MAX_CHUNK_BYTES = 1 << 30
-
-MAGIC = b'\x89MCAP0\r\n'
-# mcap opcodes (https://mcap.dev/spec)
-OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE = 0x01, 0x02, 0x03, 0x04, 0x05
-OP_CHUNK, OP_MESSAGE_INDEX, OP_CHUNK_INDEX = 0x06, 0x07, 0x08
-OP_METADATA, OP_METADATA_INDEX, OP_STATISTICS = 0x0C, 0x0D, 0x0B
-OP_SUMMARY_OFFSET, OP_DATA_END = 0x0E, 0x0F
 MAX_TIME = 2**63 - 1
 
 
@@ -59,56 +54,7 @@ def _record(op, body):
     return bytes([op]) + _u64(len(body)) + body
 
 
-class _Cursor:
-    """Read little-endian mcap primitives from a bytes object."""
-
-    def __init__(self, data, pos=0):
-        self.data = data
-        self.pos = pos
-
-    def take(self, n):
-        if self.pos + n > len(self.data):
-            raise ValueError('record ends early')
-        out = self.data[self.pos:self.pos + n]
-        self.pos += n
-        return out
-
-    def u16(self):
-        return struct.unpack('<H', self.take(2))[0]
-
-    def u32(self):
-        return struct.unpack('<I', self.take(4))[0]
-
-    def u64(self):
-        return struct.unpack('<Q', self.take(8))[0]
-
-    def string(self):
-        return self.take(self.u32()).decode()
-
-    def blob(self):
-        return self.take(self.u32())
-
-
-# -------------------------------------------------------------------------------- mcap
-def _decompress(data, compression, size):
-    if compression == '':
-        out = data
-    elif compression == 'zstd':
-        if sys.version_info >= (3, 14):
-            from compression import zstd
-        else:
-            from backports import zstd
-        out = zstd.decompress(data)
-    elif compression == 'lz4':
-        import lz4.frame
-        out = lz4.frame.decompress(data)
-    else:
-        raise ValueError(f'unsupported chunk compression {compression!r}')
-    if len(out) != size:
-        raise ValueError('chunk size does not match its header')
-    return out
-
-
+# -------------------------------------------------------------------------------- scan
 def _parse_records(records, schemas, channels):
     """
     Parse a run of mcap records (a chunk's content); collect schemas and channels.
@@ -117,29 +63,17 @@ def _parse_records(records, schemas, channels):
     struct.error, UnicodeDecodeError) on a damaged record.
 
     """
-    inner = _Cursor(records)
     messages = {}
-    while inner.pos < len(records):
-        offset = inner.pos
-        op = inner.take(1)[0]
-        rec = _Cursor(inner.take(inner.u64()))
+    for op, offset, body, stop in iter_records(records):
         if op == OP_SCHEMA:
-            sid = rec.u16()
-            schemas[sid] = (sid, rec.string(), rec.string(), rec.blob())
+            schema = read_schema(records[body:stop])
+            schemas[schema[0]] = schema
         elif op == OP_CHANNEL:
-            cid, sid = rec.u16(), rec.u16()
-            topic, encoding = rec.string(), rec.string()
-            meta = {}
-            meta_data = _Cursor(rec.blob())
-            while meta_data.pos < len(meta_data.data):
-                key = meta_data.string()
-                meta[key] = meta_data.string()
-            channels[cid] = {'id': cid, 'schema_id': sid, 'topic': topic,
-                             'encoding': encoding, 'metadata': meta}
+            channel = read_channel(records[body:stop])
+            channels[channel['id']] = channel
         elif op == OP_MESSAGE:
-            cid = rec.u16()
-            rec.u32()                           # sequence
-            messages.setdefault(cid, []).append((rec.u64(), offset))
+            cid, log_time = read_message_time(records[body:stop])
+            messages.setdefault(cid, []).append((log_time, offset))
     return messages
 
 
@@ -150,16 +84,16 @@ def _parse_chunk(body, schemas, channels):
     Raises ValueError when the chunk is damaged (then it is not kept).
 
     """
-    cur = _Cursor(body)
-    start, end, usize = cur.u64(), cur.u64(), cur.u64()
-    crc = cur.u32()                             # 0: not computed (rosbags' own Writer)
-    compression = cur.string()
-    csize = cur.u64()
+    head = read_chunk_header(body)
+    start, end, usize = head['start'], head['end'], head['usize']
+    compression, csize = head['compression'], head['csize']
     if usize > MAX_CHUNK_BYTES:     # a damaged length must not ask for terabytes
         raise ValueError(f'a chunk of {usize} bytes, more than {MAX_CHUNK_BYTES}')
-    records = _decompress(cur.take(csize), compression, usize)
-    if crc and crc32(records) != crc:
-        raise ValueError('the chunk does not match its CRC32')
+    data = body[head['records']:head['records'] + csize]
+    if len(data) != csize:
+        raise ValueError('record ends early')
+    # the CRC: 0 when not computed (rosbags' own Writer)
+    records = decompress_chunk(data, compression, usize, head['crc'])
     # parse into copies, so that a damaged chunk adds nothing
     new_schemas, new_channels = dict(schemas), dict(channels)
     messages = _parse_records(records, new_schemas, new_channels)
@@ -201,24 +135,23 @@ def scan_mcap(path):
     with path.open('rb') as f:
         if f.read(8) != MAGIC:
             raise BagRecoveryError(f'{path}: not an mcap file (no magic at the start)')
-        head = f.read(9)
-        if len(head) < 9 or head[0] != OP_HEADER:
+        head = f.read(RECORD_HEAD)
+        if len(head) < RECORD_HEAD or head[0] != OP_HEADER:
             raise BagRecoveryError(f'{path}: the mcap header record is missing or cut')
-        (length,) = struct.unpack('<Q', head[1:])
+        _, length = record_head(head)
         header = f.read(length)
         if len(header) < length:
             raise BagRecoveryError(f'{path}: the mcap header record is cut')
-        pos = 8 + 9 + length
+        pos = len(MAGIC) + RECORD_HEAD + length
         cut = pos
         data_end = None
         while True:
             f.seek(pos)
-            head = f.read(9)
-            if len(head) < 9:
+            head = f.read(RECORD_HEAD)
+            if len(head) < RECORD_HEAD:
                 break
-            op = head[0]
-            (length,) = struct.unpack('<Q', head[1:])
-            end = pos + 9 + length
+            op, length = record_head(head)
+            end = pos + RECORD_HEAD + length
             if end > size:
                 break                               # a record cut short: stop here
             if op in (OP_DATA_END, OP_FOOTER, OP_METADATA, OP_METADATA_INDEX,
