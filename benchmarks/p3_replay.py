@@ -37,9 +37,12 @@ Neither runs by default (minutes to hours); run them on demand.
 also runs that version's observer-eval in each round, right after this version's, on
 the same bag (and with ``--big`` on the 10^7 bag): eval / eval of the baseline, per
 round [median <= 1.0: no slower per message than that version], and its peak RSS.
+The workers find observer-eval's ``main`` and the replay in this tree's layout or in
+40ee30d's (``bag/evaluate.py``, ``bag/replay.py``), the commit the figures compare with.
 
 """
 
+import importlib
 import json
 import math
 import os
@@ -341,6 +344,22 @@ def worker_b(arrays):
             'x_hat_last': np.asarray(x_hat)[:, -1].tolist()}
 
 
+# where this tree's layout and 40ee30d's differ: the module of each name, this tree's first
+LAYOUTS = {'replay': ('observer_ros.replay.replay', 'observer_ros.bag.replay'),
+           'main': ('observer_ros.evaluation.evaluate', 'observer_ros.bag.evaluate')}
+
+
+def _from_layout(name):
+    """Return ``name`` from the first of its modules (:data:`LAYOUTS`) that exists."""
+    for module in LAYOUTS[name]:
+        try:
+            return getattr(importlib.import_module(module), name)
+        except ModuleNotFoundError as err:      # the module or a package above it
+            if not (module + '.').startswith(f'{err.name}.'):
+                raise
+    raise ModuleNotFoundError(f'none of {", ".join(LAYOUTS[name])}')
+
+
 KALMAN = ['observer.type:=kalman',
           'observer.Qd:=[1.0e-6,0.0,0.0, 0.0,1.0e-4,0.0, 0.0,0.0,1.0e-4]']
 
@@ -349,11 +368,8 @@ def worker_replay(bag, rounds):
     """Time the replay alone: the design (poles) and a Kalman variant, alternated (us/msg)."""
     import numpy as np  # noqa: F401
     from observer_ros.bag.reader import read_recording
-    try:
-        from observer_ros.replay.replay import replay
-    except ImportError:         # a version before the replay package: bag/replay.py
-        from observer_ros.bag.replay import replay
     from observer_ros.vehicle import load_vehicle
+    replay = _from_layout('replay')
     design = load_vehicle(VEHICLE)
     kalman = load_vehicle(VEHICLE, overrides=KALMAN)
     recording = read_recording(bag, design)
@@ -374,13 +390,7 @@ def worker_replay(bag, rounds):
 def worker_eval(bag, out):
     """observer-eval BAG --vehicle config/submarine.yaml --out OUT --no-plots."""
     t0 = time.perf_counter()
-    try:
-        from observer_ros.evaluation.evaluate import main
-    except ImportError:         # an earlier version: evaluation/evaluator.py, bag/evaluate.py
-        try:
-            from observer_ros.evaluation.evaluator import main
-        except ImportError:
-            from observer_ros.bag.evaluate import main
+    main = _from_layout('main')
     import contextlib
     import io
     buf = io.StringIO()

@@ -4,8 +4,9 @@ The parts that ``observer-eval``, ``observer-eval-batch`` and ``observer-tune`` 
 
 A vehicle given as a file or as a loaded vehicle (:func:`resolve_vehicle`), the progress bar
 on stderr (:class:`Progress`), the default output folder next to a bag
-(:func:`default_out`), SIGTERM ending a tool as Ctrl-C does (:func:`stop_on_sigterm`) and
-the one ``error:`` line with the exit status (:func:`tool_error`).
+(:func:`default_out`), SIGTERM ending a tool as Ctrl-C does (:func:`stop_on_sigterm`), the
+one ``error:`` line with the exit status (:func:`tool_error`) and the report, warnings and
+files of a finished run (:func:`tool_done`).
 
 """
 import os
@@ -18,7 +19,7 @@ import time
 from ..core.errors import error_text
 
 __all__ = ['IN_MEMORY_HELP', 'resolve_vehicle', 'Progress', 'default_out', 'Terminated',
-           'stop_on_sigterm', 'tool_error']
+           'stop_on_sigterm', 'tool_error', 'tool_done']
 
 IN_MEMORY_HELP = ("keep the replays' rows in memory (default: in temporary files in TMPDIR, "
                   'a block at a time, so that a long bag fits in memory)')
@@ -133,3 +134,18 @@ def tool_error(progress, err):
         return 130
     print(f'error: {error_text(err)}', file=sys.stderr)
     return 2
+
+
+def tool_done(report, warnings, out, files, seconds):
+    """
+    End a command-line tool's successful run; return the exit status 0.
+
+    Prints ``report`` on stdout, each of ``warnings`` as a ``warning:`` line on stderr, and
+    the output folder ``out`` with the names of ``files`` and the run's ``seconds``.
+
+    """
+    print(report)
+    for text in warnings:
+        print(f'warning: {text}', file=sys.stderr)
+    print(f'\nwritten to {out}/ ({", ".join(f.name for f in files)}) in {seconds:.1f} s')
+    return 0

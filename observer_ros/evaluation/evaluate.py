@@ -13,7 +13,8 @@ import sys
 import time
 import warnings
 
-from .cli import default_out, IN_MEMORY_HELP, Progress, stop_on_sigterm, tool_error
+from .cli import (default_out, IN_MEMORY_HELP, Progress, stop_on_sigterm, tool_done,
+                  tool_error)
 from .evaluator import evaluate_bag, parse_compare, parse_options
 from .report import BAG_MAX_MESSAGES, format_table, write_results
 from ..bag.errors import BagToolError
@@ -110,12 +111,8 @@ def main(argv=None):
                                   results_bag=not args.no_bag, bag_max_messages=args.bag_max)
     except (ObserverError, OSError, KeyboardInterrupt) as err:
         return tool_error(progress, err)
-    print(format_table(result))
-    for text in result.warnings:
-        print(f'warning: {text}', file=sys.stderr)
-    print(f'\nwritten to {out}/ ({", ".join(f.name for f in files)}) in '
-          f'{time.perf_counter() - started:.1f} s')
-    return 0
+    return tool_done(format_table(result), result.warnings, out, files,
+                     time.perf_counter() - started)
 
 
 if __name__ == '__main__':

@@ -50,7 +50,7 @@ from ..bag.errors import BagToolError
 from ..core.als import DEFAULT_LAGS
 from ..core.errors import ObserverError, quiet_on_closed_pipe
 from ..evaluation.cli import (default_out as tool_default_out, IN_MEMORY_HELP, Progress,
-                              resolve_vehicle, stop_on_sigterm, tool_error)
+                              resolve_vehicle, stop_on_sigterm, tool_done, tool_error)
 from ..evaluation.results import jsonable
 from ..outputs.folders import check_output
 from ..outputs.staging import StagedOutput
@@ -429,13 +429,9 @@ def main(argv=None):
         progress.finish()
     except (ObserverError, OSError, KeyboardInterrupt) as err:
         return tool_error(progress, err)
-    print(format_report(result))
-    if result.identification is not None:
-        for text in result.identification.warnings:
-            print(f'warning: {text}', file=sys.stderr)
-    print(f'\nwritten to {out}/ ({", ".join(f.name for f in result.files)}) in '
-          f'{result.seconds:.1f} s')
-    return 0
+    found = result.identification
+    return tool_done(format_report(result), found.warnings if found is not None else (), out,
+                     result.files, result.seconds)
 
 
 if __name__ == '__main__':
