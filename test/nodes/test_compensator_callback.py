@@ -61,11 +61,56 @@ node.destroy_node()
 rclpy.try_shutdown()
 """
 
+# The cart in realtime: estimates with the measurements, then measurements alone (the
+# observer silent); the order in which commands are published and log lines written.
+TAKEOVER = """
+import sys, warnings
+warnings.filterwarnings('ignore')
+import rclpy
+from builtin_interfaces.msg import Time
+from sensor_msgs.msg import JointState
+from observer_ros.nodes.compensator import CompensatorNode
+from observer_ros.timeutil import stamp_to_sec
+rclpy.init(args=['--ros-args', '--params-file', sys.argv[1], '-p', 'simulator.mode:=realtime',
+                 '-r', '__ns:=/callback_takeover'])
+node = CompensatorNode()
+events = []
 
-def _run(config, case):
+
+class Logger:
+    def __getattr__(self, level):
+        return lambda text, **kw: events.append(('log', level, text))
+
+
+node.get_logger = lambda: Logger()
+publish = node._cmd_pub.publish
+node._cmd_pub.publish = lambda msg: (events.append(('command', stamp_to_sec(msg.header.stamp))),
+                                     publish(msg))
+
+
+def stamped(t, msg):
+    msg.header.stamp = Time(sec=int(t), nanosec=int(round((t - int(t)) * 1e9)))
+    return msg
+
+
+sensor = node.vehicle.sensors[0]
+names = list(node.vehicle.plant.state_names)
+for k in range(100, 180):
+    t = k / 100.0
+    node._on_sensor(sensor, stamped(t, JointState(name=['cart'], position=[0.0])), True)
+    if k <= 150:
+        node._on_estimate(stamped(t, JointState(name=names, position=[0.0] * 4)))
+for event in events:
+    print(*event)
+node.destroy_node()
+rclpy.try_shutdown()
+"""
+
+
+def _run(config, case, script=SCRIPT):
     env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID),
                PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get('PYTHONPATH', '')]))
-    out = subprocess.run([sys.executable, '-c', SCRIPT, str(config), case], env=env,
+    out = subprocess.run([sys.executable, '-c', script, str(config), case], env=env,
                          capture_output=True, text=True, timeout=WAIT + 120)
     assert out.returncode == 0, out.stderr[-3000:]
     return out.stdout
@@ -81,6 +126,25 @@ def test_commands_equal_numpy_law_with_binding_limits():
     out = _run(CONFIG / 'submarine.yaml', 'limits')
     clipped = int(out.split('clipped')[1])
     assert 50 < clipped < 500, out           # the limits bound some commands, not all
+
+
+@pytest.mark.ros
+def test_the_standby_takes_over_with_its_command_before_the_log_line():
+    """
+    The observer silent: the standby's first command is out before the ERROR is written.
+
+    A process's first log line costs tens of milliseconds on a loaded host; written
+    before the command, it made the command late at the plant.
+    """
+    events = _run(CONFIG / 'cart_pendulum.yaml', 'takeover', TAKEOVER).splitlines()
+    stale = next(i for i, e in enumerate(events) if 'no estimate within' in e)
+    assert events[stale].startswith('log error'), events[stale]
+    # the command answering the measurement that found the silence (1.60 s, 0.1 s after
+    # the last estimate) came first, stamped with the lead of 3 steps
+    kind, stamp = events[stale - 1].split()
+    assert kind == 'command' and float(stamp) == pytest.approx(1.63), events[stale - 3:stale + 1]
+    kind, stamp = events[-1].split()
+    assert kind == 'command' and float(stamp) == pytest.approx(1.82), events[-1]
 
 
 @pytest.mark.parametrize('bad', [math.nan, math.inf, -math.inf])
