@@ -14,7 +14,9 @@ reports:
 - the gaps between the observer's /diagnostics reports (their header stamps) during the
   flood, against the period;
 - what the observer said (``flooded``, ``late``, the counters ``flood_dropped``,
-  ``flood_episodes``) and the flood's rate.
+  ``flood_episodes``) and the flood's rate;
+- how soon after the flood's process ended it said ``estimating`` again, and what it said
+  over the ``--after`` s that follow.
 
 Usage::
 
@@ -84,6 +86,7 @@ def main(argv=None):
     start = time.monotonic()
     flood_at = start + args.before
     flood = None
+    flood_end = None
     rss = []
     next_imu = next_rss = start
     try:
@@ -94,8 +97,9 @@ def main(argv=None):
                                           'imu/data', str(args.seconds)],
                                          env=env, stdout=subprocess.PIPE, text=True)
                 flood_at = now
-            if flood is not None and flood.poll() is not None and \
-                    now > flood_at + args.seconds + args.after:
+            if flood is not None and flood_end is None and flood.poll() is not None:
+                flood_end = now
+            if flood_end is not None and now > flood_end + args.after:
                 break
             if now >= next_imu:
                 msg = Imu()
@@ -133,6 +137,11 @@ def main(argv=None):
     print(f'/diagnostics during the flood: {len(flood_reports)} reports, gaps '
           f'median {sorted(gaps)[len(gaps) // 2]:.2f} s, largest {max(gaps):.2f} s '
           f'(period 1 s); said: {said}')
+    back = next((r[0] for r in reports if r[0] > flood_end and r[2] == 'estimating'), None)
+    back_text = (f'`estimating` again after {back - flood_end:.2f} s' if back is not None
+                 else f'no `estimating` within {args.after:g} s')
+    said_after = sorted({r[2].split(':')[0] for r in reports if r[0] > flood_end})
+    print(f'after the flood (its process ended): {back_text}; said: {said_after}')
     print(f'counters at the end: flood_dropped {final.get("flood_dropped")}, flood_episodes '
           f'{final.get("flood_episodes")}, measurements {final.get("measurements")}; '
           f'last message: {reports[-1][2] if reports else None}')

@@ -394,6 +394,14 @@ def tmpfs(path, options, what):
         subprocess.run(['umount', '-l', str(path)], check=False)
 
 
+def rss_kib(pid):
+    """Return a process's resident set size (VmRSS, KiB)."""
+    for line in Path(f'/proc/{pid}/status').read_text().splitlines():
+        if line.startswith('VmRSS:'):
+            return int(line.split()[1])
+    raise AssertionError(f'no VmRSS for process {pid}')
+
+
 def stamped(msg, ns):
     """Stamp a message ``ns`` nanoseconds; return it."""
     msg.header.stamp.sec = ns // 1_000_000_000

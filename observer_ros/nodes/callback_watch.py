@@ -20,11 +20,12 @@ reader's depth (``SENSOR_SUB_QOS``, 100) bounds only what DDS holds, not the que
   and its rate, with the ``flood_dropped`` count. Taking a message raw and dropping it
   costs about 14 us of the executor's thread (40 us deserialised): about 70 000 messages/s
   on one core;
-- **a flood even that cannot keep up with** (the heartbeat more than :data:`LAG_SWITCH` s
-  late while shedding: the process gets too little CPU): ``overrun`` is set, and
-  :func:`~observer_ros.nodes.runner.run_nodes` drops the events executor's queue at once
-  (shutting it down) and goes on in rclpy's wait-set executor, whose memory is bounded by
-  the readers' depth, for the rest of the run;
+- **the events executor left at the first flood**: its queue grows with the flood even
+  while messages are shed (over a 60 s flood of 18 to 30 kHz the process grew 6 to 14 MB,
+  and more the faster the flood), so ``overrun`` is set when shedding starts, and
+  :func:`~observer_ros.nodes.runner.run_nodes` drops that queue at once (shutting the
+  executor down) and goes on in rclpy's wait-set executor, whose memory is bounded by the
+  readers' depth, for the rest of the run;
 - **/diagnostics on time**: when the node's own report is overdue (1.5 periods), the
   thread publishes one for it (ERROR, how many seconds the callbacks are behind, the
   counters as last seen), every period until the node's own timer reports again.
@@ -39,8 +40,7 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticStatus
 
-__all__ = ['BEAT', 'LAG_LIMIT', 'LAG_RESUME', 'LAG_SWITCH', 'FLOOD_MESSAGES', 'FLOOD_HOLD',
-           'CallbackWatch']
+__all__ = ['BEAT', 'LAG_LIMIT', 'LAG_RESUME', 'FLOOD_MESSAGES', 'FLOOD_HOLD', 'CallbackWatch']
 
 # s (wall): the heartbeat's period, and how often the thread looks
 BEAT = 0.1
@@ -53,9 +53,6 @@ LAG_RESUME = 0.2
 FLOOD_MESSAGES = 100
 # s (wall): a flood stays reported (ERROR) this long after the last message shed
 FLOOD_HOLD = 2.0
-# s: the heartbeat this late even while shedding (the process gets too little CPU to take
-# the flood's messages even raw): ``overrun``, the process leaves the events executor
-LAG_SWITCH = 2.0
 
 
 class _Guarded:
@@ -187,10 +184,10 @@ class CallbackWatch:
         if not self.shedding and age > LAG_LIMIT and \
                 self._taken() - self._taken_at_beat >= FLOOD_MESSAGES:
             self._shed(True)
+            if self.may_overrun:        # the events executor's queue: dropped at once
+                self.overrun = True
         elif self.shedding and age < LAG_RESUME:
             self._shed(False)
-        if self.shedding and age > LAG_SWITCH and self.may_overrun:
-            self.overrun = True
         if self.shedding:
             self._flood_at = now
             busiest = max(self._guarded, key=lambda e: e.rate)

@@ -2,20 +2,20 @@
 """
 What the observer node checks about itself, as a mixin of ObserverNode.
 
-Overload (core.health.LoadMeter: busy fraction, messages missed by their stamps), a
-diverging estimate (core.health.Envelope: reported, never OK), and a measurement after a
-gap so long that predicting across it would amplify the error (the estimate restarts at
-the measurement). The node calls these from its measurement path and its diagnostics.
+Overload (core.health.LoadMeter: busy fraction, messages missed by their stamps, read by
+core.stamp_gaps), a diverging estimate (core.health.Envelope: reported, never OK), and a
+measurement after a gap so long that predicting across it would amplify the error (the
+estimate restarts at the measurement). The node calls these from its measurement path and
+its diagnostics.
 
 """
-
-import math
 
 from diagnostic_msgs.msg import DiagnosticStatus
 
 from .common import MESSAGE_CLASSES
 from ..core.health import (Envelope, ENVELOPE_FACTOR, LoadMeter, max_prediction_gap,
                            state_scale)
+from ..core.stamp_gaps import MissedStamps
 
 __all__ = ['DIVERGENCE_HOLD', 'ObserverHealth']
 
@@ -36,26 +36,31 @@ class ObserverHealth:
         # each sensor's period (s): a longer gap between its stamps is missed messages
         self._periods = {s.name: s.rate_divider / vehicle.simulator.rate_hz
                          for s in vehicle.sensors}
-        # a longer gap between two stamps of a sensor says a message was missed (a
-        # message without a stamp, timed when received, says nothing)
-        self._gap_missed = {s.name: 1.5 * self._periods[s.name]
-                            if hasattr(MESSAGE_CLASSES[s.msg_type], 'header') else math.inf
-                            for s in vehicle.sensors}
+        # the gaps between a stamped sensor's stamps say which messages were missed (a
+        # message without a stamp, timed when received, says nothing); a gap within 1.5
+        # periods, with nothing owed, is not looked at
+        self._stamp_gaps = {s.name: MissedStamps(self._periods[s.name])
+                            for s in vehicle.sensors
+                            if hasattr(MESSAGE_CLASSES[s.msg_type], 'header')}
+        self._gap_missed = {s.name: 1.5 * self._periods[s.name] for s in vehicle.sensors}
         self._envelope = Envelope(vehicle.plant.state_names, state_scale(vehicle), 'x_hat')
         self._max_gap = max_prediction_gap(vehicle.plant.A, vehicle.sample_time,
                                            vehicle.plant.is_discrete)
 
-    def _count_missed(self, sensor, gap):
+    def _count_missed(self, sensor, t, newest):
         """
-        Count the messages a gap (s) between a sensor's newest stamps says were missed.
+        Count in the load meter the messages the sensor's stamps say were missed.
 
-        The node calls this only for a gap longer than ``_gap_missed`` of the sensor (1.5
-        periods: one missed message at least); a gap of 100 periods or more is a pause,
-        not missed messages.
+        ``t`` is the measurement's stamp, ``newest`` the sensor's newest stamp before it.
+        A gap is counted only when the next message does not make up for it (a late
+        message is followed by an early one; a lost one is not): core.stamp_gaps.
         """
-        period = self._periods[sensor.name]
-        if gap < 100.0 * period:
-            self._load.missed(int(round(gap / period)) - 1)
+        gaps = self._stamp_gaps.get(sensor.name)
+        if gaps is None:
+            return
+        gap = t - newest
+        if gaps.owed or not 0.0 < gap <= self._gap_missed[sensor.name]:
+            self._load.missed(gaps.gap(gap))
 
     def _on_divergence(self, t, problem):
         """

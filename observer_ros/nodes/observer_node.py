@@ -267,8 +267,8 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
         if problem is not None:
             self._on_divergence(t, problem)
         newest = self._admission.previous
-        if newest is not None and t - newest > self._gap_missed[sensor.name]:
-            self._count_missed(sensor, t - newest)      # the load meter's
+        if newest is not None:
+            self._count_missed(sensor, t, newest)       # the load meter's
         self.count('measurements')
         # the estimate first: it is what the compensator waits for (benchmarks P1). A late
         # measurement is answered with the estimate at the newest stamp, now revised.

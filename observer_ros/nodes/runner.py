@@ -255,11 +255,11 @@ def _finish(node):
 
 def _leave_events_executor(executor, nodes, watches):
     """
-    Go on in rclpy's wait-set executor: a flood overran the events executor's queue.
+    Go on in rclpy's wait-set executor: a flood came (nodes/callback_watch.py).
 
     Shutting the EventsExecutor down drops the events it queued (one per message received,
     without a bound) at once; the wait-set executor takes what the readers hold, so the
-    memory is bounded by their depth (nodes/callback_watch.py).
+    memory is bounded by their depth.
     """
     from rclpy.executors import SingleThreadedExecutor
     context = executor.context
@@ -270,6 +270,6 @@ def _leave_events_executor(executor, nodes, watches):
     for watch in watches:
         watch.overrun = watch.may_overrun = False
     nodes[0].get_logger().error(
-        'a flood of messages overran the events executor even while they were dropped: its '
-        "queue dropped, going on with the wait-set executor (bounded by the readers' depth)")
+        "a flood of messages: the events executor's queue dropped, going on with the wait-set "
+        "executor (bounded by the readers' depth)")
     return executor

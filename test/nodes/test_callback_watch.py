@@ -5,8 +5,8 @@ from types import SimpleNamespace
 
 from diagnostic_msgs.msg import DiagnosticStatus
 from observer_ros.nodes import callback_watch
-from observer_ros.nodes.callback_watch import (BEAT, CallbackWatch, FLOOD_MESSAGES, LAG_LIMIT,
-                                               LAG_RESUME, LAG_SWITCH)
+from observer_ros.nodes.callback_watch import (CallbackWatch, FLOOD_MESSAGES, LAG_LIMIT,
+                                               LAG_RESUME)
 import pytest
 
 
@@ -84,19 +84,25 @@ def test_one_long_callback_is_not_a_flood_but_is_reported_on_time(monkeypatch):
     assert len(reports) == 2
 
 
-def test_a_flood_shedding_cannot_keep_up_with_asks_to_leave_the_events_executor(monkeypatch):
+def test_a_flood_asks_to_leave_the_events_executor_at_once(monkeypatch):
     watch, _, callback, _, _, _ = _watch()
     monkeypatch.setattr(callback_watch.time, 'monotonic', lambda: 0.0)
     watch._beat()
+    for _ in range(FLOOD_MESSAGES - 1):
+        callback('m')
+    watch._look(LAG_LIMIT + 0.01)                   # late, but too few messages: no flood
+    assert not watch.shedding and not watch.overrun
+    callback('m')
+    watch._look(LAG_LIMIT + 0.02)
+    assert watch.shedding and watch.overrun         # its queue grows even while shedding
+    watch.overrun = watch.may_overrun = False       # what run_nodes does once it left
+    watch._beat()
+    watch._look(0.01)
+    assert not watch.shedding
     for _ in range(FLOOD_MESSAGES):
         callback('m')
-    watch._look(LAG_LIMIT + 0.01)
+    watch._look(LAG_LIMIT + 0.01)                   # a second flood, in the wait-set executor
     assert watch.shedding and not watch.overrun
-    watch._look(LAG_SWITCH + BEAT)
-    assert watch.overrun
-    watch.overrun = watch.may_overrun = False       # what run_nodes does once it left
-    watch._look(LAG_SWITCH + 1.0)
-    assert not watch.overrun
 
 
 @pytest.mark.ros
