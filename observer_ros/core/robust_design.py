@@ -8,9 +8,12 @@ for the design whose loop, broken at the plant input, has the smallest peak sens
 the user gives (4 time constants of the slowest pole, the compensator's own settle rule,
 ``core/health.py``), no pole faster than :data:`FASTEST_FRACTION` of the Nyquist
 frequency (the sampled loop then behaves as the continuous design whose margins are
-computed), and Ms weighed up by ``1 + log10(c / 1e4)`` when the closed loop's pole
-condition number c exceeds ``POLE_CONDITION_WARN`` (``core/conditioning.py``): a margin
-bought with poles that a model error moves far is not one. The search:
+computed), and Ms weighed up by ``1 + log10(c / CONDITION_CAP)`` when the closed loop's
+pole condition number c (``core/conditioning.py``) exceeds :data:`CONDITION_CAP`: a
+margin bought with poles that a model error moves far is not one. The report warns from
+``POLE_CONDITION_WARN`` (1e4) on; the search accepts more before it weighs, since the
+least Ms of a plant near its limit needs it (the encoder-only cart: Ms 56 at c = 1e7,
+no design below Ms 77 at c <= 1e4 in two minutes of search). The search:
 
 1. controllers: the vehicle's own gain and, when allowed, LQR gains ``Q = rho I``,
    ``R = I`` over a range of rho (an LQR state feedback has Ms <= 1 at the plant input:
@@ -19,7 +22,14 @@ bought with poles that a model error moves far is not one. The search:
    process noise ``Qd = q0 I + q B B^T`` over a range of q (loop transfer recovery:
    as q grows the loop at the plant input tends to the state feedback's, when the plant
    has no non-minimum-phase zero for these outputs), the sensors' noise as ``Rd``;
-3. a Nelder-Mead refinement of the best few: the observer poles (a full-order observer),
+3. with one input, one output, a full-order observer and the controller searched: the
+   closed loop's characteristic polynomial itself. Every strictly proper controller of
+   the plant's order is an observer-based one, and its 2n closed-loop poles fix it (the
+   Diophantine equation ``a d + b n = phi``), so Nelder-Mead runs from
+   :data:`POLYNOMIAL_STARTS` seeded random pole sets in the allowed region over the
+   factors of ``phi`` (Ms on the search grid, no gain formed); the best set is split
+   into controller and observer poles (the split of least cost);
+4. a Nelder-Mead refinement of the best few: the observer poles (a full-order observer),
    or ``log q`` (Kalman), and the controller poles when allowed.
 
 The result is checked by ``design_vehicle`` (every gain verified) and reviewed
@@ -30,6 +40,7 @@ all the same; the result says how close to M it came.
 """
 
 from dataclasses import dataclass, replace
+import itertools
 import math
 from typing import Optional, Tuple
 import warnings
@@ -40,7 +51,7 @@ import scipy.optimize
 import scipy.signal
 
 from ._lazy import control
-from .conditioning import POLE_CONDITION_WARN, pole_sensitivity
+from .conditioning import pole_sensitivity
 from .design import lqr_gain
 from .design_review import review_design
 from .errors import ObserverError
@@ -67,6 +78,16 @@ EVALUATIONS_PER_PARAMETER = 100
 
 #: Nelder-Mead runs per start (each from where the last stopped).
 RESTARTS = 2
+
+#: The pole condition number above which the search weighs Ms up.
+CONDITION_CAP = 1e7
+
+#: Seeded random starts of the characteristic-polynomial search, its evaluations per
+#: start, and the largest plant order it is used for (Sylvester matrices grow
+#: ill-conditioned beyond).
+POLYNOMIAL_STARTS = 4
+POLYNOMIAL_EVALUATIONS = 2000
+POLYNOMIAL_ORDER = 8
 
 _RHOS = np.logspace(-3, 4, 15)
 _QS = np.logspace(-4, 10, 15)
@@ -222,6 +243,13 @@ class _Search:
     def cost(self, K, L, poles):
         """Ms, or a penalty above any Ms for poles that break the bounds."""
         self.evaluations += 1
+        penalty = self.penalty(poles)
+        if penalty:
+            return penalty
+        return self.loop.peak(K, L) * self._conditioning(K, L)
+
+    def penalty(self, poles):
+        """0, or a penalty above any Ms for closed-loop poles that break the bounds."""
         poles = np.asarray(poles, dtype=complex)
         if self.plant.is_discrete:
             settle = settling_of(poles, True, self.plant.dt)
@@ -236,9 +264,7 @@ class _Search:
             penalty += 1e6 * (1.0 + settle / self.bound)
         if fast > self.fastest:
             penalty += 1e6 * (1.0 + fast / self.fastest)
-        if penalty:
-            return penalty
-        return self.loop.peak(K, L) * self._conditioning(K, L)
+        return penalty
 
     def _conditioning(self, K, L):
         """1, or more for a closed loop whose poles are too sensitive (log10 above the limit)."""
@@ -247,7 +273,7 @@ class _Search:
         c = max(pole_sensitivity(M).max_condition, eigenvector_condition(M))
         if not np.isfinite(c):
             return 1e6
-        return 1.0 + max(0.0, math.log10(c / POLE_CONDITION_WARN))
+        return 1.0 + max(0.0, math.log10(c / CONDITION_CAP))
 
     def kalman(self, q):
         """Return the Kalman gain of ``Qd = q0 I + q B B^T`` (python-control's lqe form)."""
@@ -268,6 +294,110 @@ def _place(A, B, poles):
     if B.shape[1] == 1:
         return np.asarray(control.acker(A, B, poles), dtype=float).reshape(1, -1)
     return np.asarray(scipy.signal.place_poles(A, B, poles).gain_matrix, dtype=float)
+
+
+def _sylvester(a, b, n):
+    """Return (M, base): ``phi[1:] = base + M [d_1..d_n, c_0..c_{n-1}]`` for a d + b c."""
+    M = np.zeros((2 * n + 1, 2 * n))
+    for k in range(1, n + 1):
+        M[k:k + n + 1, k - 1] = a
+    for j in range(n):
+        M[j + 1:j + n + 2, n + j] = b
+    base = np.zeros(2 * n + 1)
+    base[:n + 1] = a
+    return M[1:], base[1:]
+
+
+def _factors(x):
+    """Return the product of the factors s^2 + 2 zeta w s + w^2, x = (log w, zeta) each."""
+    phi = np.array([1.0])
+    for logw, zeta in x.reshape(-1, 2):
+        w = math.exp(min(logw, 50.0))
+        phi = np.polymul(phi, [1.0, 2.0 * zeta * w, w * w])
+    return phi
+
+
+def _groups(poles):
+    """Return the poles as conjugate pairs and real poles (lists of one or two)."""
+    left = sorted(np.asarray(poles, dtype=complex), key=lambda z: (z.real, z.imag))
+    out = []
+    while left:
+        z = left.pop(0)
+        if abs(z.imag) > 1e-9 * max(1.0, abs(z)):
+            j = min(range(len(left)), key=lambda i: abs(left[i] - z.conjugate()))
+            left.pop(j)
+            out.append([complex(z.real, abs(z.imag)), complex(z.real, -abs(z.imag))])
+        else:
+            out.append([complex(z.real, 0.0)])
+    return out
+
+
+def _polynomial_search(search):
+    """
+    Find the 2n closed-loop poles of least Ms (one input, one output), as a candidate.
+
+    The plant ``b / a`` and a controller ``c / d`` (d monic of degree n, c of degree
+    n - 1) close to ``phi = a d + b c``: given the poles, one linear solve gives d, and
+    ``S = a d / phi``. Returns ``(cost, K, controller poles, ('poles', observer poles))``
+    of the split of least cost, or None.
+
+    """
+    plant = search.plant
+    n = plant.n
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore')
+        num, den = scipy.signal.ss2tf(plant.A, plant.B, plant.C, plant.D)
+    a = np.asarray(den, dtype=float).reshape(-1)
+    b = np.asarray(num, dtype=float).reshape(-1)
+    b = np.concatenate([np.zeros(n + 1 - b.size), b])[-(n + 1):]
+    M, base = _sylvester(a, b, n)
+    if np.linalg.cond(M) > 1e12:
+        return None
+    s = 1j * search.loop.w
+    a_s = np.polyval(a, s)
+
+    def ms(x):
+        search.evaluations += 1
+        phi = _factors(x)
+        penalty = search.penalty(np.roots(phi))
+        if penalty:
+            return penalty
+        d = np.concatenate([[1.0], np.linalg.solve(M, phi[1:] - base)[:n]])
+        S = a_s * np.polyval(d, s) / np.polyval(phi, s)
+        peak = float(np.max(np.abs(S)))
+        return peak if math.isfinite(peak) else 1e12
+
+    rng = np.random.default_rng(0)
+    lo, hi = math.log(4.0 / search.bound), math.log(search.fastest)
+    best = None
+    for _ in range(POLYNOMIAL_STARTS):
+        x = np.column_stack([rng.uniform(lo, hi, n), rng.uniform(0.05, 1.5, n)]).reshape(-1)
+        for _ in range(RESTARTS):
+            res = scipy.optimize.minimize(ms, x, method='Nelder-Mead',
+                                          options={'maxfev': POLYNOMIAL_EVALUATIONS,
+                                                   'adaptive': True})
+            x = res.x
+        if best is None or res.fun < best[0]:
+            best = (res.fun, x)
+    if best is None or best[0] >= 1e6:
+        return None
+    groups = _groups(np.roots(_factors(best[1])))
+    out = None
+    for r in range(1, len(groups) + 1):
+        for chosen in itertools.combinations(range(len(groups)), r):
+            pc = [z for i in chosen for z in groups[i]]
+            if len(pc) != n:
+                continue
+            po = [z for i in range(len(groups)) if i not in chosen for z in groups[i]]
+            pc, po = np.array(pc), np.array(po)
+            K = _quiet(_place, plant.A, plant.B, pc)
+            Lt = _quiet(_place, plant.A.T, plant.C.T, po)
+            if K is None or Lt is None:
+                continue
+            c = search.cost(K, Lt.T, np.concatenate([pc, po]))
+            if out is None or c < out[0]:
+                out = (c, K, pc, ('poles', po))
+    return out
 
 
 def _quiet(fn, *args):
@@ -351,6 +481,11 @@ def robust_design(vehicle, settling_time=None, controller=False, design=None, re
         for c in kal:
             L, E, _ = search.kalman(c[3][1])
             starts.append((c[0], c[1], c[2], ('poles', E)))
+    if controller and plant.m == 1 and plant.p == 1 and design.reduced is None and \
+            not plant.is_discrete and plant.n <= POLYNOMIAL_ORDER:
+        cand = _polynomial_search(search)
+        if cand is not None:
+            starts.append(cand)
     for cand in starts:
         for _ in range(RESTARTS):
             cand = _refine(search, cand, controller)
