@@ -285,17 +285,14 @@ class BagReader:
         readers = self.reader.readers
         # one rosbag2 recording: read it directly (AnyReader merges several bags)
         source = readers[0] if len(readers) == 1 else self.reader
-        try:
+
+        def read():
             # an indexed mcap file: read chunk by chunk, same stream (benchmarks P3)
             fast = fast_messages(source, conns, start) if len(readers) == 1 else None
-            if fast is not None:
-                yield from fast
-                return
-            yield from source.messages(connections=conns, start=start)
-        except BagToolError:
-            raise
-        except Exception as err:   # noqa: BLE001 - rosbags raises many types
-            raise BagToolError(_reason(_storage_file(self.info.storage_path), err)) from None
+            if fast is None:
+                fast = source.messages(connections=conns, start=start)
+            yield from fast
+        yield from self._guarded(read())
 
     def message_chunks(self, topics=None):
         """
@@ -315,9 +312,10 @@ class BagReader:
             return None
         return None if chunks is None else self._guarded(chunks)
 
-    def _guarded(self, chunks):
+    def _guarded(self, items):
+        """Yield ``items``; an error reading them becomes BagToolError naming the file."""
         try:
-            yield from chunks
+            yield from items
         except BagToolError:
             raise
         except Exception as err:   # noqa: BLE001 - rosbags raises many types

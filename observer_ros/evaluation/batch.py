@@ -127,9 +127,8 @@ def format_batch(rows, summary):
 
 
 def _plot(rows, path):
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    from .plots import pyplot, save_figure
+    plt = pyplot()
     bags = list(dict.fromkeys(r['bag'] for r in rows))
     variants = list(dict.fromkeys(r['variant'] for r in rows))
     truth = any(math.isfinite(_value(r['summary'].get('error_rms'))) for r in rows)
@@ -144,10 +143,7 @@ def _plot(rows, path):
     ax.set_ylabel('error RMS against state/true' if truth else 'largest residual RMS')
     ax.set_title('per bag and variant')
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 _CSV = ['bag', 'variant', 'observer_type', 'estimates', 'overrides', 'seconds', 'error']

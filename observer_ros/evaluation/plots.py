@@ -7,8 +7,8 @@ import numpy as np
 
 from ..bag.spill import decimated_rows
 
-__all__ = ['PLOT_MAX_POINTS', 'decimate', 'write_plots', 'plot_t0', 'plot_autocovariances',
-           'plot_search']
+__all__ = ['PLOT_MAX_POINTS', 'decimate', 'pyplot', 'save_figure', 'write_plots', 'plot_t0',
+           'plot_autocovariances', 'plot_search']
 
 PLOT_MAX_POINTS = 5_000         # per line in the plots (decimated beyond)
 
@@ -20,16 +20,25 @@ def decimate(n, limit):
     return slice(None, None, int(math.ceil(n / limit)))
 
 
-def _pyplot():
+def pyplot():
+    """Return matplotlib.pyplot on the Agg backend (files only, no display)."""
     import matplotlib
     matplotlib.use('Agg', force=True)
     import matplotlib.pyplot as plt
     return plt
 
 
+def save_figure(fig, path):
+    """Lay out a figure, write it to ``path`` (PNG, 100 dpi) and close it; return ``path``."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    pyplot().close(fig)
+    return path
+
+
 def write_plots(result, out):
     """Write states.png, error_norm.png (with ground truth), residuals.png; return the files."""
-    plt = _pyplot()
+    plt = pyplot()
     files = []
     names = result.state_names
     t0 = plot_t0(result)
@@ -54,10 +63,7 @@ def write_plots(result, out):
     axes[0, 0].legend(loc='best', fontsize='small')
     axes[0, 0].set_title(f'{result.vehicle.name}: true and estimated states')
     axes[-1, 0].set_xlabel('time since the start of the bag [s]')
-    fig.tight_layout()
-    fig.savefig(out / 'states.png', dpi=100)
-    plt.close(fig)
-    files.append(out / 'states.png')
+    files.append(save_figure(fig, out / 'states.png'))
     if result.truth is not None:
         fig, ax = plt.subplots(figsize=(10, 4))
         for c, (name, vr) in enumerate(result.variants.items()):
@@ -75,10 +81,7 @@ def write_plots(result, out):
         ax.set_title('estimation error norm')
         ax.grid(True, which='both', alpha=0.3)
         ax.legend(loc='best', fontsize='small')
-        fig.tight_layout()
-        fig.savefig(out / 'error_norm.png', dpi=100)
-        plt.close(fig)
-        files.append(out / 'error_norm.png')
+        files.append(save_figure(fig, out / 'error_norm.png'))
     outputs = result.output_names
     fig, axes = plt.subplots(len(outputs), 1, sharex=True, squeeze=False,
                              figsize=(10, 2.2 * len(outputs) + 1))
@@ -100,10 +103,7 @@ def write_plots(result, out):
     axes[0, 0].legend(loc='best', fontsize='small')
     axes[0, 0].set_title('residuals y - (C x_prior + D u)')
     axes[-1, 0].set_xlabel('time since the start of the bag [s]')
-    fig.tight_layout()
-    fig.savefig(out / 'residuals.png', dpi=100)
-    plt.close(fig)
-    files.append(out / 'residuals.png')
+    files.append(save_figure(fig, out / 'residuals.png'))
     return files
 
 
@@ -134,7 +134,7 @@ def plot_autocovariances(path, output_names, fits, title):
         Figure title.
 
     """
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(len(output_names), len(fits), squeeze=False,
                              figsize=(6 * len(fits), 2.6 * len(output_names) + 0.8))
     for c, (label, empirical, fitted, sigma) in enumerate(fits):
@@ -153,15 +153,12 @@ def plot_autocovariances(path, output_names, fits, title):
         axes[-1, c].set_xlabel('lag j [samples]')
     axes[0, 0].legend(loc='best', fontsize='small')
     fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def plot_search(path, parameter, scales, metrics, metric_name, best=None, log=True):
     """Plot a gain search's metric against the parameter (one line per bag, and the mean)."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(8, 4))
     scales = np.asarray(scales, float)
     for name, values in metrics.items():
@@ -176,7 +173,4 @@ def plot_search(path, parameter, scales, metrics, metric_name, best=None, log=Tr
     ax.set_ylabel(metric_name)
     ax.grid(True, which='both', alpha=0.3)
     ax.legend(loc='best', fontsize='small')
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

@@ -21,7 +21,7 @@ from ..outputs.staging import StagedOutput
 from ..replay.replay import SKIPPED
 
 __all__ = ['BAG_MAX_MESSAGES', 'fmt', 'text_table', 'format_table',
-           'write_results', 'write_results_bag', 'csv_cell']
+           'write_results', 'write_results_bag', 'csv_cell', 'write_csv', 'write_json']
 
 BAG_MAX_MESSAGES = 100_000      # per topic in the results bag (decimated beyond)
 
@@ -162,6 +162,23 @@ def csv_cell(v):
     return str(v)
 
 
+def write_csv(path, header, rows):
+    """Write a CSV file: the header, then one line per row of cells (text); return path."""
+    with open(path, 'w') as f:
+        f.write(','.join(header) + '\n')
+        for cells in rows:
+            f.write(','.join(cells) + '\n')
+    return path
+
+
+def write_json(path, data):
+    """Write ``data`` as JSON indented by 2, with a final newline; return path."""
+    with open(path, 'w') as f:
+        json.dump(data, f, indent=2)
+        f.write('\n')
+    return path
+
+
 def write_results(result, out, force=False, plots=True, results_bag=True,
                   bag_max_messages=BAG_MAX_MESSAGES):
     """
@@ -205,15 +222,10 @@ def write_results(result, out, force=False, plots=True, results_bag=True,
         table = format_table(result)
         (stage / 'results.txt').write_text(table + '\n')
         files.append(stage / 'results.txt')
-        with open(stage / 'results.csv', 'w') as f:
-            f.write(','.join(_CSV_COLUMNS) + '\n')
-            for row in _csv_rows(result):
-                f.write(','.join(csv_cell(row.get(c)) for c in _CSV_COLUMNS) + '\n')
-        files.append(stage / 'results.csv')
-        with open(stage / 'results.json', 'w') as f:
-            json.dump(result.to_dict(), f, indent=2)
-            f.write('\n')
-        files.append(stage / 'results.json')
+        files.append(write_csv(stage / 'results.csv', _CSV_COLUMNS,
+                               ([csv_cell(row.get(c)) for c in _CSV_COLUMNS]
+                                for row in _csv_rows(result))))
+        files.append(write_json(stage / 'results.json', result.to_dict()))
         if plots:
             files += write_plots(result, stage)
         if results_bag:

@@ -10,14 +10,13 @@ metric against the scale and per evaluation).
 
 """
 
-import json
 import math
 
 import numpy as np
 
 from ..core.innovation import ALPHA as INNOVATION_ALPHA, WINDOW as INNOVATION_WINDOW
 from ..evaluation.plots import plot_autocovariances, plot_search
-from ..evaluation.report import csv_cell, fmt, text_table
+from ..evaluation.report import csv_cell, fmt, text_table, write_csv, write_json
 
 __all__ = ['format_report', 'write_report']
 
@@ -141,25 +140,17 @@ def write_report(result, out, plots):
     files = []
     (out / 'tune.txt').write_text(format_report(result) + '\n')
     files.append(out / 'tune.txt')
-    with open(out / 'tune.json', 'w') as f:
-        json.dump(result.to_dict(), f, indent=2)
-        f.write('\n')
-    files.append(out / 'tune.json')
+    files.append(write_json(out / 'tune.json', result.to_dict()))
     sr = result.search
     grid = getattr(sr, 'grid', sr)
     if sr is not None:
-        with open(out / 'search.csv', 'w') as f:
-            f.write(','.join(['scale', 'mean'] + list(grid.per_bag)) + '\n')
-            for row in grid.rows():
-                f.write(','.join(csv_cell(float(c)) for c in row) + '\n')
-        files.append(out / 'search.csv')
+        files.append(write_csv(out / 'search.csv', ['scale', 'mean'] + list(grid.per_bag),
+                               ([csv_cell(float(c)) for c in row] for row in grid.rows())))
     if grid is not sr:
-        with open(out / 'pole_search.csv', 'w') as f:
-            f.write(','.join(['evaluation', 'mean'] + list(sr.per_bag) + ['poles']) + '\n')
-            for row in sr.rows():
-                f.write(','.join([str(row[0])] + [csv_cell(float(c)) for c in row[1:-1]] +
-                                 [row[-1]]) + '\n')
-        files.append(out / 'pole_search.csv')
+        files.append(write_csv(
+            out / 'pole_search.csv', ['evaluation', 'mean'] + list(sr.per_bag) + ['poles'],
+            ([str(row[0])] + [csv_cell(float(c)) for c in row[1:-1]] + [row[-1]]
+             for row in sr.rows())))
     if plots and result.identification is not None:
         ident = result.identification
         fits = [(f'pass {i + 1}: ' + (ident.reference if i == 0 else
