@@ -227,7 +227,7 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
         ``vehicle``.
     spill : True or path, optional
         Keep each replay's rows in temporary files (:func:`~observer_ros.replay.replay.replay`'s
-        ``spill``): memory no longer grows with them; every figure is the same.
+        ``spill``): memory does not grow with them; every figure is the same.
     keep_rows : bool
         Keep each variant's rows (and errors) for the plots and the results bag. When
         False each variant is scored as soon as its replay ends and its rows are dropped

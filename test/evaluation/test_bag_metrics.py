@@ -3,8 +3,8 @@
 ``metrics.StateError`` gives the error rows on demand and ``score_variant`` scores from it.
 
 Any rows asked for equal those of the whole ``x_hat - truth_at(...)`` array, the scores
-equal the whole-array formulas exactly, and scoring holds far less than the whole-array
-copies it used to make (error, matched error, squares: about 100 bytes per estimate).
+equal the whole-array formulas exactly, and scoring holds far less than whole-array
+copies of the error, the matched error and the squares would (about 100 bytes per estimate).
 
 """
 

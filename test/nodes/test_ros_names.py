@@ -112,8 +112,8 @@ def test_a_nodes_ros_arguments_are_checked_by_ros_rules():
 
 @pytest.mark.ros
 def test_a_node_refuses_a_namespace_ros_refuses_in_one_line():
-    # before: rcl's WARN and ERROR log lines, then "Couldn't parse remap rule ... Expected
-    # lexeme type (1) not found, search ended at index 8, at /project/src/rcl/lexer..."
+    # one line, not rcl's WARN and ERROR log lines ("Couldn't parse remap rule ... Expected
+    # lexeme type (1) not found, ..."), which rclpy prints when it parses the name itself
     done = subprocess.run([sys.executable, '-W', 'ignore', '-m',
                            'observer_ros.nodes.observer_node', '--ros-args', '--params-file',
                            str(CONFIG / 'submarine.yaml'), '-r', '__ns:=/véhicule_1'],

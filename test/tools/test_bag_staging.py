@@ -184,7 +184,7 @@ def test_a_marker_that_is_not_a_small_regular_file_is_refused_not_waited_on(tmp_
     out = tmp_path / 'eval'
     out.mkdir()
     marker = out / MARKER
-    if odd == 'fifo':       # before: --force opened it and waited for a writer forever
+    if odd == 'fifo':       # opening it would wait for a writer forever
         os.mkfifo(marker)
     elif odd == 'link':
         (tmp_path / 'elsewhere.json').write_text('{"tool": "observer-eval", "files": {}}')

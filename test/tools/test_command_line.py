@@ -128,7 +128,7 @@ def test_a_reader_that_left_ends_a_tool_quietly_and_its_outputs_stay(tmp_path, n
                               text=True, timeout=300, env=ros_env())
     finally:
         os.close(write)
-    # before: a BrokenPipeError traceback, and Python's "Exception ignored ... <stdout>"
+    # no BrokenPipeError traceback, no Python "Exception ignored ... <stdout>"
     assert done.returncode == CLOSED_PIPE_STATUS and done.stderr == '', done.stderr
     if name == 'observer_eval':
         assert sorted(p.name for p in out.iterdir()) == [

@@ -66,7 +66,7 @@ def test_array_length_is_limited(tmp_path):
                                   ''.join(f'\n{"  " * (i + 4)}a:' for i in range(60)) + ' 1',
                                   ' ' + '[' * 60 + ']' * 60])
 def test_deep_nesting_is_one_clear_error(tmp_path, deep):
-    # before: {a: {a: ...}} 30000 deep was a RecursionError traceback, exit 1
+    # {a: {a: ...}} 30000 deep: one error naming the file, not a RecursionError traceback
     path = tmp_path / 'deep.yaml'
     path.write_text(HEAD + '    vehicle:\n      name:' + deep + '\n')
     with pytest.raises(VehicleFileError, match=r'deep.yaml: not valid YAML: nested more '
