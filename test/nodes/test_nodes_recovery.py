@@ -139,9 +139,6 @@ def paused_observer_run(lp, pause=3.0):
     return [x for t, x in lp.true if t_stop <= t <= t_cont], t_stop, t_cont
 
 
-@pytest.mark.xfail(strict=False, reason='not met yet: the standby holds the pendulum, but the '
-                   'cart leaves x_d by more than 0.2 m (0.48 m alone on an idle host, 0.35-0.75 '
-                   'm at load 22-34, 2026-11-27)')
 def test_paused_observer_the_standby_holds_the_cart(loop_of):
     """The observer stopped 3 s: the compensator's standby observer closes the loop."""
     lp = loop_of('cart_pendulum')
