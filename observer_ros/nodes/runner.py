@@ -90,15 +90,18 @@ def exit_status(err, name):
     Report the exception that ended a node process; return the process's exit status.
 
     0 for a shutdown (the context shut down by someone else); 2 for a file or parameter
-    the node cannot use (one ``error:`` line, and a FATAL log line under ``name``); 1 for
+    the node cannot use (one ``error:`` line, naming ``name`` when the error does not
+    already: no log line besides, so a refusal reads the same as the tools'); 1 for
     anything else (with its traceback).
 
     """
     if isinstance(err, (KeyboardInterrupt, ExternalShutdownException)):
         return 0
     if isinstance(err, ObserverError):
-        rclpy.logging.get_logger(name).fatal(f'cannot start: {err}')
-        print(f'error: {err}', file=sys.stderr)
+        text = str(err)
+        if name != 'observer_ros' and name not in text:     # which node of a container
+            text = f'{name}: {text}'
+        print(f'error: {text}', file=sys.stderr)
         return 2
     traceback.print_exception(err)
     return 1

@@ -180,7 +180,19 @@ def test_unusable_file_stops_the_node_before_it_starts(tmp_path, node):
     proc = Proc(node, path, log_dir=tmp_path)
     code = proc.popen.wait(timeout=60)
     assert code == 2, proc.output()
-    assert 'model.A' in proc.output()
+    # one line, the tools' form: no log line of rcl's before it
+    lines = proc.output().strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith('error: ') and 'model.A' in lines[0], lines
+
+
+@pytest.mark.ros
+def test_a_refused_override_is_one_line_naming_both_rates(tmp_path):
+    proc = Proc('observer_node', CONFIG / 'submarine.yaml', 'observer.rate_hz:=5000.0',
+                log_dir=tmp_path)
+    assert proc.popen.wait(timeout=60) == 2, proc.output()
+    lines = proc.output().strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith('error: node /observer: observer.rate_hz: '
+                                                   '5000 Hz is faster than'), lines
 
 
 @pytest.mark.ros
