@@ -32,14 +32,14 @@ import sys
 import time
 import warnings
 
-from .cli import IN_MEMORY_HELP, Progress
+from .cli import IN_MEMORY_HELP, Progress, tool_error
 from .evaluator import parse_options
 from .jobs import (connect, job_dict, LOST_TIMEOUT, make_jobs, run_jobs, SCHEDULER_ENV,
                    summarize, workers_of, WorkersLost)
 from .report import text_table
 from .results import jsonable
 from ..bag.errors import BagToolError
-from ..core.errors import error_text, ObserverError, quiet_on_closed_pipe
+from ..core.errors import ObserverError, quiet_on_closed_pipe
 from ..params_file import regular_file
 
 __all__ = ['find_bags', 'write_batch', 'format_batch', 'main']
@@ -384,9 +384,7 @@ def main(argv=None):
         print(f'resume with: observer-eval-batch {shlex.join(again)}', file=sys.stderr)
         return 130 if isinstance(err, KeyboardInterrupt) else 3
     except (ObserverError, OSError) as err:
-        progress.finish()
-        print(f'error: {error_text(err)}', file=sys.stderr)
-        return 2
+        return tool_error(progress, err)
     print(format_batch(rows, summary))
     failed = [r for r in rows if r['error']]
     for r in failed:
