@@ -135,14 +135,18 @@ class LoopSupervisor:
     clock : callable, optional
         ``clock()``: the time on the estimates' clock (ROS time, s), for a safe command
         before any estimate gave a stamp.
+    clock_bound : callable, optional
+        ``clock_bound()``: /clock's time when the node follows /clock, else None; a safe
+        command is never stamped past it (plus the lead), however long the wall clock ran.
 
     """
 
     def __init__(self, vehicle, design, lead_steps=3, jump_tolerance=0.5, standby=None,
-                 count=None, log=None, clock=None):
+                 count=None, log=None, clock=None, clock_bound=None):
         self._count = count or _nothing
         self._log = log or _nothing
         self._clock = clock or (lambda: 0.0)
+        self._clock_bound = clock_bound or _nothing
         self.jump_tolerance = float(jump_tolerance)
         self.lead_steps = int(lead_steps)
         self.mode = 'waiting'
@@ -621,11 +625,15 @@ class LoopSupervisor:
         when the command takes effect (a simulator slower than the wall clock would
         otherwise get safe commands stamped ahead of it).
         """
+        lead = 0.0 if self.delay is None else self.delay.lead * self.dt
         if self.delay is not None and self.plant_time is not None:
-            return self._plant_now(now) + self.delay.lead * self.dt
-        if self._last_stamp is None:
+            t = self._plant_now(now) + lead
+        elif self._last_stamp is None:
             return self._clock()
-        return self._last_stamp + (now - self._last_wall) * self.time_rate
+        else:
+            t = self._last_stamp + (now - self._last_wall) * self.time_rate
+        bound = self._clock_bound()
+        return t if bound is None else min(t, bound + lead)
 
     # ------------------------------------------------------------ report
 

@@ -31,6 +31,11 @@ line is written at activation for the same reason.
 Once the simulator says its run is over (``simulator/run_complete``, latched), a silent
 estimate is the end of the run, not a fault: no safe command, OK on /diagnostics.
 
+A node that follows /clock (``use_sim_time``) stamps its safe commands on /clock's time,
+never past it: while /clock stands still (its owner stopped), no safe command is sent
+(``safe_commands_held``), and after :data:`CLOCK_STILL` s /diagnostics says so
+(``/clock stopped at T s N s ago: no safe command until it moves``).
+
 """
 
 import time
@@ -57,6 +62,8 @@ __all__ = ['CompensatorNode', 'command_problem', 'control_law', 'main']
 
 # Seconds between two log lines of one kind (the supervisor's reports can come per message).
 LOG_PERIOD = 1.0
+# s (wall): /clock standing still this long while stale is said on /diagnostics
+CLOCK_STILL = 1.0
 # The supervisor's levels (OK, WARN, ERROR: 0, 1, 2) as DiagnosticStatus has them.
 LEVELS = (DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR)
 # s: how long the safe command sent on deactivation may take to be acknowledged
@@ -93,8 +100,9 @@ class CompensatorNode(ManagedVehicleNode):
         self.loop = LoopSupervisor(
             self.vehicle, self.design, self.param('command_lead_steps'),
             self.param('clock_jump_tolerance'), count=self.count, log=self._log,
-            clock=self._ros_now)
+            clock=self._ros_now, clock_bound=self._followed_clock)
         self._safe_timer = None
+        self._safe_clock = self._clock_still_since = None
         self._publish_reference()
         standby = self.loop.standby is not None
         self.get_logger().info(
@@ -148,6 +156,11 @@ class CompensatorNode(ManagedVehicleNode):
 
     def _ros_now(self):
         return self.get_clock().now().nanoseconds * 1e-9
+
+    def _followed_clock(self):
+        """Return /clock's time (s) when this node follows /clock (use_sim_time), else None."""
+        clock = self.get_clock()
+        return clock.now().nanoseconds * 1e-9 if clock.ros_time_is_active else None
 
     def _log(self, level, text):
         """Log a report of the loop: each kind at most once per LOG_PERIOD."""
@@ -253,6 +266,7 @@ class CompensatorNode(ManagedVehicleNode):
         if self.loop.watchdog(self.wall_now()):
             # a safe command every sample time while stale (the prediction's step)
             self._stop_safe_timer()
+            self._safe_clock = self._clock_still_since = None
             self._safe_timer = self.wall_timer(self.loop.dt / self.loop.time_rate,
                                                self._on_safe_tick)
             self._on_safe_tick()
@@ -261,8 +275,18 @@ class CompensatorNode(ManagedVehicleNode):
         if not self.loop.stale or self._run_complete:
             self._stop_safe_timer()
             return
+        now = self.wall_now()
+        clock = self._followed_clock()
+        if clock is not None and clock == self._safe_clock:
+            # /clock stands still (its owner stopped): the plant does not step either, and
+            # a command stamped on by the wall clock would be ahead of it when it moves
+            self.count('safe_commands_held')
+            if self._clock_still_since is None:
+                self._clock_still_since = now
+            return
+        self._safe_clock, self._clock_still_since = clock, None
         # no estimate behind it: marked, so that lock-step does not take it for one
-        self._send(self.loop.safe_tick(self.wall_now()))
+        self._send(self.loop.safe_tick(now))
 
     def _on_set_parameters(self, params):
         problem = own_parameter_problem(params)
@@ -313,6 +337,11 @@ class CompensatorNode(ManagedVehicleNode):
             message = f'waiting for {self.resolve_topic_name(TOPICS["estimate"])}'
         elif message.startswith('estimate stale'):
             message += f' ({self.resolve_topic_name(TOPICS["estimate"])})'
+            still = self._clock_still_since
+            if still is not None and self.wall_now() - still >= CLOCK_STILL:
+                message += (f'; /clock stopped at {self._safe_clock:.3f} s '
+                            f'{self.wall_now() - still:.1f} s ago: no safe command until '
+                            'it moves')
         self.publish_diagnostics(LEVELS[level], message, values)
 
 

@@ -429,18 +429,23 @@ def test_an_absurd_estimate_in_the_cart_loop_moves_nothing():
     assert max(max(abs(v) for v in c.u) for c in loop.commands) < 100.0
 
 
+def _gone_stale(sup, x):
+    """Feed 10 estimates 0.05 s apart from t = 5 s, then 1 s of silence; return 5.5."""
+    t = 5.0
+    for _ in range(10):
+        sup.estimate(t, x, t)
+        t += 0.05
+    assert sup.watchdog(t + 1.0)
+    return t
+
+
 def test_without_a_standby_stale_predicts_then_falls_back_then_resyncs():
     sup, counts, logs = supervisor('submarine', 'simulator.mode:=realtime',
                                    'controller.predict_timeout:=3.0',
                                    'controller.safe_command:=hold')
     assert sup.standby is None          # a stable plant can be held
     x = np.array([0.1, 0.0, 0.0])
-    t = now = 5.0
-    for _ in range(10):
-        sup.estimate(t, x, now)
-        t += 0.05
-        now += 0.05
-    assert sup.watchdog(now + 1.0)
+    t = now = _gone_stale(sup, x)
     assert sup.stale and logs[-1][1].startswith('estimate stale')
     modes = []
     for k in range(60):
@@ -463,3 +468,20 @@ def test_a_restarted_clock_starts_the_loop_over():
     assert counts['clock_jumps'] == 1 and command.source == 'observer'
     assert not sup.standby._recent              # the standby starts over with the clock
     assert [stamp for stamp, _ in sup.delay._sent] == [command.t]   # the old run's forgotten
+
+
+def test_safe_commands_are_never_stamped_past_the_clock_followed():
+    # a second vehicle follows /clock; its owner stops: the wall clock runs on, /clock not
+    clock = [5.45]
+    sup, _, _ = supervisor('submarine', 'simulator.mode:=realtime',
+                           clock_bound=lambda: clock[0])
+    x = np.array([0.1, 0.0, 0.0])
+    now = _gone_stale(sup, x)
+    stamps = [sup.safe_tick(now + 1.0 + 0.05 * k).t for k in range(40)]
+    assert max(stamps) == pytest.approx(5.45)       # not 7.4 s: 2 s of wall clock on
+    clock[0] = 5.5                                  # /clock moves again
+    assert sup.safe_tick(now + 3.0).t == pytest.approx(5.5)
+    # without a clock followed, the stamps go on with the wall clock from the last estimate
+    sup, _, _ = supervisor('submarine', 'simulator.mode:=realtime')
+    _gone_stale(sup, x)
+    assert sup.safe_tick(7.4).t == pytest.approx(7.4)

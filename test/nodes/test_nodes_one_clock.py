@@ -8,7 +8,7 @@ resets, the loop converges again).
 
 import signal
 
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import numpy as np
 from observer_ros.nodes.common import STATE_QOS
 from observer_ros.timeutil import stamp_to_sec
@@ -205,3 +205,64 @@ def test_a_lockstep_follower_steps_only_as_far_as_clock(tmp_path):
         g.probe.close()
         codes = [proc.stop() for proc in procs]
     assert codes == [0, 0, 0], [proc.output()[-2000:] for proc in procs]
+
+
+def test_safe_commands_follow_clock_and_stop_while_it_stands_still(tmp_path):
+    """A compensator on /clock's time whose estimates stop, then /clock stops too."""
+    from observer_ros.nodes.common import joint_state
+    from ros_helpers import compensator_under_test, ESTIMATES
+    names = ['theta', 'w', 'q']
+    params = ('simulator.mode:=realtime', 'diagnostics_period:=0.2', 'use_sim_time:=true')
+    with compensator_under_test(tmp_path, publish=(ESTIMATES, ('/clock', Clock, 10)),
+                                params=params) as run:
+        est, clock_pub = run.pubs['state/estimate'], run.pubs['/clock']
+        commands = run.listener.commands
+        state = {'t': 10.0, 'clock': True, 'estimates': True, 'next': None}
+
+        def tick():
+            """Step /clock (and an estimate) every 0.05 s of the wall clock while on."""
+            import time
+            now = time.monotonic()
+            if state['next'] is None:
+                state['next'] = now
+            while state['next'] <= now and state['clock']:
+                state['next'] += 0.05
+                state['t'] = round(state['t'] + 0.05, 6)
+                msg = Clock()
+                msg.clock.sec, msg.clock.nanosec = divmod(round(state['t'] * 1e9), 10**9)
+                clock_pub.publish(msg)
+                if state['estimates']:
+                    est.publish(joint_state(names, [0.01, 0.0, 0.0], state['t']))
+            if not state['clock']:
+                state['next'] = None
+            return False
+
+        def until(predicate, what):
+            run.probe.spin_until(lambda: tick() or predicate(), what=what)
+
+        def stamps(since):
+            return [stamp_to_sec(m.header.stamp) for m in commands[since:]]
+        until(lambda: len(commands) >= 10, 'commands answering the estimates')
+        state['estimates'] = False          # the vehicle's own data stops, /clock goes on
+        until(lambda: run.listener.counter('compensator', 'safe_commands') >= 10,
+              'safe commands')
+        n = len(commands)
+        until(lambda: len(commands) >= n + 10, 'more safe commands')
+        # on /clock's time: never ahead of it (the estimates' time base)
+        assert max(stamps(n)) <= state['t'] + 1e-9, (stamps(n), state['t'])
+        state['clock'] = False              # /clock's owner stops
+        stopped = state['t']
+        until(lambda: '/clock stopped at' in (run.listener.latest_status('compensator')
+                                              .message), '/clock stopped said')
+        held = len(commands)
+        status = run.listener.latest_status('compensator')
+        assert status.level == DiagnosticStatus.ERROR and \
+            f'/clock stopped at {stopped:.3f} s' in status.message, status.message
+        until(lambda: run.listener.counter('compensator', 'safe_commands_held') >= 20,
+              'safe commands held')
+        late = stamps(held)
+        assert not late or max(late) <= stopped + 1e-9, (late, stopped)
+        state['clock'] = True               # /clock moves again: the commands follow it
+        until(lambda: any(s > stopped for s in stamps(held)), 'safe commands again')
+        again = [s for s in stamps(held) if s > stopped]
+        assert min(again) <= stopped + 0.2, (again, stopped)
