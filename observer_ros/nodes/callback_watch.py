@@ -191,9 +191,12 @@ class CallbackWatch:
         if self.shedding:
             self._flood_at = now
             busiest = max(self._guarded, key=lambda e: e.rate)
+            # the rates are sampled each second: a flood that began since, by the messages
+            # taken since the last heartbeat
+            rate = max(busiest.rate, (self._taken() - self._taken_at_beat) / max(age, BEAT))
             self._flood_text = (
                 f'flooded: {self._node.resolve_topic_name(busiest.topic)} at '
-                f'{busiest.rate:.0f} messages/s; {self.dropped()} messages dropped while the '
+                f'{rate:.0f} messages/s; {self.dropped()} messages dropped while the '
                 f'callbacks were more than {LAG_LIMIT:g} s behind')
         period = self._period()
         if not period:
