@@ -19,8 +19,8 @@ import numpy as np
 
 from ..core.estimators.admission import stamp_ns
 
-__all__ = ['IMU', 'JOINT_STATE', 'FLOAT64', 'CLOCK', 'Decoded', 'decode_messages',
-           'decode_packed']
+__all__ = ['IMU', 'JOINT_STATE', 'FLOAT64', 'CLOCK', 'IMU_OFFSETS', 'IMU_TAIL', 'Decoded',
+           'decode_messages', 'decode_packed']
 
 IMU = 'sensor_msgs/msg/Imu'
 JOINT_STATE = 'sensor_msgs/msg/JointState'
@@ -28,9 +28,10 @@ FLOAT64 = 'std_msgs/msg/Float64'
 CLOCK = 'rosgraph_msgs/msg/Clock'
 
 # sensor_msgs/msg/Imu after the header: orientation (4 doubles), its covariance (9),
-# angular_velocity (3), covariance (9), linear_acceleration (3), covariance (9).
-_IMU_TAIL = 296
-_IMU_OFFSETS = {
+# angular_velocity (3), covariance (9), linear_acceleration (3), covariance (9); the
+# byte offsets of the fields a sensor reads (the nodes' readers use them too).
+IMU_TAIL = 296
+IMU_OFFSETS = {
     'orientation.x': 0, 'orientation.y': 8, 'orientation.z': 16, 'orientation.w': 24,
     'angular_velocity.x': 104, 'angular_velocity.y': 112, 'angular_velocity.z': 120,
     'linear_acceleration.x': 200, 'linear_acceleration.y': 208,
@@ -221,7 +222,7 @@ def decode_packed(flat, starts, lengths, msgtype, fields, mode='sensor', fallbac
     errors = {}
     if n:
         little = (lengths >= 4) & (flat[starts] == 0) & (flat[starts + 1] == 1)
-        if msgtype == IMU and all(f in _IMU_OFFSETS or f in _IMU_EULER for f in fields):
+        if msgtype == IMU and all(f in IMU_OFFSETS or f in _IMU_EULER for f in fields):
             _decode_imu(flat, starts, lengths, little, fields, stamps, values, done)
         elif msgtype == FLOAT64 and fields == ('data',):
             ok = little & (lengths >= 12)
@@ -277,14 +278,14 @@ def _decode_imu(flat, starts, lengths, little, fields, stamps, values, done):
     s = starts[rows]
     strlen = _gather(flat, s + 12, '<u4').astype(np.int64)
     base = 4 + (12 + strlen + 7) // 8 * 8          # aligned start of orientation
-    fits = (strlen >= 1) & (base + _IMU_TAIL <= lengths[rows])
+    fits = (strlen >= 1) & (base + IMU_TAIL <= lengths[rows])
     rows, s, base = rows[fits], s[fits], base[fits]
     sec = _gather(flat, s + 4, '<i4').astype(np.int64)
     nsec = _gather(flat, s + 8, '<u4').astype(np.int64)
     stamps[rows] = stamp_ns(sec, nsec)     # malformed: below 1 s
     for j, f in enumerate(fields):
-        if f in _IMU_OFFSETS:
-            values[rows, j] = _gather(flat, s + base + _IMU_OFFSETS[f], '<f8')
+        if f in IMU_OFFSETS:
+            values[rows, j] = _gather(flat, s + base + IMU_OFFSETS[f], '<f8')
     euler = [j for j, f in enumerate(fields) if f in _IMU_EULER]
     if euler:
         # the sensors module's own conversion, on the same Python floats, so the angles

@@ -15,7 +15,8 @@ reader's depth (``SENSOR_SUB_QOS``, 100) bounds only what DDS holds, not the que
   subscriptions still take messages (at least :data:`FLOOD_MESSAGES` since the last beat:
   the executor is working through a backlog, not stuck in one long callback), their
   messages are dropped (taken without being deserialised: the subscriptions read raw
-  bytes) until the heartbeat is back within :data:`LAG_RESUME` s. The queue then holds at
+  bytes, as the observer's and the compensator's always do) until the heartbeat is back
+  within :data:`LAG_RESUME` s. The queue then holds at
   most about LAG_LIMIT s of events, and the node reports ERROR ``flooded`` naming the topic
   and its rate, with the ``flood_dropped`` count. Taking a message raw and dropping it
   costs about 14 us of the executor's thread (40 us deserialised): about 70 000 messages/s
@@ -58,11 +59,12 @@ FLOOD_HOLD = 2.0
 class _Guarded:
     """One guarded subscription: its topic, the messages taken and dropped."""
 
-    __slots__ = ('subscription', 'topic', 'taken', 'dropped', 'rate', 'mark')
+    __slots__ = ('subscription', 'topic', 'raw', 'taken', 'dropped', 'rate', 'mark')
 
-    def __init__(self, topic):
+    def __init__(self, topic, raw):
         self.subscription = None
         self.topic = topic
+        self.raw = raw              # the callback takes bytes (always, not only when shed)
         self.taken = self.dropped = self.mark = 0
         self.rate = 0.0
 
@@ -104,21 +106,31 @@ class CallbackWatch:
         self._timer = node.wall_timer(BEAT, self._beat)
 
     # -- the executor's side --------------------------------------------------------------
-    def guard(self, topic, callback):
+    def guard(self, topic, callback, raw=False):
         """
         Return ``(entry, callback)``: ``callback`` wrapped to be shed in a flood.
 
-        Set ``entry.subscription`` to the subscription made with the wrapped callback.
+        Set ``entry.subscription`` to the subscription made with the wrapped callback;
+        ``raw``: it takes its messages as bytes.
         """
-        entry = _Guarded(topic)
+        entry = _Guarded(topic, raw)
         self._guarded.append(entry)
 
-        def on_message(msg):
-            entry.taken += 1
-            if self.shedding or msg.__class__ is bytes:
-                entry.dropped += 1
-                return
-            callback(msg)
+        if raw:
+            def on_message(msg):
+                entry.taken += 1
+                if self.shedding:
+                    entry.dropped += 1
+                    return
+                callback(msg)
+        else:
+            def on_message(msg):
+                entry.taken += 1
+                # bytes: taken raw while shedding (raw is set back just after shedding)
+                if self.shedding or msg.__class__ is bytes:
+                    entry.dropped += 1
+                    return
+                callback(msg)
         return entry, on_message
 
     def forget(self, subscription):
@@ -219,7 +231,7 @@ class CallbackWatch:
             self.flood_episodes += 1
         self.shedding = on
         for entry in self._guarded:
-            if entry.subscription is not None:
+            if entry.subscription is not None and not entry.raw:
                 entry.subscription.raw = on
         if on:
             self._node.get_logger().error(

@@ -29,7 +29,7 @@ from ..vehicle import vehicle_from_parameters
 __all__ = ['VEHICLE_SECTIONS', 'SAFE_COMMAND_FRAME', 'SENSOR_QOS', 'SENSOR_SUB_QOS',
            'STATE_QOS', 'STATE_PUB_QOS', 'LATCHED_QOS', 'MESSAGE_CLASSES', 'TOPICS',
            'VehicleNode', 'about', 'joint_state', 'checked_stamp', 'vector_from_joint_state',
-           'stamp_to_sec', 'to_stamp']
+           'stamp_to_sec', 'to_stamp', 'max_components', 'too_many_components']
 
 # The parameter namespaces that belong to the vehicle file; anything else is a node's own.
 VEHICLE_SECTIONS = ('vehicle', 'model', 'sensors', 'observer', 'controller', 'simulator')
@@ -138,6 +138,12 @@ def max_components(names):
     return max(64, 4 * len(names))
 
 
+def too_many_components(topic, count, names):
+    """Return the error text of a vector message of ``count`` components, too many for names."""
+    return (f'{topic}: {count} components, more than the {max_components(names)} accepted '
+            f'for {len(names)}')
+
+
 def _few(items, limit=5):
     """Return at most ``limit`` items as text, with the count of the rest (bounded logs)."""
     items = list(items[:limit + 1])
@@ -158,8 +164,7 @@ def vector_from_joint_state(msg, names, topic):
     n_names, n_values = len(msg.name), len(msg.position)
     limit = max_components(names)
     if max(n_names, n_values) > limit:
-        raise ObserverError(f'{topic}: {max(n_names, n_values)} components, more than the '
-                            f'{limit} accepted for {len(names)}')
+        raise ObserverError(too_many_components(topic, max(n_names, n_values), names))
     if n_values != n_names:
         raise ObserverError(f'{topic}: {n_names} names but {n_values} positions')
     if (msg.name == list(names)) if msg.name else len(msg.position) == len(names):
@@ -239,7 +244,7 @@ class VehicleNode(Node):
         """
         entry = None
         if shed:
-            entry, callback = self.callback_watch.guard(topic, callback)
+            entry, callback = self.callback_watch.guard(topic, callback, raw)
         events = self.topic_watch.event_callbacks(topic)
         events.matched = matched
         sub = self.create_subscription(msg_class, topic, callback, qos, raw=raw,

@@ -47,16 +47,16 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool, Float64MultiArray
 
 from .checks import changed_pole_problem, own_parameter_problem
-from .common import (checked_stamp, joint_state, LATCHED_QOS, MESSAGE_CLASSES,
-                     SAFE_COMMAND_FRAME, SENSOR_SUB_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS,
-                     vector_from_joint_state)
+from .common import (joint_state, LATCHED_QOS, MESSAGE_CLASSES, SAFE_COMMAND_FRAME,
+                     SENSOR_SUB_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS)
 from .managed import ManagedVehicleNode
 from .runner import run_node
+from .wire import JointStateWriter, SensorReader, stamp_bytes, VectorReader, WireError
 from ..core.control_law import command_problem, control_law
 from ..core.errors import ObserverError
+from ..core.estimators.admission import check_stamp
 from ..core.loop_supervisor import ERROR, LoopSupervisor, OK
 from ..core.vehicle_design import design_vehicle
-from ..sensors import extract_measurement
 
 __all__ = ['CompensatorNode', 'command_problem', 'control_law', 'main']
 
@@ -93,6 +93,12 @@ class CompensatorNode(ManagedVehicleNode):
             self._array_pub = self.create_publisher(
                 Float64MultiArray, TOPICS['command_array'], STATE_QOS)
         self._ref_pub = self.create_publisher(JointState, TOPICS['reference'], LATCHED_QOS)
+        # the messages in and out as bytes, read and written at fixed offsets (nodes/wire.py)
+        plant = self.vehicle.plant
+        self._est_reader = VectorReader(plant.state_names, TOPICS['estimate'])
+        self._cmd_writer = JointStateWriter(plant.input_names)
+        self._sensor_readers = {s.name: SensorReader(s, MESSAGE_CLASSES[s.msg_type])
+                                for s in self.vehicle.sensors}
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
     def activate_vehicle(self):
@@ -121,11 +127,11 @@ class CompensatorNode(ManagedVehicleNode):
                     MESSAGE_CLASSES[s.msg_type], s.topic,
                     lambda msg, sensor=s, stamped=stamped: self._on_sensor(sensor, msg,
                                                                            stamped),
-                    SENSOR_SUB_QOS))
+                    SENSOR_SUB_QOS, raw=True))
         # a second publisher of the estimate is known from the match, before its data
         self._sub = self.watched_subscription(
             JointState, TOPICS['estimate'], self._on_estimate, STATE_QOS,
-            matched=self._on_matched)
+            matched=self._on_matched, raw=True)
         # the simulator's run is over: no safe commands to a plant that no longer runs
         self._run_complete = False
         self._complete_sub = self.watched_subscription(
@@ -192,19 +198,24 @@ class CompensatorNode(ManagedVehicleNode):
 
     def _on_estimate(self, msg):
         topic = TOPICS['estimate']
-        stamp = msg.header.stamp
         try:
-            t = checked_stamp(stamp, topic)
+            header, x_hat, problem = self._est_reader.read(msg)
+        except WireError as err:            # bytes that are no JointState: no stamp
+            self.count('bad_estimates')
+            self.get_logger().error(f'{err}; safe command', throttle_duration_sec=1.0)
+            self._send(self.loop.bad_estimate(self.wall_now()))
+            return
+        try:
+            t = check_stamp(header[0], header[1], topic)
         except ObserverError as err:
             self.count('bad_stamps')
             self.get_logger().error(f'{err}; safe command', throttle_duration_sec=1.0)
             self._send(self.loop.bad_estimate(self.wall_now()))   # the stamp is not usable
             return
-        try:
-            x_hat = vector_from_joint_state(msg, self.vehicle.plant.state_names, topic)
-        except (ObserverError, ValueError) as err:
+        stamp = header[2]       # the command carries the estimate's stamp (its 8 bytes)
+        if problem is not None:
             self.count('bad_estimates')
-            self.get_logger().error(f'{err}; safe command', throttle_duration_sec=1.0)
+            self.get_logger().error(f'{problem}; safe command', throttle_duration_sec=1.0)
             self._send(self.loop.bad_estimate(self.wall_now(), t), stamp)
             return
         self._send(self.loop.estimate(t, x_hat, self.wall_now()), stamp)
@@ -212,20 +223,22 @@ class CompensatorNode(ManagedVehicleNode):
     def _on_sensor(self, sensor, msg, stamped):
         """Take a sensor message: the plant's time (its stamp), the standby's measurement."""
         stamp = None
+        try:
+            header, y, problem = self._sensor_readers[sensor.name].read(msg)
+        except WireError:
+            return                  # bytes that are no such message: the observer's to report
         if stamped:
-            stamp = msg.header.stamp
+            stamp = header[2]
             try:
-                t = checked_stamp(stamp, sensor.topic)
+                t = check_stamp(header[0], header[1], sensor.topic)
             except ObserverError:
                 return              # the observer counts and reports it
         else:       # std_msgs/Float64: the time it was received, as the observer takes it
             t = self._ros_now()
-        y = None
-        if self.loop.wants_values:
-            try:
-                y = extract_measurement(msg, sensor)
-            except (ObserverError, ValueError):
-                self.count('standby_refused_measurements')
+        if not self.loop.wants_values:
+            y = None
+        elif problem is not None:
+            self.count('standby_refused_measurements')
         self._send(self.loop.measurement(sensor.name, t, y, self.wall_now()), stamp)
 
     def _send(self, command, stamp=None):
@@ -238,10 +251,12 @@ class CompensatorNode(ManagedVehicleNode):
             self._write_log()
             return
         u = command.u
-        self._cmd_pub.publish(joint_state(
-            self.vehicle.plant.input_names, u, command.t,
-            frame_id=SAFE_COMMAND_FRAME if command.marked else '',
-            stamp=stamp if command.answers else None))
+        if u.__class__ is not list:
+            u = [float(v) for v in u]
+        # bytes (nodes/wire.py); a command that answers carries its message's stamp
+        self._cmd_pub.publish(self._cmd_writer.write(
+            stamp if command.answers and stamp is not None else stamp_bytes(command.t),
+            SAFE_COMMAND_FRAME if command.marked else '', u))
         if self._array_pub is not None:
             self._array_pub.publish(Float64MultiArray(data=[float(v) for v in u]))
         self._write_log()

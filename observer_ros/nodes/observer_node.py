@@ -36,20 +36,19 @@ from rclpy.event_handler import PublisherEventCallbacks, UnsupportedEventTypeErr
 from sensor_msgs.msg import JointState
 
 from .checks import changed_pole_problem, own_parameter_problem
-from .common import (about, checked_stamp, joint_state, MESSAGE_CLASSES, SENSOR_SUB_QOS,
-                     STATE_PUB_QOS, STATE_QOS, TOPICS, vector_from_joint_state)
+from .common import about, MESSAGE_CLASSES, SENSOR_SUB_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS
 from .managed import ManagedVehicleNode
 from .observer_health import ObserverHealth
 from .observer_reset import ObserverReset
 from .runner import run_node
+from .wire import JointStateWriter, SensorReader, stamp_bytes, VectorReader, WireError
 from ..core.errors import ObserverError
 from ..core.estimators import History, make_estimator
-from ..core.estimators.admission import (Admission, AHEAD_COMMAND, BAD_STAMP, CLOCK_JUMP,
-                                         DUPLICATE, FAR_BACK, LATE, OUT_OF_ORDER,
+from ..core.estimators.admission import (Admission, AHEAD_COMMAND, BAD_STAMP, check_stamp,
+                                         CLOCK_JUMP, DUPLICATE, FAR_BACK, LATE, OUT_OF_ORDER,
                                          restart_state, STALE_COMMAND)
 from ..core.innovation import InnovationMonitor, transient_time
 from ..core.vehicle_design import design_vehicle
-from ..sensors import extract_measurement
 
 __all__ = ['ObserverNode', 'covariance_names', 'main', 'silence_watch_period']
 
@@ -98,13 +97,14 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
         self._subs = []
         # diagnostics name the topics as remapped and namespaced (/sub1/imu/data)
         self._resolved = {s.name: self.resolve_topic_name(s.topic) for s in v.sensors}
+        # taken as bytes: read at fixed offsets (nodes/wire.py), no message objects
         for sensor in v.sensors:
             cls = MESSAGE_CLASSES[sensor.msg_type]
             self._subs.append(self.watched_subscription(
                 cls, sensor.topic, lambda msg, s=sensor: self._on_measurement(s, msg),
-                SENSOR_SUB_QOS))
+                SENSOR_SUB_QOS, raw=True))
         self._cmd_sub = self.watched_subscription(
-            JointState, TOPICS['command'], self._on_command, STATE_QOS)
+            JointState, TOPICS['command'], self._on_command, STATE_QOS, raw=True)
         self._subscribe_set_state()
         self._diag_timer = self.wall_timer(self.param('diagnostics_period'),
                                            self._on_diagnostics)
@@ -147,8 +147,13 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
         # each sensor's rows of C, looked up once rather than per message
         self._rows = {s.name: tuple(vehicle.plant.output_rows(s.outputs))
                       for s in vehicle.sensors}
-        self._stamped = {s.name: hasattr(MESSAGE_CLASSES[s.msg_type], 'header')
+        # the messages in and out as bytes (nodes/wire.py)
+        self._readers = {s.name: SensorReader(s, MESSAGE_CLASSES[s.msg_type])
                          for s in vehicle.sensors}
+        self._cmd_reader = VectorReader(vehicle.plant.input_names, TOPICS['command'])
+        self._est_writer = JointStateWriter(vehicle.plant.state_names)
+        self._res_writers = {s.name: JointStateWriter(s.outputs) for s in vehicle.sensors}
+        self._cov_writer = JointStateWriter(covariance_names(vehicle.plant.state_names))
         self._build_health(vehicle)
         # what each stamp means (core: the bag replay asks the same); the ROS clock is
         # read once a second, or when a stamp passes the last reading, not per message
@@ -209,22 +214,25 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
             self._on_diagnostics()
 
     def _process_measurement(self, sensor, msg):
-        t = None
-        # every answer to this message carries its own stamp, to the nanosecond (float
-        # seconds keep only ~0.2 us of a wall-clock stamp)
-        stamp = msg.header.stamp if self._stamped[sensor.name] else None
-        if stamp is not None:
+        try:
+            header, y, problem = self._readers[sensor.name].read(msg)
+        except WireError as err:            # bytes that are no such message: no time
+            self._reject('bad_messages', str(err))
+            return
+        if header is not None:
+            # every answer to this message carries its own stamp (its 8 bytes), to the
+            # nanosecond (float seconds keep only ~0.2 us of a wall-clock stamp)
+            stamp = header[2]
             try:
-                t = checked_stamp(stamp, sensor.topic)
+                t = check_stamp(header[0], header[1], sensor.topic)
             except ObserverError as err:    # no usable time: not even a prediction
                 self._reject(BAD_STAMP.counter, str(err))
                 return
-        try:
-            if stamp is None:   # std_msgs/Float64 carries no stamp: the time it was received
-                t = self.get_clock().now().nanoseconds * 1e-9
-            y = extract_measurement(msg, sensor)
-        except (ObserverError, ValueError) as err:
-            self._reject('bad_messages', str(err))
+        else:   # std_msgs/Float64 carries no stamp: the time it was received
+            stamp = None
+            t = self.get_clock().now().nanoseconds * 1e-9
+        if problem is not None:
+            self._reject('bad_messages', problem)
             self._answer_without_correction(sensor, t, stamp)
             return
         history = self.history
@@ -282,16 +290,22 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
         if residual is not None:
             self._health.add(sensor.name, residual, history.innovation_covariance, t)
         if residual is not None and self._res_pub.subscribed():
-            self._res_pub.publisher.publish(joint_state(sensor.outputs, residual, t,
-                                                        sensor.frame_id, stamp))
+            self._res_pub.publisher.publish(self._res_writers[sensor.name].write(
+                stamp_bytes(t) if stamp is None else stamp, sensor.frame_id,
+                residual.tolist()))
 
     def _publish_estimate(self, t, stamp=None, x_hat=None):
+        """Publish x_hat (default: the estimator's) stamped ``stamp`` (8 bytes), else t."""
         x_hat = self.estimator.x_hat if x_hat is None else x_hat
+        if stamp is None:
+            stamp = stamp_bytes(t)
         # one frame for every estimate, whichever sensor it answers: the vehicle's body
-        msg = joint_state(self.vehicle.plant.state_names, x_hat, t, self.vehicle.base_frame,
-                          stamp)
+        frame_id = self.vehicle.base_frame
+        msg = self._est_writer.write(
+            stamp, frame_id, x_hat.tolist() if isinstance(x_hat, np.ndarray) else x_hat)
         self._est_pub.publish(msg)
         self._last_estimate = msg
+        self._last_header = (stamp, frame_id)
         if self._lockstep:
             self._pending_commands += 1
             self._pending_since = time.monotonic()
@@ -303,14 +317,10 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
         if not pub.subscribed():
             return
         P = getattr(self.estimator, 'P', None)
-        msg = self._last_estimate
-        if P is None or msg is None:
+        if P is None or self._last_estimate is None:
             return
-        names = self.vehicle.plant.state_names
-        upper = np.triu_indices(len(names))
-        cov = JointState(header=msg.header, name=covariance_names(names),
-                         position=P[upper].tolist())
-        pub.publisher.publish(cov)
+        upper = np.triu_indices(len(self.vehicle.plant.state_names))
+        pub.publisher.publish(self._cov_writer.write(*self._last_header, P[upper].tolist()))
 
     def _answer_without_correction(self, sensor, t, stamp=None):
         """
@@ -375,15 +385,20 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
         self.get_logger().warning(f'{reason}; estimator {how}', throttle_duration_sec=1.0)
 
     def _on_command(self, msg):
-        t = None
         topic = TOPICS['command']
         try:
-            t = checked_stamp(msg.header.stamp, topic)
+            header, u, problem = self._cmd_reader.read(msg)
+        except WireError as err:            # bytes that are no JointState
+            self._reject('bad_commands', str(err))
+            return
+        try:
+            t = check_stamp(header[0], header[1], topic)
         except ObserverError as err:
             self._reject(BAD_STAMP.counter, str(err))
             return
         try:
-            u = vector_from_joint_state(msg, self.vehicle.plant.input_names, topic)
+            if problem is not None:
+                raise ObserverError(problem)
             # a command is not a time source: it never moves the estimator's time (one
             # stamped ahead is held until the estimate reaches it) nor resets it
             head = self.history.t
@@ -391,7 +406,7 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
             if verdict.use:
                 # ahead: pending; inside the history: from its stamp on; older: held from
                 # the estimate's time
-                self.history.set_input(t, u, tag=msg.header.stamp)
+                self.history.set_input(t, u, tag=header[2])
                 self.count('commands')
                 if verdict is STALE_COMMAND:
                     self.get_logger().warning(

@@ -70,6 +70,7 @@ import rclpy
 from builtin_interfaces.msg import Time
 from sensor_msgs.msg import JointState
 from observer_ros.nodes.compensator import CompensatorNode
+from rclpy.serialization import deserialize_message
 from observer_ros.timeutil import stamp_to_sec
 rclpy.init(args=['--ros-args', '--params-file', sys.argv[1], '-p', 'simulator.mode:=realtime',
                  '-r', '__ns:=/callback_takeover'])
@@ -84,8 +85,9 @@ class Logger:
 
 node.get_logger = lambda: Logger()
 publish = node._cmd_pub.publish
-node._cmd_pub.publish = lambda msg: (events.append(('command', stamp_to_sec(msg.header.stamp))),
-                                     publish(msg))
+# the command goes out as its CDR bytes (nodes/wire.py)
+node._cmd_pub.publish = lambda raw: (events.append(
+    ('command', stamp_to_sec(deserialize_message(raw, JointState).header.stamp))), publish(raw))
 
 
 def stamped(t, msg):
