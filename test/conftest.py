@@ -8,7 +8,9 @@ those, never from another test module.
 
 A test that starts a process or a DDS participant carries the ``ros`` marker (pytest.ini):
 ``make check`` leaves those tests out. A test without the marker that starts either fails
-at once, saying so.
+at once, saying so. A ``ros`` test whose assertions depend on realtime scheduling (a
+realtime closed loop, a latency, a rate) carries ``realtime`` as well: ``make test`` runs
+those one at a time, after the others ran in workers; ``realtime`` alone implies ``ros``.
 """
 
 import multiprocessing.process
@@ -27,6 +29,14 @@ def _refuse(what):
     def refuse(*args, **kwargs):
         raise RuntimeError(f'{what} in a test not marked ros: mark it @pytest.mark.ros')
     return refuse
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    """Mark every ``realtime`` test ``ros`` too, before ``-m`` selects (make check: not ros)."""
+    for item in items:
+        if item.get_closest_marker('realtime') and not item.get_closest_marker('ros'):
+            item.add_marker(pytest.mark.ros)
 
 
 @pytest.hookimpl(hookwrapper=True)

@@ -41,3 +41,12 @@ def test_module_basenames_are_unique():
     # test/ has no __init__.py: pytest imports each module by its file name alone
     names = [p.name for p in _modules()]
     assert len(names) == len(set(names)), sorted(n for n in names if names.count(n) > 1)
+
+
+def test_make_test_runs_the_realtime_tests_one_at_a_time():
+    # realtime closed loops beside each other on 2 cores fail; the rest runs in workers
+    recipe = (TEST.parent / 'Makefile').read_text().split('\ntest: ')[1].split('\n\n')[0]
+    runs = [r for r in recipe.replace('\\\n', ' ').split(';') if '-m pytest' in r]
+    assert len(runs) == 2, runs
+    assert '-n ' in runs[0] and '-m "not realtime"' in runs[0], runs[0]
+    assert '-n ' not in runs[1] and '-m realtime' in runs[1], runs[1]

@@ -109,6 +109,7 @@ def _injections(t, u):
     ]
 
 
+@pytest.mark.realtime
 def test_replay_of_a_faulty_realtime_run_equals_the_node_message_for_message(tmp_path):
     bag = tmp_path / 'faults'
     common = (*LOOP, 'use_sim_time:=true')

@@ -14,6 +14,7 @@ pytestmark = pytest.mark.ros      # processes or DDS participants
 REALTIME = ('simulator.mode:=realtime', 'simulator.duration:=5.0', 'diagnostics_period:=0.2')
 
 
+@pytest.mark.realtime
 def test_realtime_run_ends_cleanly_and_peers_stand_by(tmp_path):
     probe = Probe()
     listener = Listener(probe)

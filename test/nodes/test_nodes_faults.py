@@ -260,6 +260,7 @@ def test_silent_sensor_means_predict_only(observer_setup):
     assert status.level == DiagnosticStatus.WARN and 'predicting only' in status.message
 
 
+@pytest.mark.realtime
 @pytest.mark.ros
 def test_silence_is_watched_slowly_and_predicted_at_the_rate(tmp_path):
     """

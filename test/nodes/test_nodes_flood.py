@@ -10,7 +10,8 @@ from observer_ros.timeutil import stamp_to_sec
 import pytest
 from ros_helpers import gyro_msg, observer_under_test, REALTIME, ros_env, rss_kib, WAIT
 
-pytestmark = pytest.mark.ros      # processes or DDS participants
+pytestmark = [pytest.mark.ros,       # processes or DDS participants
+              pytest.mark.realtime]  # realtime closed loops or rates: one at a time
 
 FLOOD = __file__.replace('test_nodes_flood.py', 'flood_publisher.py')
 FLOOD_SECONDS = 20.0

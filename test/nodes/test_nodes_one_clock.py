@@ -105,6 +105,7 @@ def graph(tmp_path):
         {key: procs[key].output()[-3000:] for key, code in codes.items() if code}
 
 
+@pytest.mark.realtime
 def test_the_second_vehicle_follows_clock_and_survives_its_owners_restart(graph):
     g = graph
     for name in ('observer_node', 'compensator'):
@@ -207,6 +208,7 @@ def test_a_lockstep_follower_steps_only_as_far_as_clock(tmp_path):
     assert codes == [0, 0, 0], [proc.output()[-2000:] for proc in procs]
 
 
+@pytest.mark.realtime
 def test_safe_commands_follow_clock_and_stop_while_it_stands_still(tmp_path):
     """A compensator on /clock's time whose estimates stop, then /clock stops too."""
     from observer_ros.nodes.common import joint_state

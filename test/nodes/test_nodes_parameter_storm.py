@@ -20,7 +20,8 @@ import pytest
 from ros_helpers import CONFIG, Probe, Proc, ros_env, WAIT
 from sensor_msgs.msg import JointState
 
-pytestmark = pytest.mark.ros      # processes or DDS participants
+pytestmark = [pytest.mark.ros,       # processes or DDS participants
+              pytest.mark.realtime]  # realtime closed loops or rates: one at a time
 
 STORM = """
 import sys, time, warnings

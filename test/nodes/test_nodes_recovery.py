@@ -98,6 +98,7 @@ def loop_of(tmp_path):
         lp.close()
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize('vehicle', ['cart_pendulum', 'submarine'])
 def test_simulator_killed_and_restarted_converges_again(loop_of, vehicle):
     lp = loop_of(vehicle)
@@ -139,6 +140,7 @@ def paused_observer_run(lp, pause=3.0):
     return [x for t, x in lp.true if t_stop <= t <= t_cont], t_stop, t_cont
 
 
+@pytest.mark.realtime
 def test_paused_observer_the_standby_holds_the_cart(loop_of):
     """The observer stopped 3 s: the compensator's standby observer closes the loop."""
     lp = loop_of('cart_pendulum')
@@ -163,6 +165,7 @@ def test_paused_observer_the_standby_holds_the_cart(loop_of):
 @pytest.mark.xfail(strict=False, reason='not met in every run: the cart moved 0.22 m (bar 0.2 m) '
                    'in one full-suite run of three on an idle host and diverged in one at load '
                    '16 (2026-11-27); it held in the others')
+@pytest.mark.realtime
 def test_a_second_observer_with_the_same_name_does_not_move_the_cart(loop_of):
     """Two observers on state/estimate: the compensator follows one stream and says so."""
     lp = loop_of('cart_pendulum')
@@ -331,6 +334,7 @@ def test_after_an_outage_estimates_are_gated_and_the_loop_closes_again(
     assert listener.counter('compensator', 'commands') >= 3
 
 
+@pytest.mark.realtime
 def test_overloaded_observer_says_so(observer_setup):
     proc, probe, listener, pub, cmd = observer_setup
     t = 500.0

@@ -25,7 +25,8 @@ from observer_ros.tools.run_closed_loop import node_command, stop_process
 import pytest
 from ros_helpers import CONFIG, WAIT
 
-pytestmark = pytest.mark.ros      # processes or DDS participants
+pytestmark = [pytest.mark.ros,       # processes or DDS participants
+              pytest.mark.realtime]  # realtime closed loops or rates: one at a time
 
 VEHICLE = CONFIG / 'submarine.yaml'
 TEST = Path(__file__).resolve().parents[1]       # test/: the helper modules

@@ -15,7 +15,8 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
 from sensor_msgs.msg import JointState
 
-pytestmark = pytest.mark.ros      # processes or DDS participants
+pytestmark = [pytest.mark.ros,       # processes or DDS participants
+              pytest.mark.realtime]  # realtime closed loops or rates: one at a time
 
 VEHICLE = CONFIG / 'submarine.yaml'
 # realtime for every node (nobody waits for anybody), 2x faster than the wall clock, noise

@@ -212,6 +212,7 @@ def test_each_executable_listed_once_and_runs(ros2env):
     assert result.returncode == 2 and 'error: no vehicle parameters' in result.stderr
 
 
+@pytest.mark.realtime
 @pytest.mark.ros
 def test_closed_loop_launch_params_and_one_clock(ros2env, tmp_path):
     first = Launch(ros2env, LAUNCH, tmp_path / 'first.log')
