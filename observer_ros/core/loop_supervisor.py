@@ -154,6 +154,7 @@ class LoopSupervisor:
         self.standby = None
         self.apply(vehicle, design, standby)
         self._last_wall = None          # wall time of the last estimate followed
+        self._last_watch = None         # wall time of the last watchdog check
         self._last_stamp = None         # its stamp: the estimates' time base
         self._answered = None           # the newest estimate's stamp answered
         self._answer = None             # the command that answered it
@@ -343,8 +344,19 @@ class LoopSupervisor:
         return self._standby_command(t, x, now)
 
     def watchdog(self, now):
-        """Check the estimate's age on the wall clock; return True when it just went stale."""
+        """
+        Check the estimate's age on the wall clock; return True when it just went stale.
+
+        A check that comes more than ``controller.stale_timeout`` after the one before
+        judges nothing (``watchdog_deferred``): the compensator's own process did not run
+        meanwhile, and the estimates that reached it wait in its queue, taken after this
+        check. The next check, a watchdog period later, judges.
+        """
+        last, self._last_watch = self._last_watch, now
         if self._last_wall is None or self.mode == 'stale':
+            return False
+        if last is not None and now - last > self.vehicle.controller.stale_timeout:
+            self._count('watchdog_deferred')
             return False
         age = now - self._last_wall
         if age <= self.vehicle.controller.stale_timeout:

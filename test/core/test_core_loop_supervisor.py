@@ -439,6 +439,31 @@ def _gone_stale(sup, x):
     return t
 
 
+def test_a_compensator_that_did_not_run_takes_its_queued_estimates_before_judging():
+    # the watchdog checks every 0.1 s; the process stops for 0.63 s (a busy host) while
+    # the observer goes on: the first check after the stop comes before the estimates
+    # that queued meanwhile, and judges nothing; the observer really silent: the next
+    # check goes stale
+    for observer_runs in (True, False):
+        sup, counts, logs = supervisor('cart_pendulum_robust', 'simulator.mode:=realtime')
+        x = np.array([0.0, 1.0, 0.0, 0.0])
+        now = 1.0
+        for _ in range(5):
+            sup.estimate(now, x, now)
+            assert not sup.watchdog(now + 0.05)
+            now += 0.1
+        now += 0.63
+        assert not sup.watchdog(now) and counts['watchdog_deferred'] == 1
+        assert not sup.stale
+        if observer_runs:
+            for k in range(63):
+                sup.estimate(now - 0.63 + 0.01 * k, x, now + 0.001 * k)
+        assert sup.watchdog(now + 0.1) is not observer_runs
+        assert sup.stale is not observer_runs
+        if not observer_runs:
+            assert logs[-1][1].startswith('estimate stale (0.')
+
+
 def test_without_a_standby_stale_predicts_then_falls_back_then_resyncs():
     sup, counts, logs = supervisor('submarine', 'simulator.mode:=realtime',
                                    'controller.predict_timeout:=3.0',
