@@ -9,19 +9,32 @@ import time
 
 from _common import REPO, ros_env
 
-__all__ = ['node_command', 'start', 'stop_all']
+__all__ = ['MODULES', 'node_command', 'start', 'stop_all']
 
 
-def node_command(node, *params, namespace=None, vehicle='config/submarine.yaml', nodes=()):
+# python -m observer_ros.nodes.<module> for a node: how a copy without nodes/entry.py runs it
+MODULES = {'observer_node': 'observer_node', 'observer': 'observer_node',
+           'compensator': 'compensator', 'plant_simulator': 'plant_simulator',
+           'container': 'container'}
+
+
+def node_command(node, *params, namespace=None, vehicle='config/submarine.yaml', nodes=(),
+                 pythonpath=None):
     """
     Return the argv of one of the package's nodes with the vehicle file and overrides.
 
     The package's own ``node_command`` (``observer-run`` starts its nodes with it); for
-    ``node='container'``, ``nodes`` names the nodes it runs.
+    ``node='container'``, ``nodes`` names the nodes it runs. ``pythonpath``: the copy of
+    the package the node will run from; one from before ``observer_ros.nodes.entry``
+    runs the node's own module (``python -m observer_ros.nodes.observer_node``).
 
     """
     from observer_ros.tools.run_closed_loop import node_command as package_command
-    return package_command(node, REPO / vehicle, *params, namespace=namespace, nodes=nodes)
+    cmd = package_command(node, REPO / vehicle, *params, namespace=namespace, nodes=nodes)
+    if pythonpath and not (Path(pythonpath) / 'observer_ros' / 'nodes' / 'entry.py').exists():
+        i = cmd.index('observer_ros.nodes.entry')
+        cmd[i:i + 2] = [f'observer_ros.nodes.{MODULES[node]}']
+    return cmd
 
 
 def start(cmd, log_path, pythonpath=None):

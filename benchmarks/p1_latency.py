@@ -17,7 +17,13 @@ After a warm-up (DDS matching, the observer's first gains), blocks of ``--count`
 messages go alternately to the relay and to the observer (A B, B A, ...), ``--pairs``
 pairs. Per pair: observer / relay of the median and of the 99th percentile.
 
-Targets: median <= 1.10x relay, p99 <= 1.20x relay.
+With ``--baseline-observer-pythonpath DIR`` (a copy of an earlier version: ``git
+archive``) a third process runs that version's observer in ``/p1_base``, and each round
+sends a block to each of the three, the order rotated from round to round; then also:
+observer / baseline of the median, the p99 and the CPU per message, per round (the same
+host in the same minute).
+
+Targets: median <= 1.10x relay, p99 <= 1.20x relay, CPU per message <= 1.25x relay.
 
 """
 
@@ -35,6 +41,7 @@ from _common import (common_parser, gyro_imu, log, percentile, ratio_line, REPO,
 from _procs import node_command, start, stop_all  # noqa: E402
 
 TARGETS = {'relay': '/p1_relay', 'observer': '/p1_obs'}
+BASELINE = ('baseline', '/p1_base')     # an earlier version's observer (optional)
 
 
 def _cpu_seconds(pid):
@@ -56,7 +63,7 @@ def _wait(predicate, timeout, what):
 
 
 def run(smoke=False, rate=None, count=None, pairs=None, observer_pythonpath=None,
-        log=print):
+        log=print, baseline_pythonpath=None):
     rate = rate or (200.0 if smoke else 250.0)
     count = count or (200 if smoke else 1500)
     pairs = pairs or (1 if smoke else 4)
@@ -71,6 +78,9 @@ def run(smoke=False, rate=None, count=None, pairs=None, observer_pythonpath=None
 
     from observer_ros.nodes.common import SENSOR_QOS, STATE_QOS
 
+    targets = dict(TARGETS)
+    if baseline_pythonpath:
+        targets[BASELINE[0]] = BASELINE[1]
     logdir = Path(tempfile.mkdtemp(prefix='p1_logs_'))
     procs = []
     rclpy.init()
@@ -95,7 +105,7 @@ def run(smoke=False, rate=None, count=None, pairs=None, observer_pythonpath=None
         return cb
 
     pubs, subs = {}, {}
-    for target, ns in TARGETS.items():
+    for target, ns in targets.items():
         pubs[target] = node.create_publisher(Imu, f'{ns}/imu/data', SENSOR_QOS)
         subs[target] = node.create_subscription(JointState, f'{ns}/state/estimate',
                                                 on_estimate(target), STATE_QOS)
@@ -133,22 +143,28 @@ def run(smoke=False, rate=None, count=None, pairs=None, observer_pythonpath=None
         state['cpu'] = (_cpu_seconds(pid) - cpu0) if pid else float('nan')
         return lat
 
-    results = {'relay': [], 'observer': []}
+    results = {target: [] for target in targets}
     pids = {}
     try:
         procs.append(start([sys.executable, str(REPO / 'benchmarks' / 'relay_node.py'),
                             '--ros-args', '-r', f'__ns:={TARGETS["relay"]}'],
                            logdir / 'relay.log'))
         procs.append(start(node_command('observer_node', 'simulator.mode:=realtime',
-                                        namespace=TARGETS['observer']),
+                                        namespace=TARGETS['observer'],
+                                        pythonpath=observer_pythonpath),
                            logdir / 'observer.log', pythonpath=observer_pythonpath))
-        pids = {'relay': procs[0].pid, 'observer': procs[1].pid}
+        if baseline_pythonpath:
+            procs.append(start(node_command('observer_node', 'simulator.mode:=realtime',
+                                            namespace=BASELINE[1],
+                                            pythonpath=baseline_pythonpath),
+                               logdir / 'baseline.log', pythonpath=baseline_pythonpath))
+        pids = dict(zip(targets, (p.pid for p in procs)))
         spinner.start()
-        for target in TARGETS:
+        for target in targets:
             _wait(lambda t=target: pubs[t].get_subscription_count() >= 1
                   and subs[t].get_publisher_count() >= 1, 60.0, f'{target} to match')
         # warm-up: matching in both directions, the observer's first gains
-        for target in TARGETS:
+        for target in targets:
             deadline = time.monotonic() + 30.0
             while True:
                 lat = block(target, int(rate * (0.5 if smoke else 1.5)))
@@ -156,8 +172,12 @@ def run(smoke=False, rate=None, count=None, pairs=None, observer_pythonpath=None
                         time.monotonic() > deadline:
                     break
         log(f'  P1: {rate:g} Hz, blocks of {count} messages, {pairs} pairs')
+        names = list(targets)
         for i in range(pairs):
-            order = ('relay', 'observer') if i % 2 == 0 else ('observer', 'relay')
+            if len(names) == 2:
+                order = names if i % 2 == 0 else names[::-1]      # A B, B A, ...
+            else:
+                order = names[i % len(names):] + names[:i % len(names)]
             for target in order:
                 lat = block(target, count)
                 us = [x / 1000.0 for x in lat]
@@ -185,7 +205,7 @@ def run(smoke=False, rate=None, count=None, pairs=None, observer_pythonpath=None
                  f'{summary([r[key] for r in rel])["median"]:.0f} us'))
     figures.append(ratio_line(
         'P1', 'cpu_per_message_observer/relay',
-        [o['cpu_us_per_msg'] / r['cpu_us_per_msg'] for o, r in zip(obs, rel)], '<=', None,
+        [o['cpu_us_per_msg'] / r['cpu_us_per_msg'] for o, r in zip(obs, rel)], '<=', 1.25,
         smoke=smoke,
         note=f'observer {summary([o["cpu_us_per_msg"] for o in obs])["median"]:.0f} us, relay '
              f'{summary([r["cpu_us_per_msg"] for r in rel])["median"]:.0f} us of CPU per message '
@@ -196,6 +216,17 @@ def run(smoke=False, rate=None, count=None, pairs=None, observer_pythonpath=None
         'P1', 'answered_observer/relay',
         [o['received'] / max(1, r['received']) for o, r in zip(obs, rel)], '>=', None,
         smoke=smoke, note=f'unanswered: observer {lost}, relay {lost_r} of {count * pairs}'))
+    base = results.get(BASELINE[0])
+    for key, what in (('median_us', 'median_latency'), ('p99_us', 'p99_latency'),
+                      ('cpu_us_per_msg', 'cpu_per_message')):
+        if not base:
+            break
+        figures.append(ratio_line(
+            'P1', f'{what}_observer/baseline', [o[key] / b[key] for o, b in zip(obs, base)],
+            '<=', None, smoke=smoke,
+            note=f'observer {summary([o[key] for o in obs])["median"]:.0f} us, baseline '
+                 f'({baseline_pythonpath}) {summary([b[key] for b in base])["median"]:.0f} '
+                 f'us, relay {summary([r[key] for r in rel])["median"]:.0f} us'))
     return {'benchmark': 'P1', 'smoke': smoke, 'rate_hz': rate, 'count': count,
             'pairs': pairs, 'figures': figures, 'blocks': results, 'logs': str(logdir)}
 
@@ -208,11 +239,15 @@ def main(argv=None):
     parser.add_argument('--observer-pythonpath', metavar='DIR',
                         help='run the observer with this copy of observer_ros first on '
                              'PYTHONPATH (to measure a previous version)')
+    parser.add_argument('--baseline-observer-pythonpath', metavar='DIR',
+                        help="also run this copy's observer (e.g. git archive of an earlier "
+                             'commit) in each round, and report observer / baseline')
     args = parser.parse_args(argv)
     print('P1: observer node latency against a bare relay', flush=True)
     return report(args.json, run(smoke=args.smoke, rate=args.rate, count=args.count,
                                  pairs=args.pairs,
-                                 observer_pythonpath=args.observer_pythonpath, log=log))
+                                 observer_pythonpath=args.observer_pythonpath, log=log,
+                                 baseline_pythonpath=args.baseline_observer_pythonpath))
 
 
 if __name__ == '__main__':

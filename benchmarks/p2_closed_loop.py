@@ -23,12 +23,30 @@ Layouts, each run ``--runs`` times (``--configs``):
   the ROS 2 real-time guides set a control loop up; by default ``container@fifo50``,
   skipped where this user may not.
 
-Figure per configuration: on-time fraction ``1 - late / checked steps`` per run [>= 0.999].
-Also reported: the loop round trip and the step rate achieved (rcl timers skip periods
-the process was too busy to serve, so a late step is not counted twice), and each
-process's CPU time (user + system, /proc) per simulator step over the closed loop:
-which node a slower loop comes from. ``--observer-pythonpath`` runs the observer of
-another version than the simulator and compensator (``processes`` layout).
+The bare loop (``--loops nodes,bare``, both by default): the same simulator with the
+observer and the compensator replaced by bare rclpy relays (``relay_node.py``: the same
+messages, QoS and executor, no estimator, no control law; ``processes``: one process
+each, ``container``: both in one process), run beside the nodes, the two alternated run
+by run (A B, B A, ...). What the host can do is what the bare loop does on it; the nodes
+are judged against that in the same run:
+
+- on-time fraction at 1 kHz, nodes minus bare, per pair of runs [>= -0.005];
+- ``--sweep LAYOUTS``: the highest step rate at which each loop keeps 99.9 % of its steps
+  on time. Short runs (``--sweep-duration``) from 500 Hz up by 1.5x to the first rate
+  that misses, then ``--sweep-bisections`` geometric bisections between the last rate
+  that held and the first that missed; the two loops probed in turn at each step.
+  Figure: nodes / bare [>= 0.9], with both rates and the bare loop's round trip at 1 kHz
+  (the host's relay figure) beside it.
+
+Figure per configuration: on-time fraction ``1 - late / checked steps`` per run (an
+absolute figure, information: it measures the host as much as the code). Also reported:
+the loop round trip and the step rate achieved (rcl timers skip periods the process was
+too busy to serve, so a late step is not counted twice), and each process's CPU time
+(user + system, /proc) per simulator step over the closed loop: which node a slower loop
+comes from. ``--baseline-nodes-pythonpath DIR`` adds a third loop per round (and to the
+sweep): the observer and the compensator of DIR's copy with this simulator.
+``--observer-pythonpath`` runs the observer of another version than the simulator and
+compensator (``processes`` layout).
 
 ``--baseline-observer-pythonpath DIR`` (a checkout of an earlier version, e.g. ``git
 archive``) follows each ``processes`` run with one whose observer is that version's, the
@@ -68,11 +86,30 @@ LAYOUTS = {
     'container': (('container', 'observer', 'compensator'), ('plant_simulator',)),
     'one_process': (('container', 'observer', 'compensator', 'plant_simulator'),),
 }
+# The bare loop of a layout: the relays in place of the observer and the compensator.
+BARE = {
+    'processes': (('relay', 'estimate'), ('relay', 'command'), ('plant_simulator',)),
+    'container': (('relay', 'estimate', 'command'), ('plant_simulator',)),
+}
+LOOPS = ('nodes', 'bare', 'baseline')
+ON_TIME = 0.999             # the on-time fraction a rate of the sweep must keep
+SWEEP_START = 500.0         # Hz, the sweep's first rate
+SWEEP_FACTOR = 1.5          # and its steps up, to the first rate that misses
+SWEEP_MAX = 8000.0          # Hz: the sweep stops here even if every rate held
+# what a node logs when its flood watch left the events executor (its CPU per message then
+# rises): said beside the run, whose figures are not those of the nodes' usual executor
+FLOOD_FALLBACK = 'going on with the wait-set executor'
+SWEEP_DOWN = 3              # steps down at most when the first rate misses (to 148 Hz)
 
 
-def _command(parts, params, rt_priority=None):
-    """Return the argv of one process of a layout: a node, or the container and its nodes."""
-    cmd = node_command(parts[0], *params, namespace=NS, nodes=parts[1:])
+def _command(parts, params, rt_priority=None, pythonpath=None):
+    """Return the argv of one process of a layout: a node, the container, or relays."""
+    if parts[0] == 'relay':
+        cmd = [sys.executable, str(Path(__file__).resolve().parent / 'relay_node.py'),
+               '--roles', ','.join(parts[1:]), '--ros-args', '-r', f'__ns:={NS}']
+    else:
+        cmd = node_command(parts[0], *params, namespace=NS, nodes=parts[1:],
+                           pythonpath=pythonpath)
     if rt_priority:
         # SCHED_FIFO, as the ROS 2 real-time guides set up a control loop (needs the right)
         cmd = ['chrt', '--fifo', str(int(rt_priority))] + cmd
@@ -80,18 +117,27 @@ def _command(parts, params, rt_priority=None):
 
 
 def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None,
-             rt_priority=None, observer_pythonpath=None):
-    """Start the layout's processes, the simulator last; wait for the simulator's end."""
+             rt_priority=None, observer_pythonpath=None, loop='nodes', baseline=None):
+    """
+    Start the layout's processes, the simulator last; wait for the simulator's end.
+
+    ``loop``: ``nodes`` (the package's), ``bare`` (relays in their place, this
+    checkout's: only the simulator takes ``pythonpath``), or ``baseline`` (the nodes of
+    the copy ``baseline``, the simulator of ``pythonpath``).
+    """
     common = ['simulator.mode:=realtime', f'simulator.rate_hz:={float(rate)}']
     sim_params = [f'simulator.duration:={float(duration)}', 'diagnostics_period:=0.25']
-    procs = []
+    layouts = BARE if loop == 'bare' else LAYOUTS
+    procs, logs = [], []
     try:
-        for parts in LAYOUTS[layout]:
+        for parts in layouts[layout]:
             if 'plant_simulator' in parts:
                 continue
             own = observer_pythonpath if parts == ('observer_node',) else None
-            procs.append(start(_command(parts, common, rt_priority),
-                               logdir / f'{parts[-1]}_{run}.log', own or pythonpath))
+            tag = f'{loop}_{"_".join(parts)}'
+            path = {'bare': None, 'baseline': baseline}.get(loop, own or pythonpath)
+            logs.append(logdir / f'{tag}_{run}_{rate:g}Hz.log')
+            procs.append(start(_command(parts, common, rt_priority, path), logs[-1], path))
         with state['lock']:
             state['diag'] = []
         deadline = time.monotonic() + 60.0
@@ -105,12 +151,13 @@ def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None,
         else:
             if procs:
                 raise RuntimeError('P2: observer and compensator did not come up')
-        sim_parts = next(p for p in LAYOUTS[layout] if 'plant_simulator' in p)
-        sim = start(_command(sim_parts, common + sim_params, rt_priority),
-                    logdir / f'{layout}_simulator_{run}.log', pythonpath)
+        sim_parts = next(p for p in layouts[layout] if 'plant_simulator' in p)
+        sim = start(_command(sim_parts, common + sim_params, rt_priority, pythonpath),
+                    logdir / f'{layout}_{loop}_simulator_{run}_{rate:g}Hz.log', pythonpath)
         procs.append(sim)
-        names = [parts[-1] if len(parts) == 1 else 'container'
-                 for parts in LAYOUTS[layout] if 'plant_simulator' not in parts]
+        names = [parts[-1] if len(parts) == 1 else
+                 ('+'.join(parts) if parts[0] == 'relay' else 'container')
+                 for parts in layouts[layout] if 'plant_simulator' not in parts]
         names.append('plant_simulator' if len(sim_parts) == 1 else 'container')
         samples = _sample_cpu(procs, names, state, duration + 60.0)
         if sim.poll() is None:
@@ -147,7 +194,9 @@ def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None,
             'steps': steps, 'late_commands': late, 'late_after_short_step': late_short,
             'open_loop_steps': open_loop,
             'checked': checked, 'on_time': 1.0 - late / checked if checked else float('nan'),
-            'rate_achieved_hz': rate_achieved, 'exit_code': sim.returncode}
+            'rate_achieved_hz': rate_achieved, 'exit_code': sim.returncode,
+            'flood_fallback': any(FLOOD_FALLBACK in path.read_text(errors='replace')
+                                  for path in logs if path.exists())}
 
 
 def _cpu_ticks(pid):
@@ -215,8 +264,25 @@ def _parse_config(text):
     return layout, int(prio[4:]) if prio else None
 
 
+def _log_run(log, label, r, runs, rate, res):
+    """Print one run's line: steps, late, on time, rate, round trip, CPU per step."""
+    log(f'  P2 {label:>16} run {r + 1}/{runs}: {res["steps"]} steps at '
+        f'{rate:g} Hz, {res["open_loop_steps"]} before the loop closed, '
+        f'{res["late_commands"]} late ({res["late_after_short_step"]} of them '
+        f'after a short step) of {res["checked"]} -> on time '
+        f'{res["on_time"]:.5f}; achieved {res["rate_achieved_hz"]:.0f} Hz; '
+        f'loop measurement -> command: median {res["loop_median_us"]:.0f} us, '
+        f'p99 {res["loop_p99_us"]:.0f} us, max {res["loop_max_us"]:.0f} us; '
+        'CPU per step: ' + ', '.join(
+            f'{name} {us:.0f} us' for name, us in res['cpu_us_per_step'].items())
+        + ('; a node took the messages for a flood and left the events executor'
+           if res.get('flood_fallback') else ''))
+
+
 def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=None,
-        configs=None, log=print, observer_pythonpath=None, baseline_observer=None):
+        configs=None, log=print, observer_pythonpath=None, baseline_observer=None,
+        loops=LOOPS[:2], sweep=None, sweep_duration=None, sweep_bisections=None,
+        baseline_nodes=None):
     runs = runs or (1 if smoke else 3)
     configs = list(configs or (CONFIGS_SMOKE if smoke else CONFIGS))
     parsed = {c: _parse_config(c) for c in configs}
@@ -225,9 +291,20 @@ def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=Non
             f'{", ".join(c for c, (_, prio) in parsed.items() if prio)} skipped')
         configs = [c for c in configs if not parsed[c][1]]
     layouts = configs
+    loops = [lp for lp in LOOPS if lp in loops and (lp != 'baseline' or baseline_nodes)]
+    sweep = [c for c in (sweep or ()) if c]
+    parsed.update({c: _parse_config(c) for c in sweep if c not in parsed})
+    bare_ok = [c for c in set(layouts) | set(sweep) if _parse_config(c)[0] in BARE]
+    if smoke:       # a smoke run: one bare loop (the processes'), enough to see it runs
+        bare_ok = [c for c in bare_ok if c == 'processes' or c in sweep]
+    if 'bare' in loops and [c for c in sweep if c not in bare_ok]:
+        raise SystemExit(f'P2: no bare loop for {sweep}: --sweep takes '
+                         f'{", ".join(BARE)}')
     # the simulator steps from its start; DDS matching takes it 1-3 s here, and those
     # open-loop steps are not judged: the run is that much longer than what is measured
     duration = duration or (5.0 if smoke else 15.0)
+    sweep_duration = sweep_duration or (3.0 if smoke else 6.0)
+    sweep_bisections = (0 if smoke else 2) if sweep_bisections is None else sweep_bisections
     os.environ['ROS_DOMAIN_ID'] = ros_env()['ROS_DOMAIN_ID']
     import warnings
     warnings.filterwarnings('ignore', category=DeprecationWarning)
@@ -256,30 +333,44 @@ def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=Non
     spinner = threading.Thread(target=executor.spin, daemon=True)
     spinner.start()
     results = {layout: [] for layout in layouts}
+    bare_runs = {layout: [] for layout in layouts}
+    base_runs = {layout: [] for layout in layouts}
     baseline_runs = []
+    sweeps = {}
     try:
         for r in range(runs):
-            # alternate the order of the layouts from run to run
-            order = [(layout, None) for layout in layouts]
+            # alternate the order of the layouts (and loops) from run to run
+            order = []
+            for layout in layouts:
+                order.append((layout, None, 'nodes'))
+                if 'bare' in loops and layout in bare_ok:
+                    order.append((layout, None, 'bare'))
+                if 'baseline' in loops and _parse_config(layout)[0] != 'one_process':
+                    order.append((layout, None, 'baseline'))
             if baseline_observer and 'processes' in layouts:
                 # the baseline's observer just after this one's (before it every other run)
-                i = layouts.index('processes')
-                order.insert(i + 1, ('processes', baseline_observer))
-            for layout, base in (order if r % 2 == 0 else order[::-1]):
+                order.insert(order.index(('processes', None, 'nodes')) + 1,
+                             ('processes', baseline_observer, 'nodes'))
+            for layout, base, loop in (order if r % 2 == 0 else order[::-1]):
                 res = _one_run(node, state, parsed[layout][0], duration, rate, logdir, r,
                                nodes_pythonpath, parsed[layout][1],
-                               base or observer_pythonpath)
-                (baseline_runs if base else results[layout]).append(res)
-                label = f'{layout} [observer {base}]' if base else layout
-                log(f'  P2 {label:>16} run {r + 1}/{runs}: {res["steps"]} steps at '
-                    f'{rate:g} Hz, {res["open_loop_steps"]} before the loop closed, '
-                    f'{res["late_commands"]} late ({res["late_after_short_step"]} of them '
-                    f'after a short step) of {res["checked"]} -> on time '
-                    f'{res["on_time"]:.5f}; achieved {res["rate_achieved_hz"]:.0f} Hz; '
-                    f'loop measurement -> command: median {res["loop_median_us"]:.0f} us, '
-                    f'p99 {res["loop_p99_us"]:.0f} us, max {res["loop_max_us"]:.0f} us; '
-                    'CPU per step: ' + ', '.join(
-                        f'{name} {us:.0f} us' for name, us in res['cpu_us_per_step'].items()))
+                               base or observer_pythonpath, loop, baseline_nodes)
+                if base:
+                    baseline_runs.append(res)
+                else:
+                    {'nodes': results, 'bare': bare_runs,
+                     'baseline': base_runs}[loop][layout].append(res)
+                label = f'{layout} [observer {base}]' if base else (
+                    layout if loop == 'nodes' else f'{layout} [{loop}]')
+                _log_run(log, label, r, runs, rate, res)
+        for layout in sweep:
+            sweeps[layout] = _sweep(
+                lambda loop, hz, k, c=layout: _one_run(
+                    node, state, parsed[c][0], sweep_duration, hz, logdir, f'sweep{k}',
+                    nodes_pythonpath, parsed[c][1], observer_pythonpath, loop,
+                    baseline_nodes),
+                loops, sweep_bisections, layout, log,
+                max_probes=1 if smoke else 12)
     finally:
         executor.shutdown(timeout_sec=1.0)
         node.destroy_node()
@@ -289,12 +380,15 @@ def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=Non
     rate_name = f'{rate / 1000:g}kHz' if rate >= 1000 else f'{rate:g}Hz'   # 1kHz, 2kHz
     for layout in layouts:
         res = results[layout]
-        figures.append(ratio_line(
-            'P2', f'on_time_fraction_at_{rate_name}[{layout}]',
-            [r['on_time'] for r in res], '>=', 0.999, unit='', smoke=smoke,
-            note=f'{sum(r["late_commands"] for r in res)} late of '
-                 f'{sum(r["checked"] for r in res)} steps; achieved step rate median '
-                 f'{summary([r["rate_achieved_hz"] for r in res])["median"]:.0f} Hz'))
+        bare = bare_runs[layout]
+        relay_note = ''
+        if bare:
+            relay_note = ("; the bare loop's round trip (the host's relay figure): median "
+                          f'{summary([b["loop_median_us"] for b in bare])["median"]:.0f} us')
+        figures.append(_on_time_line(
+            f'on_time_fraction_at_{rate_name}[{layout}]', res, smoke,
+            f'achieved step rate median '
+            f'{summary([r["rate_achieved_hz"] for r in res])["median"]:.0f} Hz' + relay_note))
         figures.append(ratio_line(
             'P2', f'loop_round_trip_median/step_period[{layout}]',
             [r['loop_median_us'] / period_us for r in res], '<=', None, smoke=smoke,
@@ -302,11 +396,143 @@ def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=Non
                  f'median {summary([r["loop_median_us"] for r in res])["median"]:.0f} us, '
                  f'p99 {summary([r["loop_p99_us"] for r in res])["median"]:.0f} us; period '
                  f'{period_us:.0f} us'))
+        if bare:
+            _versus_bare(figures, layout, rate_name, res, bare, smoke)
+        if base_runs[layout]:
+            _versus_baseline_nodes(figures, layout, rate_name, res, base_runs[layout],
+                                   baseline_nodes, smoke)
+    for layout, found in sweeps.items():
+        _sweep_figure(figures, layout, found, bare_runs.get(layout, []), smoke)
     if baseline_runs:
         _versus_baseline(figures, results['processes'], baseline_runs, baseline_observer)
     return {'benchmark': 'P2', 'smoke': smoke, 'rate_hz': rate, 'duration_s': duration,
-            'figures': figures, 'runs': results, 'baseline_runs': baseline_runs,
-            'logs': str(logdir)}
+            'figures': figures, 'runs': results, 'bare_runs': bare_runs,
+            'baseline_runs': baseline_runs, 'baseline_nodes_runs': base_runs,
+            'sweeps': sweeps, 'logs': str(logdir)}
+
+
+def _versus_baseline_nodes(figures, layout, rate_name, res, base, baseline, smoke):
+    """Add the figures of the nodes against an earlier version's nodes, per pair of runs."""
+    figures.append(ratio_line(
+        'P2', f'on_time_fraction_nodes-baseline_at_{rate_name}[{layout}]',
+        [r['on_time'] - b['on_time'] for r, b in zip(res, base)], '>=', None, unit='',
+        smoke=smoke,
+        note=f'per pair of runs; on time: these nodes '
+             f'{summary([r["on_time"] for r in res])["median"]:.4f}, the nodes of {baseline} '
+             f'{summary([b["on_time"] for b in base])["median"]:.4f}'))
+    for name in sorted({k for r in res + base for k in r['cpu_us_per_step']}):
+        if name == 'plant_simulator':
+            continue
+        pairs = [(r['cpu_us_per_step'].get(name), b['cpu_us_per_step'].get(name))
+                 for r, b in zip(res, base)]
+        pairs = [(a, b) for a, b in pairs if a and b]
+        if pairs:
+            figures.append(ratio_line(
+                'P2', f'cpu_per_step_{name}/baseline[{layout}]', [a / b for a, b in pairs],
+                '<=', None, smoke=smoke,
+                note=f'{summary([a for a, _ in pairs])["median"]:.0f} us against '
+                     f'{summary([b for _, b in pairs])["median"]:.0f} us per step'))
+
+
+def _on_time_line(name, runs, smoke, note):
+    """Print and return the line of an on-time fraction (information: the host's as well)."""
+    return ratio_line(
+        'P2', name, [r['on_time'] for r in runs], '>=', None, unit='', smoke=smoke,
+        note=f'{sum(r["late_commands"] for r in runs)} late of '
+             f'{sum(r["checked"] for r in runs)} steps; {note}')
+
+
+def _versus_bare(figures, layout, rate_name, res, bare, smoke):
+    """Add the figures of the nodes against the bare loop at the run's rate, per pair."""
+    figures.append(_on_time_line(
+        f'on_time_fraction_at_{rate_name}[{layout},bare]', bare, smoke,
+        f'round trip median {summary([b["loop_median_us"] for b in bare])["median"]:.0f} us, '
+        f'p99 {summary([b["loop_p99_us"] for b in bare])["median"]:.0f} us'))
+    figures.append(ratio_line(
+        'P2', f'on_time_fraction_nodes-bare_at_{rate_name}[{layout}]',
+        [r['on_time'] - b['on_time'] for r, b in zip(res, bare)], '>=', -0.005, unit='',
+        smoke=smoke, note="per pair of runs: the nodes' on-time fraction minus the bare "
+                          "loop's, the same host in the same minute"))
+
+
+def _sweep(probe, loops, bisections, layout, log, max_probes=12):
+    """
+    Return ``{loop: {'highest_hz', 'missed_hz', 'probes'}}``: the highest rate held on time.
+
+    ``probe(loop, hz, k)`` runs one short run and returns its result. The loops are probed
+    in turn: up by SWEEP_FACTOR from SWEEP_START to the first rate that misses ON_TIME
+    (or SWEEP_MAX), then bisected geometrically ``bisections`` times; down SWEEP_DOWN
+    steps at most when SWEEP_START misses; ``max_probes`` runs per loop at most.
+    """
+    found = {loop: {'highest_hz': float('nan'), 'missed_hz': float('nan'), 'probes': [],
+                    'next': SWEEP_START, 'left': bisections} for loop in loops}
+    k = 0
+    while any(f['next'] is not None for f in found.values()):
+        for loop in loops:
+            f = found[loop]
+            hz = f['next']
+            if hz is None:
+                continue
+            res = probe(loop, hz, k)
+            k += 1
+            held = res['on_time'] >= ON_TIME     # NaN (never closed): missed
+            f['probes'].append({'rate_hz': hz, 'on_time': res['on_time'],
+                                'late': res['late_commands'], 'checked': res['checked'],
+                                'loop_median_us': res['loop_median_us']})
+            log(f'  P2 sweep {layout} [{loop}] {hz:.0f} Hz: on time {res["on_time"]:.5f} '
+                f'({res["late_commands"]} late of {res["checked"]}): '
+                f'{"held" if held else "missed"}'
+                + ('; a node left the events executor (flood)' if res.get('flood_fallback')
+                   else ''))
+            if held:
+                f['highest_hz'] = hz if f['highest_hz'] != f['highest_hz'] else \
+                    max(f['highest_hz'], hz)
+            else:
+                f['missed_hz'] = hz if f['missed_hz'] != f['missed_hz'] else \
+                    min(f['missed_hz'], hz)
+            lo, hi = f['highest_hz'], f['missed_hz']
+            if hi != hi:                        # no miss yet: up
+                f['next'] = hz * SWEEP_FACTOR if hz * SWEEP_FACTOR <= SWEEP_MAX else None
+            elif lo != lo:                      # the first rate missed: down, a few steps
+                f['next'] = hz / SWEEP_FACTOR if len(f['probes']) <= SWEEP_DOWN else None
+            elif f['left'] > 0:
+                f['left'] -= 1
+                f['next'] = round((lo * hi) ** 0.5)
+            else:
+                f['next'] = None
+            if len(f['probes']) >= max_probes:
+                f['next'] = None
+    for f in found.values():
+        del f['next'], f['left']
+    return found
+
+
+def _sweep_figure(figures, layout, found, bare, smoke):
+    """Add the figure of the sweep: the nodes' highest rate held / the bare loop's."""
+    nodes, base = found.get('nodes'), found.get('bare')
+    if nodes is None or base is None:
+        for loop, f in found.items():
+            figures.append(ratio_line(
+                'P2', f'highest_rate_on_time[{layout},{loop}]', [f['highest_hz']], '>=',
+                None, unit=' Hz', smoke=smoke,
+                note=f'{ON_TIME:.1%} of the steps on time; first rate missed '
+                     f'{f["missed_hz"]:.0f} Hz'))
+        return
+    relay = summary([b['loop_median_us'] for b in bare])['median'] if bare else float('nan')
+    if 'baseline' in found:
+        old = found['baseline']
+        figures.append(ratio_line(
+            'P2', f'highest_rate_on_time_baseline/bare[{layout}]',
+            [old['highest_hz'] / base['highest_hz']], '>=', None, smoke=smoke,
+            note=f'the baseline nodes {old["highest_hz"]:.0f} Hz (missed '
+                 f'{old["missed_hz"]:.0f}), in the same sweep'))
+    figures.append(ratio_line(
+        'P2', f'highest_rate_on_time_nodes/bare[{layout}]',
+        [nodes['highest_hz'] / base['highest_hz']], '>=', 0.9, smoke=smoke,
+        note=f'the highest step rate with {ON_TIME:.1%} of the steps on time: nodes '
+             f'{nodes["highest_hz"]:.0f} Hz (missed {nodes["missed_hz"]:.0f}), bare loop '
+             f'{base["highest_hz"]:.0f} Hz (missed {base["missed_hz"]:.0f}); bare round '
+             f'trip at the main rate {relay:.0f} us'))
 
 
 def _versus_baseline(figures, runs, base_runs, baseline):
@@ -352,13 +578,38 @@ def main(argv=None):
                         help='after (or before) each processes run, run it again with the '
                              'observer of this copy (e.g. git archive of an earlier commit) '
                              'and report the observer CPU per step against it')
+    parser.add_argument('--loops', default=','.join(LOOPS[:2]),
+                        help="comma-separated, of: nodes (the package's), bare (relays in "
+                             'place of the observer and compensator); default both')
+    parser.add_argument('--baseline-nodes-pythonpath', metavar='DIR',
+                        help='also run the loop with the observer and compensator of this '
+                             'copy (e.g. git archive of an earlier commit; the simulator '
+                             'stays this one) beside the others, in the sweep too')
+    parser.add_argument('--sweep', metavar='LAYOUTS', default=None,
+                        help='comma-separated layouts (of ' + ', '.join(BARE) + ') whose '
+                             'loops get the rate sweep: the highest rate with 99.9 %% on '
+                             'time (default: processes; "none" for no sweep)')
+    parser.add_argument('--sweep-duration', type=float,
+                        help='seconds per rate of the sweep, start-up included (default 6)')
+    parser.add_argument('--sweep-bisections', type=int,
+                        help='bisections after the first rate missed (default 2)')
     args = parser.parse_args(argv)
+    loops = [x for x in args.loops.split(',') if x]
+    if not loops or any(x not in LOOPS[:2] for x in loops):
+        parser.error(f'--loops: of {", ".join(LOOPS[:2])}')
+    if args.baseline_nodes_pythonpath:
+        loops.append('baseline')
+    sweep = args.sweep if args.sweep is not None else 'processes'
+    sweep = [] if sweep == 'none' else [x for x in sweep.split(',') if x]
     print('P2: closed loop in free-running real time', flush=True)
     return report(args.json, run(
         smoke=args.smoke, runs=args.runs, duration=args.duration, rate=args.rate,
         nodes_pythonpath=args.nodes_pythonpath, observer_pythonpath=args.observer_pythonpath,
         baseline_observer=args.baseline_observer_pythonpath,
-        configs=[x for x in (args.configs or '').split(',') if x] or None, log=log))
+        configs=[x for x in (args.configs or '').split(',') if x] or None, log=log,
+        loops=loops, sweep=sweep, sweep_duration=args.sweep_duration,
+        sweep_bisections=args.sweep_bisections,
+        baseline_nodes=args.baseline_nodes_pythonpath))
 
 
 if __name__ == '__main__':

@@ -27,7 +27,10 @@ def test_run_all_smoke_prints_every_ratio():
     for bench, names in {
         'P1': ['median_latency_observer/relay', 'p99_latency_observer/relay'],
         'P2': [f'on_time_fraction_at_1kHz[{layout}]'
-               for layout in ('processes', 'container', 'one_process')],
+               for layout in ('processes', 'container', 'one_process')] + [
+            'on_time_fraction_at_1kHz[processes,bare]',
+            'on_time_fraction_nodes-bare_at_1kHz[processes]',
+            'highest_rate_on_time_nodes/bare[processes]'],
         'P3': ['eval/rosbags_read_deserialise', 'eval/control_forced_response'],
         'P4': ['placement_error_ours/place_worst_single_output',
                'placement_error_ours/place_worst_multi_output',
