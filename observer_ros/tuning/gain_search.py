@@ -216,23 +216,25 @@ def _scores(bags, vehicle, base, kind, scales, namespace, exact, progress=None, 
                           ref, namespace, exact, progress, dask, spill)
 
 
-def model_errors(Ad, C, Qk, R, scales):
+def model_errors(Ad, C, Qk, R, scales, filter_Qk=None):
     """
     Return the steady-state RMS error of the Kalman filter of each scale, on a model.
 
-    The filter of ``(s Qk, R)`` (steady-state gain of ``scipy.linalg.solve_discrete_are``)
-    on the sampled model ``x+ = Ad x + w``, ``y = C x + v`` whose noises are ``(Qk, R)``:
-    its error covariance solves a discrete Lyapunov equation
-    (``scipy.linalg.solve_discrete_lyapunov``), and the RMS of the error norm is the
-    square root of its trace after the correction. NaN where a scale has no steady state.
+    The filter of ``(s Qf, R)`` (``Qf`` is ``filter_Qk``, by default ``Qk``; steady-state
+    gain of ``scipy.linalg.solve_discrete_are``) on the sampled model ``x+ = Ad x + w``,
+    ``y = C x + v`` whose noises are ``(Qk, R)``: its error covariance solves a discrete
+    Lyapunov equation (``scipy.linalg.solve_discrete_lyapunov``), and the RMS of the error
+    norm is the square root of its trace after the correction. NaN where a scale has no
+    steady state.
 
     """
     Ad, C, Qk, R = (np.atleast_2d(np.asarray(M, dtype=float)) for M in (Ad, C, Qk, R))
+    Qf = Qk if filter_Qk is None else np.atleast_2d(np.asarray(filter_Qk, dtype=float))
     eye = np.eye(Ad.shape[0])
     out = []
     for s in scales:
         try:
-            P = scipy.linalg.solve_discrete_are(Ad.T, C.T, s * Qk, R)
+            P = scipy.linalg.solve_discrete_are(Ad.T, C.T, s * Qf, R)
             K = np.linalg.solve(C @ P @ C.T + R, C @ P).T
             IKC = eye - K @ C
             KRK = K @ R @ K.T
@@ -246,12 +248,21 @@ def model_errors(Ad, C, Qk, R, scales):
 
 
 def _identified_model(ident):
-    """Return ``(Ad, C, Qk, R)`` of an identification (its sampled model), or None."""
+    """
+    Return ``(Ad, C, Qk, R, noise_map)`` of an identification (its sampled model), or None.
+
+    ``noise_map`` maps a process noise on the identification's columns to its per-step
+    covariance.
+
+    """
     try:
+        from ..core.als import process_noise_map
         from .sampled import sampled_model
+        plant = ident.vehicle.plant
         Ad, _ = sampled_model(ident.vehicle, ident.dt)
         r = ident.result
-        return Ad, ident.vehicle.plant.C, r.Qk, r.R
+        F = process_noise_map(plant.A, ident.G, ident.dt, plant.is_discrete)
+        return Ad, plant.C, r.Qk, r.R, F
     except (AttributeError, TypeError, ValueError):
         return None
 
@@ -341,12 +352,15 @@ def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exac
     parts = _identified_model(model) if model is not None and kind == 'kalman' and \
         dask is None else None
     if parts is not None:
+        from .identify import FILE_FLOOR, filter_Q
         Qd = np.asarray(base.observer.Qd, float)
-        scale0 = 1.0                # the file's Qd against the identified one (tune: 1)
-        ident_Q = np.asarray(model.result.Q, float)
-        if Qd.shape == ident_Q.shape and np.any(ident_Q) and np.allclose(Qd, ident_Q):
-            predicted = model_errors(*parts[:2], parts[2], parts[3],
-                                     [s * scale0 for s in scales])
+        # the file's Qd: the identified one, or the tuned file's (each variance the data
+        # do not tell from zero raised to its standard error); the model's noise is the
+        # identified one either way
+        for filt in (np.asarray(model.result.Q, float), filter_Q(model.result, FILE_FLOOR)):
+            if Qd.shape == filt.shape and np.any(filt) and np.allclose(Qd, filt):
+                predicted = model_errors(*parts[:4], scales, filter_Qk=parts[4](filt))
+                break
         if predicted is not None and not np.isfinite(predicted).any():
             predicted = None
     if predicted is not None:

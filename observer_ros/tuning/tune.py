@@ -75,7 +75,7 @@ def _tuned_observer(ident):
     raised = [f'{name} {Q[i, i]:.4g}' for i, name in enumerate(ident.noise_names)
               if Q[i, i] != r.Q[i, i]]
     if raised:
-        std['Q'].append('; not told from zero by these data, so given their standard '
+        std['Q'].append('; not told from zero by these data, so given half their standard '
                         'error (a filter given zero stops following that noise): '
                         f'{", ".join(raised)}')
     obs = {'observer.type': 'kalman', 'observer.Qd': list(np.ravel(Q)),

@@ -261,3 +261,22 @@ def test_the_kalman_search_replays_the_scales_around_the_models_best(two_bags, t
     assert full.model is None and len(set(replayed)) == len(full.scales)
     for i in done:
         assert first.mean[i] == full.mean[i]
+    # a noise identified as zero goes into the tuned file at its standard error: the
+    # search on that file is still scored on the identified model first (a filter of the
+    # file's Qd on the identified noise), and replays the scales around the model's best
+    import copy
+    import dataclasses
+    from observer_ros.tuning.identify import FILE_FLOOR, filter_Q
+    zero = copy.copy(r)
+    zero.Q, zero.Qk = np.zeros_like(r.Q), np.zeros_like(r.Qk)
+    ident0 = dataclasses.replace(ident, passes=ident.passes[:-1] + [zero])
+    written = tmp_path / 'written.yaml'
+    write_tuned_vehicle(CONFIG / 'submarine.yaml', written, {
+        'observer.type': 'kalman', 'observer.Qd': list(np.ravel(filter_Q(zero, FILE_FLOOR))),
+        'observer.Rd': list(np.ravel(r.R)), 'observer.Bd': list(np.ravel(ident.G))},
+        {}, ['test'])
+    replayed.clear()
+    floored = gs.gain_search(bags, written, 'kalman', model=ident0)
+    assert floored.model is not None and int(np.nanargmin(floored.model)) == 0
+    done = [i for i, m in enumerate(floored.mean) if np.isfinite(m)]
+    assert 2 <= len(done) < len(floored.scales) and len(set(replayed)) == len(done)
