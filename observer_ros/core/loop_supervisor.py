@@ -35,7 +35,9 @@ Every estimate and every command passes gates first:
   the file and the first seconds make plausible) is refused the first time: the safe
   command instead, ERROR ``implausible``; ``ENVELOPE_PERSIST`` in a row are ``diverging``;
 - with two publishers on ``state/estimate`` (known from the subscription's matched
-  event and the graph), an estimate more than ``CONSISTENCY_TOL`` of a state's scale away
+  event and the graph), or with a warm standby whatever the publishers known (a second
+  publisher's first estimates can come before its match), an estimate more than
+  ``CONSISTENCY_TOL`` of a state's scale away
   from the reference (the standby's estimate at the same stamp, else the model's
   prediction from the last estimate followed) belongs to another stream: ignored,
   counted (``other_stream_estimates``), and said on /diagnostics; an implausible one
@@ -476,12 +478,16 @@ class LoopSupervisor:
             (self.publishers > 1 and self._followed is not None)
 
     def _consistent(self, t, x_list):
-        """Whether an estimate belongs to the stream followed (see the module's notes)."""
-        if self.publishers <= 1:
+        """
+        Whether an estimate belongs to the stream followed (see the module's notes).
+
+        With a warm standby it is the reference whatever the publishers known: a second
+        publisher's first estimates can come before its match is known.
+        """
+        warm = self.standby is not None and self.standby.warm
+        if self.publishers <= 1 and not warm:
             return True
-        ref = None
-        if self.standby is not None and self.standby.warm:
-            ref = self.standby.at(t)
+        ref = self.standby.at(t) if warm else None
         if ref is None and self._followed is not None:
             t0, x0 = self._followed
             steps = int(round((t - t0) / self.dt))

@@ -100,8 +100,11 @@ names = list(node.vehicle.plant.state_names)
 for k in range(100, 180):
     t = k / 100.0
     node._on_sensor(sensor, stamped(t, JointState(name=['cart'], position=[0.0])), True)
-    if k <= 150:
-        node._on_estimate(stamped(t, JointState(name=names, position=[0.0] * 4)))
+    if k <= 150:        # the observer's estimate: once the standby is warm, its own
+        x = node.loop.standby.at(stamp_to_sec(stamped(t, JointState()).header.stamp)) \
+            if node.loop.standby.warm else None
+        x = [0.0] * 4 if x is None else x.tolist()
+        node._on_estimate(stamped(t, JointState(name=names, position=x)))
 for event in events:
     print(*event)
 node.destroy_node()
