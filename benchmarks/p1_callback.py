@@ -20,6 +20,12 @@ blocks then meet the same load of the host, and each block of a version is paire
 the next version's. Also printed: the median and spread of the per-block ratios against
 the first version (the figure a shared host moves least).
 
+With ``--wire`` the messages are given as the subscriptions take them: a version whose
+observer subscribes raw (``observer_ros/nodes/wire.py``) gets the serialized bytes, an
+older one the message object, made from the same bytes by ``deserialize_message`` inside
+the timed block (rclpy's take makes it before such a callback runs: that conversion is
+part of the message's cost).
+
 With ``--commands late`` each measurement is followed by the command answering the previous
 estimate (P2's closed loop: stamped one step back, a rewind of the history each), with
 ``--commands inorder`` by the command answering this one; the figures are then per pair.
@@ -61,24 +67,42 @@ if commands != 'none':
 def stamp(i):
     ns = t0 + i * 4_000_000 + (i * 7919 % 1000) * 1000
     return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
-def one(i):
+wire = os.environ.get('P1_WIRE') == '1'
+if wire:    # as the subscriptions take them: bytes (raw), or the objects rclpy makes
+    import importlib.util
+    from rclpy.serialization import deserialize_message, serialize_message
+    from sensor_msgs.msg import Imu, JointState
+    raw_subs = importlib.util.find_spec('observer_ros.nodes.wire') is not None
+def prepare(i):
+    # the message i and its command (None): objects, or bytes with --wire
     msg.header.stamp = stamp(i)
     msg.angular_velocity.y = 0.001 * ((i % 200) - 100) / 100.0
-    node._on_measurement(sensor, msg)
+    m = serialize_message(msg) if wire else msg
+    c = None
     if commands != 'none':      # the closed loop's answer: to this estimate or the previous
         cmd.header.stamp = stamp(i - lag if commands == 'late' else i)
         cmd.position = [0.01 * ((i % 50) - 25) / 25.0]
-        node._on_command(cmd)
+        c = serialize_message(cmd) if wire else cmd
+    return m, c
+def one(item):
+    m, c = item
+    if wire and not raw_subs:   # the object rclpy's take would have made: timed too
+        m = deserialize_message(m, Imu)
+        c = None if c is None else deserialize_message(c, JointState)
+    node._on_measurement(sensor, m)
+    if c is not None:
+        node._on_command(c)
 for i in range(500):
-    one(i)
+    one(prepare(i))
 interleave = len(sys.argv) > 5
 for rep in range(reps):
+    items = [prepare(i) for i in range(500 + rep * count, 500 + (rep + 1) * count)]
     if interleave:              # wait for our turn
         print('ready', flush=True)
         sys.stdin.readline()
     c0 = time.process_time()
-    for i in range(500 + rep * count, 500 + (rep + 1) * count):
-        one(i)
+    for item in items:
+        one(item)
     print((time.process_time() - c0) / count * 1e6, flush=True)
 node.destroy_node()
 rclpy.try_shutdown()
@@ -182,6 +206,10 @@ def main(argv=None, driver=DRIVER, description=None):
                         'like it (inorder) or like the previous one (late: the closed '
                         "loop's, one step late, a rewind of the history each); the figures "
                         'are then per measurement and command')
+    parser.add_argument('--wire', action='store_true',
+                        help='give the messages as the subscriptions take them: bytes to a '
+                             'version with raw subscriptions, objects made from the bytes '
+                             '(timed) to an older one')
     parser.add_argument('--lag', type=int, default=1,
                         help='with --commands late: the command answers the estimate this '
                         'many messages back (default 1)')
@@ -192,6 +220,7 @@ def main(argv=None, driver=DRIVER, description=None):
         print(f'error: --lag must be at least 1; got {args.lag}', file=sys.stderr)
         return 2
     os.environ['P1_LAG'] = str(args.lag)         # read by the drivers
+    os.environ['P1_WIRE'] = '1' if args.wire else '0'
     print(f'load average at start: {os.getloadavg()[0]:.2f}')
     blocks = {name: [] for name, _ in versions}
     for r in range(args.rounds):

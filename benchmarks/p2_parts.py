@@ -15,7 +15,9 @@ estimates (built before each block) are timed with ``time.process_time``.
 
 The versions are run, alternated and reported by ``p1_callback.py``'s machinery (the same
 options: ``--rounds``, ``--interleave`` for the versions side by side, a block of each in
-turn, with the per-block ratios against the first version): only the driver differs.
+turn, with the per-block ratios against the first version; ``--wire``: the estimates as
+the subscription takes them, bytes to a version that subscribes raw, objects made from the
+bytes inside the timed block to an older one): only the driver differs.
 
 Usage: ``python benchmarks/p2_parts.py NAME=DIR [NAME=DIR ...] [--interleave]``.
 
@@ -31,7 +33,7 @@ import p1_callback  # noqa: E402
 WARMUP = 4000       # estimates: more than the envelope's learning (3 s at 1 kHz)
 
 DRIVER = """
-import sys, time, warnings
+import os, sys, time, warnings
 warnings.filterwarnings('ignore')
 import rclpy
 from builtin_interfaces.msg import Time
@@ -50,17 +52,27 @@ def estimate(i):
     msg.header.stamp = Time(sec=ns // 1_000_000_000, nanosec=ns %% 1_000_000_000)
     msg.position = [0.01 * (((i + 37 * k) %% 200) - 100) / 100.0 for k in range(len(names))]
     return msg
+wire = os.environ.get('P1_WIRE') == '1'
+take = lambda msg: msg
+if wire:    # as the subscription takes them: bytes (raw), or the object rclpy makes (timed)
+    import importlib.util
+    from rclpy.serialization import deserialize_message, serialize_message
+    if importlib.util.find_spec('observer_ros.nodes.wire') is None:
+        take = lambda raw: deserialize_message(raw, JointState)
+def prepared(i):
+    msg = estimate(i)
+    return serialize_message(msg) if wire else msg
 for i in range(WARMUP):
-    node._on_estimate(estimate(i))
+    node._on_estimate(take(prepared(i)))
 interleave = len(sys.argv) > 5
 for rep in range(reps):
-    block = [estimate(i) for i in range(WARMUP + rep * count, WARMUP + (rep + 1) * count)]
+    block = [prepared(i) for i in range(WARMUP + rep * count, WARMUP + (rep + 1) * count)]
     if interleave:              # wait for our turn
         print('ready', flush=True)
         sys.stdin.readline()
     c0 = time.process_time()
     for msg in block:
-        node._on_estimate(msg)
+        node._on_estimate(take(msg))
     print((time.process_time() - c0) / count * 1e6, flush=True)
 node.destroy_node()
 rclpy.try_shutdown()
