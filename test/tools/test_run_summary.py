@@ -1,11 +1,14 @@
 """observer-run's summary: lost or timed-out steps and divergence are failures."""
 
+import importlib.util
+from pathlib import Path
+
 from bag_synth import CONFIG, simulate, write_bag
 import numpy as np
 from observer_ros.core.errors import DesignVerificationError
 from observer_ros.evaluation.evaluator import evaluate_bag
 from observer_ros.tools.run_closed_loop import (_print_summary, diverging, run_scale,
-                                                summarize_bag)
+                                                run_started, summarize_bag)
 from observer_ros.vehicle import load_vehicle
 import pytest
 
@@ -80,3 +83,19 @@ def test_eval_variant_gains_are_verified_before_replay(tmp_path):
     with pytest.raises(DesignVerificationError, match=r"variant 'bad': observer\.gain does "
                        r'not stabilize the loop: eig\(A - L C\) has the eigenvalue'):
         evaluate_bag(path, vehicle, {'bad': bad})
+
+
+def test_the_run_limit_counts_from_the_simulators_first_step(tmp_path):
+    # observer-run's --timeout counts from the line the simulator logs at its first step
+    # (the nodes' start before it, imports and discovery on a loaded host, has its own)
+    log = tmp_path / 'plant_simulator.log'
+    assert not run_started(log)                                 # not written yet
+    log.write_text('[INFO] [1.0] [plant_simulator]: waiting for peers\n')
+    assert not run_started(log)
+    node = importlib.util.find_spec('observer_ros.nodes.plant_simulator').origin
+    source = Path(node).read_text()
+    for mode in ('lockstep', 'realtime'):
+        assert f"{{self.vehicle.name}}: {mode} run of '" in source
+        log.write_text(f'[INFO] [2.0] [plant_simulator]: cart: {mode} run of 1000 steps '
+                       'of 0.01 s\n')
+        assert run_started(log)
