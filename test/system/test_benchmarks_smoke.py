@@ -21,7 +21,7 @@ def test_run_all_smoke_prints_every_ratio():
     script = REPO / 'benchmarks' / 'run_all.py'
     proc = subprocess.run(
         [sys.executable, '-W', 'ignore::DeprecationWarning', str(script), '--smoke'],
-        cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+        cwd=REPO, env=env, capture_output=True, text=True, timeout=480)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 0, out[-4000:]
     for bench, names in {
