@@ -37,6 +37,11 @@ __all__ = ['kalman_maps', 'KalmanCovariances', 'STEADY_RTOL', 'MAX_STEADY_CLASSE
 STEADY_RTOL = 1e-12
 #: Most step classes of a stretch whose steady states are solved for.
 MAX_STEADY_CLASSES = 64
+#: The steady state is the filter's own fixed point: its recursion from the Riccati
+#: solution until a prior repeats the one before to this (relative to its largest entry),
+#: at most FIXED_STEPS steps.
+FIXED_RTOL = 1e-14
+FIXED_STEPS = 4000
 
 
 class KalmanCovariances:
@@ -65,15 +70,37 @@ class KalmanCovariances:
         est._P = None if P is None else P.copy()
 
 
-def _steady_prior(step, C, Q, R):
-    """Return the steady-state prior covariance of one step class, or None."""
+def _steady_prior(step, C, Q, R, prior=None):
+    """
+    Return the steady-state prior covariance of one step class, or None.
+
+    ``solve_discrete_are``'s solution, then (with ``prior``, the filter's own prior of a
+    posterior) the filter's recursion from it until it repeats to :data:`FIXED_RTOL`, at
+    most :data:`FIXED_STEPS` steps: the fixed point the filter's calls come to, which
+    ``solve_discrete_are`` can miss by more than :data:`STEADY_RTOL` when a noise is small
+    against R (submarine, input noise 1.2e-8 against R 1e-6: 1e-10); a stretch that starts
+    at steady state (the replay's later chunks) would otherwise never be found there.
+
+    """
     try:
         P = scipy.linalg.solve_discrete_are(step.Ad.T, C.T, Q, R)
     except (ValueError, np.linalg.LinAlgError):
         return None
     if not np.all(np.isfinite(P)):
         return None
-    return 0.5 * (P + P.T)
+    P = 0.5 * (P + P.T)
+    if prior is not None:
+        eye = np.eye(P.shape[0])
+        for _ in range(FIXED_STEPS):
+            _, _, post = kalman_correction(P, C, R, eye)
+            nxt = prior(post)
+            if not np.all(np.isfinite(nxt)):
+                break
+            done = np.max(np.abs(nxt - P)) <= FIXED_RTOL * np.max(np.abs(nxt))
+            P = nxt
+            if done:
+                break
+    return P
 
 
 def kalman_maps(est, run, first, cls, sens, rows):
@@ -127,7 +154,8 @@ def kalman_maps(est, run, first, cls, sens, rows):
         for st, (C, _, R), Q, k in zip(steps, model, noise, ks.tolist()):
             tag = ('kalman_steady_prior', tuple(rows[k]))
             if tag not in st.extra:
-                st.extra[tag] = _steady_prior(st, C, Q, R)
+                st.extra[tag] = _steady_prior(
+                    st, C, Q, R, lambda post, st=st: est.prior_covariance(st, post))
             steady.append(st.extra[tag])
         if any(p is None for p in steady):
             steady = None
