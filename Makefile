@@ -47,16 +47,17 @@ TEST_WORKERS ?= 4
 test: $(STAMP)
 	rc=0; \
 	$(PY) -W ignore::DeprecationWarning -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) \
-	  -m "not realtime" test || rc=$$?; \
+	  --maxschedchunk 2 -m "not realtime" test || rc=$$?; \
 	$(PY) -W ignore::DeprecationWarning -m pytest -q -p no:cacheprovider -m realtime test || rc=$$?; \
 	exit $$rc
 
 # after each change: every test that starts no process and no DDS participant, one worker
-# per core
+# per core. In both: the longest tests first (conftest.py), handed out two at a time as
+# workers free up (--maxschedchunk), so that no worker is left alone with them at the end
 CHECK_WORKERS ?= 2
 check: $(STAMP)
 	$(PY) -W ignore::DeprecationWarning -m pytest -q -p no:cacheprovider -n $(CHECK_WORKERS) \
-	  -m "not ros" test
+	  --maxschedchunk 2 -m "not ros" test
 
 bench: $(STAMP)
 	$(PY) benchmarks/run_all.py

@@ -14,6 +14,7 @@ those one at a time, after the others ran in workers; ``realtime`` alone implies
 """
 
 import multiprocessing.process
+from pathlib import Path
 import subprocess
 
 from bag_cases import make_case
@@ -31,12 +32,37 @@ def _refuse(what):
     return refuse
 
 
+# The modules holding the longest tests that start no process (pytest --durations, 2 workers:
+# 20 s to 190 s each), longest first. They run first, so that in pytest-xdist's workers no
+# long test is left to start when the others are done (alphabetically the linters and the
+# memory tests came last).
+LONGEST_FIRST = (
+    'evaluation/test_bag_variants_memory.py', 'tools/test_tools_robust.py', 'test_flake8.py',
+    'replay/test_bag_spill.py', 'core/test_core_verify.py', 'tuning/test_bag_tune_irregular.py',
+    'tuning/test_bag_tune_search.py', 'replay/test_bag_replay_blocks.py',
+    'core/test_core_margins.py', 'core/test_core_whiteness.py', 'bag/test_bag_reader_memory.py',
+    'test_pep257.py')
+
+
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items):
-    """Mark every ``realtime`` test ``ros`` too, before ``-m`` selects (make check: not ros)."""
+    """
+    Mark every ``realtime`` test ``ros`` too, before ``-m`` selects (make check: not ros).
+
+    The modules of LONGEST_FIRST go first, in its order; the others keep theirs.
+    """
     for item in items:
         if item.get_closest_marker('realtime') and not item.get_closest_marker('ros'):
             item.add_marker(pytest.mark.ros)
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    here = Path(__file__).parent
+
+    def order(item):
+        try:
+            return rank.get(Path(item.fspath).relative_to(here).as_posix(), len(rank))
+        except ValueError:
+            return len(rank)
+    items.sort(key=order)
 
 
 @pytest.hookimpl(hookwrapper=True)
