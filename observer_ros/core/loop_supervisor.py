@@ -60,15 +60,13 @@ import numpy as np
 from .control_law import ControlLaw
 from .delay_compensation import DelayCompensation
 from .health import divergence_envelopes, ENVELOPE_PERSIST, SettleCheck, settling_time
+from .loop_status import ERROR, OK, status_message, WARN
 from .plant_clock import PlantClock
 from .safe_command import SafeCommand
 from .standby import StandbyObserver, unstable_plant
 
 __all__ = ['Command', 'LoopSupervisor', 'OK', 'WARN', 'ERROR', 'CONSISTENCY_TOL',
            'RESYNC_AGREE', 'RESYNC_SETTLINGS']
-
-# diagnostic_msgs/DiagnosticStatus levels
-OK, WARN, ERROR = 0, 1, 2
 
 # After an outage, wait at most this many observer settling times for it to settle again.
 RESYNC_SETTLINGS = 10.0
@@ -675,44 +673,9 @@ class LoopSupervisor:
         if not other:
             self._said_other = False
         refused, self._refused_command = self._refused_command, None
-        history = self.vehicle.observer.history_length
-        if duplicates:
-            level = ERROR
-            message = f'more than one publisher: {", ".join(duplicates)}'
-            if other:
-                message += (f'; following one estimate stream, {other} estimates of another '
-                            'ignored')
-        elif other:
-            level = ERROR
-            message = (f'{other} estimates ignored: they do not follow the stream followed '
-                       "(the standby observer's estimate, or the model from the last one)")
-        elif refused:
-            level, message = ERROR, refused
-        elif too_late:
-            level = ERROR
-            answer = 'the standby observer closes the loop' if self.standby is not None \
-                else f'safe command ({self.safe_mode})'
-            message = (f'{too_late} estimates later than observer.history_length '
-                       f'({history:g} s): {answer}')
-        elif self._problem is not None:
-            level, message = ERROR, self._problem
-        elif self.mode == 'stale':
-            level = ERROR
-            message = ('estimate stale: the standby observer closes the loop'
-                       if self.standby is not None else
-                       f'estimate stale: safe command ({self.safe_mode})')
-        elif self.mode == 'resync':
-            level = WARN if self.standby is not None else ERROR
-            message = ('estimates back, not yet agreeing with the standby observer: it '
-                       'closes the loop' if self.standby is not None else
-                       'estimates back, the observer settling: safe command '
-                       f'({self.safe_mode})')
-        elif self.mode == 'recover':
-            level = ERROR
-            message = (f'recovering after an outage: closing the loop again, OK after '
-                       f'{self.settle:g} s')
-        elif self.mode == 'waiting':
-            level, message = WARN, 'waiting for the estimate'
-        else:
-            level, message = OK, 'closing the loop'
+        level, message = status_message(
+            self.mode, duplicates=duplicates, other=other, refused=refused,
+            too_late=too_late, problem=self._problem, standby=self.standby is not None,
+            safe_mode=self.safe_mode, history=self.vehicle.observer.history_length,
+            settle=self.settle)
         return level, message, values
