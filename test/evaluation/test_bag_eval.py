@@ -612,6 +612,7 @@ def test_bag_errors_vehicle_outputs_not_in_the_bag(runs, tmp_path, capsys):
     vehicle, run = runs['cart']
 
     def rename(msg):
+        msg = copy.deepcopy(msg)        # the run's messages are shared by the module's bags
         msg.name = ['rail']
         return msg
     bag = write_bag(tmp_path / 'renamed', run['messages'],
