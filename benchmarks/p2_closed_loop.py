@@ -32,11 +32,18 @@ are judged against that in the same run:
 
 - on-time fraction at 1 kHz, nodes minus bare, per pair of runs [>= -0.005];
 - ``--sweep LAYOUTS``: the highest step rate at which each loop keeps 99.9 % of its steps
-  on time. Short runs (``--sweep-duration``) from 500 Hz up by 1.5x to the first rate
-  that misses, then ``--sweep-bisections`` geometric bisections between the last rate
-  that held and the first that missed; the two loops probed in turn at each step.
-  Figure: nodes / bare [>= 0.9], with both rates and the bare loop's round trip at 1 kHz
-  (the host's relay figure) beside it.
+  on time. Each rate is a run of ``--sweep-warmup`` s of closed loop (1 s; its steps not
+  judged, in every loop alike) and then ``--sweep-steps`` judged steps (10000: the rate
+  holds with at most 10 of them late; one late step is 0.01 %, the resolution). From
+  500 Hz up by 1.5x to the first rate that misses (down by 1.5x to the first that holds
+  when 500 Hz misses), then geometric bisections between the two (``--sweep-bisections``,
+  3, fewer once missed / held <= 1.06); the loops probed in turn, the order reversed
+  from one round to the next. Figure: nodes / bare [>= 0.9], bracketed by the rates each
+  loop missed, with both rates and the bare loop's round trip at the main rate (the
+  host's relay figure) beside it. Each probe says where its late steps fell: in the
+  warm-up, after a short step (the timer catching up after a late tick), in how many
+  0.25 s windows and at most how many in one (bursts are stalls of the host or of a
+  process; lone ones round trips longer than a period).
 
 Figure per configuration: on-time fraction ``1 - late / checked steps`` per run (an
 absolute figure, information: it measures the host as much as the code). Also reported:
@@ -96,10 +103,17 @@ ON_TIME = 0.999             # the on-time fraction a rate of the sweep must keep
 SWEEP_START = 500.0         # Hz, the sweep's first rate
 SWEEP_FACTOR = 1.5          # and its steps up, to the first rate that misses
 SWEEP_MAX = 8000.0          # Hz: the sweep stops here even if every rate held
+SWEEP_MIN = 60.0            # Hz: and goes no lower when the first rate misses
+# steps judged per rate of the sweep: 0.1 % of them is 10 steps, one late step 0.01 %
+SWEEP_STEPS = 10000
+# s of closed loop at the start of every run of the sweep, in every loop alike, whose
+# steps are not judged: the first steps' stalls (first publishes and callbacks,
+# the simulator's first step) are start-up, not the loop's rate
+SWEEP_WARMUP = 1.0
+SWEEP_RESOLUTION = 1.06     # the bisection ends once missed / held is at most this
 # what a node logs when its flood watch left the events executor (its CPU per message then
 # rises): said beside the run, whose figures are not those of the nodes' usual executor
 FLOOD_FALLBACK = 'going on with the wait-set executor'
-SWEEP_DOWN = 3              # steps down at most when the first rate misses (to 148 Hz)
 
 
 def _command(parts, params, rt_priority=None, pythonpath=None):
@@ -117,7 +131,8 @@ def _command(parts, params, rt_priority=None, pythonpath=None):
 
 
 def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None,
-             rt_priority=None, observer_pythonpath=None, loop='nodes', baseline=None):
+             rt_priority=None, observer_pythonpath=None, loop='nodes', baseline=None,
+             warmup=0.0):
     """
     Start the layout's processes, the simulator last; wait for the simulator's end.
 
@@ -185,7 +200,8 @@ def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None,
             rate_achieved = (int(b['values']['steps']) - int(a['values']['steps'])) / span
     # the simulator's loop timing, one report per diagnostics period (0.25 s)
     windows = [d['values'] for d in running if 'loop_us_p50' in d['values']]
-    return {'cpu_us_per_step': _cpu_per_step(samples, open_loop),
+    judged = _judged(diag, open_loop, int(round(warmup * rate)))
+    return {**judged, 'cpu_us_per_step': _cpu_per_step(samples, open_loop),
             'loop_median_us': percentile([float(w['loop_us_p50']) for w in windows], 50),
             'loop_p99_us': percentile([float(w['loop_us_p99']) for w in windows], 50),
             'loop_max_us': max((float(w['loop_us_max']) for w in windows),
@@ -197,6 +213,37 @@ def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None,
             'rate_achieved_hz': rate_achieved, 'exit_code': sim.returncode,
             'flood_fallback': any(FLOOD_FALLBACK in path.read_text(errors='replace')
                                   for path in logs if path.exists())}
+
+
+def _judged(diag, open_loop, warmup_steps):
+    """
+    Return the steps judged after ``warmup_steps`` of closed loop, and where the late fell.
+
+    From the simulator's cumulative counters, one report per diagnostics period: the
+    counts at the first report at least ``warmup_steps`` past the loop's closing are
+    subtracted from the last report's. Also: the late steps in the warm-up, how many of
+    the judged ones followed a short step (the timer catching up after a late tick), and
+    in how many reporting windows (0.25 s) the judged ones fell, the most in one window
+    (a few windows with many: stalls of the host or of a process; many windows with one:
+    round trips longer than a period now and then).
+    """
+    reports = sorted(diag, key=lambda d: int(d['values'].get('steps', 0)))
+    counts = [(int(d['values'].get('steps', 0)), int(d['values'].get('late_commands', 0)),
+               int(d['values'].get('late_commands_short_step', 0))) for d in reports]
+    closed = open_loop + 1
+    base = next((c for c in counts if c[0] >= closed + warmup_steps), None)
+    if base is None or not counts or counts[-1][0] <= base[0]:
+        return {'judged_steps': 0, 'judged_late': 0, 'judged_on_time': float('nan'),
+                'warmup_late': 0, 'judged_late_short': 0, 'late_windows': 0,
+                'late_window_max': 0}
+    last = counts[-1]
+    per_window = [b[1] - a[1] for a, b in zip(counts, counts[1:]) if a[0] >= base[0]]
+    checked = last[0] - base[0]
+    return {'judged_steps': checked, 'judged_late': last[1] - base[1],
+            'judged_on_time': 1.0 - (last[1] - base[1]) / checked,
+            'warmup_late': base[1], 'judged_late_short': last[2] - base[2],
+            'late_windows': sum(1 for n in per_window if n),
+            'late_window_max': max(per_window, default=0)}
 
 
 def _cpu_ticks(pid):
@@ -269,7 +316,8 @@ def _log_run(log, label, r, runs, rate, res):
     log(f'  P2 {label:>16} run {r + 1}/{runs}: {res["steps"]} steps at '
         f'{rate:g} Hz, {res["open_loop_steps"]} before the loop closed, '
         f'{res["late_commands"]} late ({res["late_after_short_step"]} of them '
-        f'after a short step) of {res["checked"]} -> on time '
+        f'after a short step; in {res["late_windows"]} windows of 0.25 s, at most '
+        f'{res["late_window_max"]} in one) of {res["checked"]} -> on time '
         f'{res["on_time"]:.5f}; achieved {res["rate_achieved_hz"]:.0f} Hz; '
         f'loop measurement -> command: median {res["loop_median_us"]:.0f} us, '
         f'p99 {res["loop_p99_us"]:.0f} us, max {res["loop_max_us"]:.0f} us; '
@@ -282,7 +330,7 @@ def _log_run(log, label, r, runs, rate, res):
 def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=None,
         configs=None, log=print, observer_pythonpath=None, baseline_observer=None,
         loops=LOOPS[:2], sweep=None, sweep_duration=None, sweep_bisections=None,
-        baseline_nodes=None):
+        baseline_nodes=None, sweep_steps=None, sweep_warmup=None):
     runs = runs or (1 if smoke else 3)
     configs = list(configs or (CONFIGS_SMOKE if smoke else CONFIGS))
     parsed = {c: _parse_config(c) for c in configs}
@@ -303,8 +351,9 @@ def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=Non
     # the simulator steps from its start; DDS matching takes it 1-3 s here, and those
     # open-loop steps are not judged: the run is that much longer than what is measured
     duration = duration or (5.0 if smoke else 15.0)
-    sweep_duration = sweep_duration or (3.0 if smoke else 6.0)
-    sweep_bisections = (0 if smoke else 2) if sweep_bisections is None else sweep_bisections
+    sweep_steps = sweep_steps or (500 if smoke else SWEEP_STEPS)
+    sweep_warmup = (0.5 if smoke else SWEEP_WARMUP) if sweep_warmup is None else sweep_warmup
+    sweep_bisections = (0 if smoke else 3) if sweep_bisections is None else sweep_bisections
     os.environ['ROS_DOMAIN_ID'] = ros_env()['ROS_DOMAIN_ID']
     import warnings
     warnings.filterwarnings('ignore', category=DeprecationWarning)
@@ -365,12 +414,13 @@ def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=Non
                 _log_run(log, label, r, runs, rate, res)
         for layout in sweep:
             sweeps[layout] = _sweep(
-                lambda loop, hz, k, c=layout: _one_run(
-                    node, state, parsed[c][0], sweep_duration, hz, logdir, f'sweep{k}',
-                    nodes_pythonpath, parsed[c][1], observer_pythonpath, loop,
-                    baseline_nodes),
+                lambda loop, hz, k, c=layout: dict(_one_run(
+                    node, state, parsed[c][0],
+                    sweep_duration or sweep_warmup + sweep_steps / hz + 0.5, hz, logdir,
+                    f'sweep{k}', nodes_pythonpath, parsed[c][1], observer_pythonpath,
+                    loop, baseline_nodes, warmup=sweep_warmup), warmup_s=sweep_warmup),
                 loops, sweep_bisections, layout, log,
-                max_probes=1 if smoke else 12)
+                max_probes=1 if smoke else 12, steps=sweep_steps)
     finally:
         executor.shutdown(timeout_sec=1.0)
         node.destroy_node()
@@ -455,33 +505,50 @@ def _versus_bare(figures, layout, rate_name, res, bare, smoke):
                           "loop's, the same host in the same minute"))
 
 
-def _sweep(probe, loops, bisections, layout, log, max_probes=12):
+def _sweep(probe, loops, bisections, layout, log, max_probes=12, steps=SWEEP_STEPS):
     """
     Return ``{loop: {'highest_hz', 'missed_hz', 'probes'}}``: the highest rate held on time.
 
-    ``probe(loop, hz, k)`` runs one short run and returns its result. The loops are probed
-    in turn: up by SWEEP_FACTOR from SWEEP_START to the first rate that misses ON_TIME
-    (or SWEEP_MAX), then bisected geometrically ``bisections`` times; down SWEEP_DOWN
-    steps at most when SWEEP_START misses; ``max_probes`` runs per loop at most.
+    ``probe(loop, hz, k)`` runs one short run and returns its result: ``steps`` steps
+    judged after the warm-up. A rate holds when at most ``(1 - ON_TIME)`` of the judged
+    steps were late (10 of 10000; one step is the resolution). Each loop goes up by
+    SWEEP_FACTOR from SWEEP_START to the first rate that misses (or SWEEP_MAX), down
+    by it to the first that holds (or SWEEP_MIN) when SWEEP_START misses, then bisects
+    geometrically between the two, ``bisections`` times at most and until missed / held
+    is SWEEP_RESOLUTION or less; ``max_probes`` runs per loop at most. The loops are
+    probed in turn, the order reversed from one round to the next, so that each meets
+    the host's minutes as the others do.
     """
     found = {loop: {'highest_hz': float('nan'), 'missed_hz': float('nan'), 'probes': [],
                     'next': SWEEP_START, 'left': bisections} for loop in loops}
     k = 0
+    rnd = 0
     while any(f['next'] is not None for f in found.values()):
-        for loop in loops:
+        for loop in (loops if rnd % 2 == 0 else loops[::-1]):
             f = found[loop]
             hz = f['next']
             if hz is None:
                 continue
             res = probe(loop, hz, k)
             k += 1
-            held = res['on_time'] >= ON_TIME     # NaN (never closed): missed
-            f['probes'].append({'rate_hz': hz, 'on_time': res['on_time'],
-                                'late': res['late_commands'], 'checked': res['checked'],
-                                'loop_median_us': res['loop_median_us']})
-            log(f'  P2 sweep {layout} [{loop}] {hz:.0f} Hz: on time {res["on_time"]:.5f} '
-                f'({res["late_commands"]} late of {res["checked"]}): '
-                f'{"held" if held else "missed"}'
+            late, judged = res['judged_late'], res['judged_steps']
+            # NaN (never closed, or nothing judged): missed
+            held = judged > 0 and late <= (1.0 - ON_TIME) * judged
+            f['probes'].append({'rate_hz': hz, 'on_time': res['judged_on_time'],
+                                'late': late, 'judged': judged,
+                                'warmup_late': res['warmup_late'],
+                                'late_after_short_step': res['judged_late_short'],
+                                'late_windows': res['late_windows'],
+                                'late_window_max': res['late_window_max'],
+                                'loop_median_us': res['loop_median_us'],
+                                'loop_max_us': res['loop_max_us']})
+            log(f'  P2 sweep {layout} [{loop}] {hz:.0f} Hz: {late} late of {judged} judged '
+                f'(on time {res["judged_on_time"]:.5f}): {"held" if held else "missed"}; '
+                f'{res["warmup_late"]} late in the {res.get("warmup_s", 0):g} s warm-up; '
+                f'the judged late: {res["judged_late_short"]} after a short step, in '
+                f'{res["late_windows"]} windows of 0.25 s (at most {res["late_window_max"]} '
+                f'in one); round trip median {res["loop_median_us"]:.0f} us, max '
+                f'{res["loop_max_us"]:.0f} us'
                 + ('; a node left the events executor (flood)' if res.get('flood_fallback')
                    else ''))
             if held:
@@ -493,15 +560,16 @@ def _sweep(probe, loops, bisections, layout, log, max_probes=12):
             lo, hi = f['highest_hz'], f['missed_hz']
             if hi != hi:                        # no miss yet: up
                 f['next'] = hz * SWEEP_FACTOR if hz * SWEEP_FACTOR <= SWEEP_MAX else None
-            elif lo != lo:                      # the first rate missed: down, a few steps
-                f['next'] = hz / SWEEP_FACTOR if len(f['probes']) <= SWEEP_DOWN else None
-            elif f['left'] > 0:
+            elif lo != lo:                      # nothing held yet: down
+                f['next'] = hz / SWEEP_FACTOR if hz / SWEEP_FACTOR >= SWEEP_MIN else None
+            elif f['left'] > 0 and hi / lo > SWEEP_RESOLUTION:
                 f['left'] -= 1
                 f['next'] = round((lo * hi) ** 0.5)
             else:
                 f['next'] = None
             if len(f['probes']) >= max_probes:
                 f['next'] = None
+        rnd += 1
     for f in found.values():
         del f['next'], f['left']
     return found
@@ -519,20 +587,28 @@ def _sweep_figure(figures, layout, found, bare, smoke):
                      f'{f["missed_hz"]:.0f} Hz'))
         return
     relay = summary([b['loop_median_us'] for b in bare])['median'] if bare else float('nan')
+
+    def bounds(f, g):
+        # the ratio lies between (held / missed) and (missed / held) of the two loops
+        return (f'[{f["highest_hz"] / g["missed_hz"]:.2f}..'
+                f'{f["missed_hz"] / g["highest_hz"]:.2f}]')
+
     if 'baseline' in found:
         old = found['baseline']
         figures.append(ratio_line(
             'P2', f'highest_rate_on_time_baseline/bare[{layout}]',
             [old['highest_hz'] / base['highest_hz']], '>=', None, smoke=smoke,
             note=f'the baseline nodes {old["highest_hz"]:.0f} Hz (missed '
-                 f'{old["missed_hz"]:.0f}), in the same sweep'))
+                 f'{old["missed_hz"]:.0f}), in the same sweep; bracket '
+                 f'{bounds(old, base)}'))
     figures.append(ratio_line(
         'P2', f'highest_rate_on_time_nodes/bare[{layout}]',
         [nodes['highest_hz'] / base['highest_hz']], '>=', 0.9, smoke=smoke,
-        note=f'the highest step rate with {ON_TIME:.1%} of the steps on time: nodes '
-             f'{nodes["highest_hz"]:.0f} Hz (missed {nodes["missed_hz"]:.0f}), bare loop '
-             f'{base["highest_hz"]:.0f} Hz (missed {base["missed_hz"]:.0f}); bare round '
-             f'trip at the main rate {relay:.0f} us'))
+        note=f'the highest step rate with at most {1 - ON_TIME:.1%} of the judged steps '
+             f'late: nodes {nodes["highest_hz"]:.0f} Hz (missed {nodes["missed_hz"]:.0f}), '
+             f'bare loop {base["highest_hz"]:.0f} Hz (missed {base["missed_hz"]:.0f}); the '
+             f'ratio bracketed by the rates missed {bounds(nodes, base)}; bare round trip at '
+             f'the main rate {relay:.0f} us'))
 
 
 def _versus_baseline(figures, runs, base_runs, baseline):
@@ -589,10 +665,19 @@ def main(argv=None):
                         help='comma-separated layouts (of ' + ', '.join(BARE) + ') whose '
                              'loops get the rate sweep: the highest rate with 99.9 %% on '
                              'time (default: processes; "none" for no sweep)')
+    parser.add_argument('--sweep-steps', type=int,
+                        help=f'steps judged per rate of the sweep (default {SWEEP_STEPS}: '
+                             f'a rate holds with at most {(1 - ON_TIME) * 100:.1f} %% of them '
+                             'late)')
+    parser.add_argument('--sweep-warmup', type=float,
+                        help='seconds of closed loop not judged at the start of each run '
+                             f'of the sweep, in every loop alike (default {SWEEP_WARMUP:g})')
     parser.add_argument('--sweep-duration', type=float,
-                        help='seconds per rate of the sweep, start-up included (default 6)')
+                        help='seconds per rate of the sweep (default: the warm-up, the '
+                             'steps judged at the rate, and 0.5 s)')
     parser.add_argument('--sweep-bisections', type=int,
-                        help='bisections after the first rate missed (default 2)')
+                        help='bisections after the first rate missed (default 3, fewer '
+                             f'once missed / held <= {SWEEP_RESOLUTION})')
     args = parser.parse_args(argv)
     loops = [x for x in args.loops.split(',') if x]
     if not loops or any(x not in LOOPS[:2] for x in loops):
@@ -609,7 +694,8 @@ def main(argv=None):
         configs=[x for x in (args.configs or '').split(',') if x] or None, log=log,
         loops=loops, sweep=sweep, sweep_duration=args.sweep_duration,
         sweep_bisections=args.sweep_bisections,
-        baseline_nodes=args.baseline_nodes_pythonpath))
+        baseline_nodes=args.baseline_nodes_pythonpath, sweep_steps=args.sweep_steps,
+        sweep_warmup=args.sweep_warmup))
 
 
 if __name__ == '__main__':

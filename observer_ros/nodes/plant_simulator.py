@@ -138,6 +138,7 @@ class PlantSimulatorNode(VehicleNode):
         self._ready_since = None            # realtime: wall time of the first tick
         self._handshake_sent = None         # realtime: when step 0 last went out
         self._step_wall = None              # realtime: wall time the step's gyro went out
+        self._unanswered = None             # realtime: (t, wall) of the step before, if late
         self._loop_us = []                  # realtime: measurement -> its command, us
         self._last_sent = None
         self._resends_this_wait = 0
@@ -197,7 +198,7 @@ class PlantSimulatorNode(VehicleNode):
             self.t0 = t0                    # the next step at /clock's time
             self._latest_cmd_stamp = None   # the old run's commands forgotten
             self._ahead = []
-            self._step_wall = None
+            self._step_wall = self._unanswered = None
             self.count('clock_resyncs')
         return due
 
@@ -378,6 +379,11 @@ class PlantSimulatorNode(VehicleNode):
             # the answer to this step's measurements (at this step, or predicted ahead)
             self._loop_us.append((time.monotonic() - self._step_wall) * 1e6)
             self._step_wall = None
+        elif self._unanswered is not None and abs(stamp - self._unanswered[0]) <= tol:
+            # the answer to the step before, after the next step went out (a late command):
+            # its round trip counts too, or the reported maximum would leave the late out
+            self._loop_us.append((time.monotonic() - self._unanswered[1]) * 1e6)
+            self._unanswered = None
         if stamp > self.t + tol:
             self._ahead.append((stamp, u))
             return
@@ -437,6 +443,8 @@ class PlantSimulatorNode(VehicleNode):
                     # this step came less than 3/4 of a period after the last one (the
                     # timer keeps its schedule after a late tick): its command had less time
                     self.count('late_commands_short_step')
+            # a step unanswered so far: its answer, when it comes, is timed from its step
+            self._unanswered = None if self._step_wall is None else (self.t, self._step_wall)
             self._advance()
             self._apply_due()
         self._started = True
