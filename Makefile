@@ -19,10 +19,18 @@ KIT_SUM := .venv/.ros2cli-kit.sha256
 
 setup: $(STAMP)
 
+# uv (from PyPI) resolves and installs requirements.txt with the index pages and wheels
+# fetched in parallel; pip fetched them one after another. The kit's own dependencies
+# (install.sh's first pip line) go into the same resolve, so install.sh finds them there.
+UV := .venv/bin/uv
+KIT_DEPS := $(if $(wildcard $(ROS2CLI)/install.sh),osrf-pycommon lark argcomplete psutil netifaces \
+	packaging pyyaml)
+
 $(STAMP): requirements.txt setup.py setup.cfg package.xml $(KIT_FILES)
 	test -x $(PY) || python3 -m venv .venv
-	$(PY) -m pip install --disable-pip-version-check -q -r requirements.txt
-	$(PY) -m pip install --disable-pip-version-check -q --no-deps --use-pep517 -e . --config-settings editable_mode=compat
+	$(PY) -m pip install --disable-pip-version-check -q uv==0.13.8
+	$(UV) pip install -q --python $(PY) -r requirements.txt $(KIT_DEPS)
+	$(UV) pip install -q --python $(PY) --no-deps -e . --config-settings editable_mode=compat
 	# the tools' dash names (observer-run, ...): aliases in the venv only; lib/observer_ros
 	# of a colcon install has the underscore names alone (`ros2 pkg executables`)
 	for exe in $(TOOLS); do ln -sf $$exe .venv/bin/$$(echo $$exe | tr _ -); done
