@@ -31,7 +31,8 @@ from .core.errors import ObserverError, VehicleFileError
 __all__ = ['IMU', 'JOINT_STATE', 'FLOAT64', 'MESSAGE_FIELDS', 'FIELD_UNITS', 'field_units',
            'MeasurementError',
            'FieldAccessor', 'parse_field', 'field_help', 'extract_measurement',
-           'fill_measurement', 'quaternion_to_euler', 'euler_to_quaternion']
+           'fill_measurement', 'quaternion_to_euler', 'euler_to_quaternion',
+           'max_components', 'too_many_components']
 
 IMU = 'sensor_msgs/msg/Imu'
 JOINT_STATE = 'sensor_msgs/msg/JointState'
@@ -369,3 +370,20 @@ def _set_array(msg, name, values, in_place=False):
         setattr(msg, name, np.array(values, dtype=np.float64))
     else:                                 # rclpy converts lists; stand-ins keep them
         setattr(msg, name, list(values))
+
+
+def max_components(names):
+    """
+    Return the most components a vector message of ``names`` may carry (extra joints).
+
+    A vector topic (state, estimate, command) is a JointState read by name; the node and
+    the replay refuse a larger one by its counts alone.
+
+    """
+    return max(64, 4 * len(names))
+
+
+def too_many_components(topic, count, names):
+    """Return the error text of a vector message of ``count`` components, too many for names."""
+    text = f'{count} components, more than the {max_components(names)} accepted for {len(names)}'
+    return f'{topic}: {text}' if topic else text

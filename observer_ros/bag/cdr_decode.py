@@ -4,8 +4,10 @@ Decode the fixed-layout sensor messages in bulk from their CDR bytes with numpy.
 
 Messages of the types the sensors use (``sensor_msgs/msg/Imu``,
 ``sensor_msgs/msg/JointState``, ``std_msgs/msg/Float64``) are decoded at offsets computed
-from the string and sequence lengths; anything else (big-endian CDR, an unexpected
-layout) falls back to rosbags' ``deserialize_cdr`` and the same field access as the nodes
+from the string and sequence lengths. A JointState's layout is found by the walk the nodes
+use (:mod:`.joint_state_cdr`), so every little-endian JointState is read from its bytes
+with the names rclpy would give; anything else (big-endian CDR, an unexpected layout)
+falls back to rosbags' ``deserialize_cdr`` and the same field access as the nodes
 (:func:`observer_ros.sensors.extract_measurement`). Stamps stay integer nanoseconds.
 
 """
@@ -17,7 +19,9 @@ from typing import Optional
 
 import numpy as np
 
+from .joint_state_cdr import JOINT_ARRAYS, joint_state_layout
 from ..core.estimators.admission import stamp_ns
+from ..sensors import max_components, too_many_components
 
 __all__ = ['IMU', 'JOINT_STATE', 'FLOAT64', 'CLOCK', 'IMU_OFFSETS', 'IMU_TAIL', 'Decoded',
            'decode_messages', 'decode_packed']
@@ -38,7 +42,6 @@ IMU_OFFSETS = {
     'linear_acceleration.z': 216,
 }
 _IMU_EULER = ('orientation.roll', 'orientation.pitch', 'orientation.yaw')
-_JOINT_ARRAYS = ('position', 'velocity', 'effort')
 PAD = 512          # zero bytes appended so that gathers past a short message stay inside
 
 
@@ -50,7 +53,7 @@ class Decoded:
     values: np.ndarray                  # (N, k) float64; NaN where missing
     valid: np.ndarray                   # (N,) bool: the message gives every value, finite
     first_error: str = ''               # why the first invalid message is invalid
-    bulk: int = 0                       # how many were decoded in bulk (the rest one by one)
+    bulk: int = 0                       # how many were read from their bytes (not the fallback)
 
 
 def _gather(flat, offsets, dtype):
@@ -58,58 +61,6 @@ def _gather(flat, offsets, dtype):
     dt = np.dtype(dtype)
     idx = offsets[:, None] + np.arange(dt.itemsize, dtype=np.int64)
     return np.ascontiguousarray(flat[idx]).view(dt).reshape(-1)
-
-
-def _align(pos, alignment):
-    """CDR alignment of an absolute offset (the origin is after the 4-byte header)."""
-    rel = pos - 4
-    return 4 + (rel + alignment - 1) // alignment * alignment
-
-
-def joint_state_layout(buf):
-    """
-    Parse one little-endian JointState: names, arrays (offset, count), structural bytes.
-
-    The structural bytes (every length and count, and the joint names) decide the
-    layout: a message with the same structural bytes has the same offsets.
-
-    """
-    if len(buf) < 16 or buf[0] != 0 or buf[1] != 1:
-        raise ValueError('not little-endian CDR')
-
-    def u32(off):
-        if off + 4 > len(buf):
-            raise ValueError('truncated')
-        return int.from_bytes(buf[off:off + 4], 'little')
-
-    structural = [(12, 16)]
-    pos = 16 + u32(12)
-    pos = _align(pos, 4)
-    count = u32(pos)
-    structural.append((pos, pos + 4))
-    pos += 4
-    names = []
-    for _ in range(count):
-        pos = _align(pos, 4)
-        n = u32(pos)
-        if n < 1 or pos + 4 + n > len(buf):
-            raise ValueError('bad string')
-        structural.append((pos, pos + 4 + n))
-        names.append(bytes(buf[pos + 4:pos + 3 + n]).decode('utf-8', 'replace'))
-        pos += 4 + n
-    arrays = {}
-    for array in _JOINT_ARRAYS:
-        pos = _align(pos, 4)
-        c = u32(pos)
-        structural.append((pos, pos + 4))
-        pos += 4
-        if c:
-            pos = _align(pos, 8)
-        arrays[array] = (pos, c)
-        pos += 8 * c
-    if pos > len(buf):
-        raise ValueError('truncated')
-    return names, arrays, structural
 
 
 def _joint_field_offsets(names, arrays, fields, mode):
@@ -122,6 +73,8 @@ def _joint_field_offsets(names, arrays, fields, mode):
     offsets, error = [], ''
     if mode == 'vector':
         count = arrays['position'][1]
+        if max(count, len(names)) > max_components(fields):    # as the nodes refuse it
+            return [None] * len(fields), too_many_components('', max(count, len(names)), fields)
         if count != len(names):
             return [None] * len(fields), f'{len(names)} names but {count} positions'
         if not names and count == len(fields):      # positional, as the nodes accept
@@ -169,7 +122,8 @@ def decode_messages(raws, msgtype, fields, mode='sensor', fallback=None, max_lay
         cannot read (big-endian, other types); raises ValueError for a bad message.
         Without it such messages are invalid.
     max_layouts : int
-        JointState: at most this many distinct layouts are decoded in bulk.
+        JointState: at most this many distinct layouts are decoded in bulk; the
+        messages of further layouts are read one by one from their bytes.
 
     Returns
     -------
@@ -220,6 +174,7 @@ def decode_packed(flat, starts, lengths, msgtype, fields, mode='sensor', fallbac
     has_header = msgtype != FLOAT64
     done = np.zeros(n, dtype=bool)
     errors = {}
+    walk_errors = {}        # a JointState the walk refused: why, if rosbags cannot read it
     if n:
         little = (lengths >= 4) & (flat[starts] == 0) & (flat[starts + 1] == 1)
         if msgtype == IMU and all(f in IMU_OFFSETS or f in _IMU_EULER for f in fields):
@@ -229,13 +184,13 @@ def decode_packed(flat, starts, lengths, msgtype, fields, mode='sensor', fallbac
             values[ok, 0] = _gather(flat, starts[ok] + 4, '<f8')
             done |= ok
         elif msgtype == JOINT_STATE and all(
-                f.partition('.')[0] in _JOINT_ARRAYS and f.partition('.')[2] for f in fields):
+                f.partition('.')[0] in JOINT_ARRAYS and f.partition('.')[2] for f in fields):
             _decode_joint_state(raws, flat, starts, lengths, little, fields, mode,
-                                stamps, values, done, errors, max_layouts)
+                                stamps, values, done, errors, walk_errors, max_layouts)
     bulk = int(done.sum())
     for i in np.flatnonzero(~done):
         if fallback is None:
-            errors.setdefault(i, f'cannot decode {msgtype}')
+            errors.setdefault(i, walk_errors.get(i) or f'cannot decode {msgtype}')
             continue
         try:
             stamp, vals = fallback(raws[i])
@@ -243,7 +198,7 @@ def decode_packed(flat, starts, lengths, msgtype, fields, mode='sensor', fallbac
             errors.setdefault(i, str(err))
             continue
         except Exception as err:   # noqa: BLE001 - a corrupted message in rosbags' serde
-            errors.setdefault(i, f'cannot deserialize: {err}')
+            errors.setdefault(i, walk_errors.get(i) or f'cannot deserialize: {err}')
             continue
         if stamp is not None:
             stamps[i] = stamp
@@ -303,7 +258,7 @@ def _decode_imu(flat, starts, lengths, little, fields, stamps, values, done):
 
 
 def _decode_joint_state(raws, flat, starts, lengths, little, fields, mode, stamps, values,
-                        done, errors, max_layouts):
+                        done, errors, walk_errors, max_layouts):
     ok = little & (lengths >= 16)
     rows = np.flatnonzero(ok)
     if not rows.size:
@@ -315,29 +270,40 @@ def _decode_joint_state(raws, flat, starts, lengths, little, fields, mode, stamp
     bounds = np.flatnonzero(np.diff(key)) + 1
     layouts = 0
     for group in np.split(rows, bounds):
-        while group.size and layouts < max_layouts:
+        while group.size:
             first = int(group[0])
             try:
-                names, arrays, structural = joint_state_layout(memoryview(raws[first]))
-            except ValueError:
-                group = group[1:]           # left to the fallback
+                layout = joint_state_layout(raws[first])
+            except ValueError as err:
+                walk_errors[first] = str(err)   # said if rosbags cannot deserialize it
+                group = group[1:]
                 continue
-            layouts += 1
-            idx = np.concatenate([np.arange(a, b, dtype=np.int64) for a, b in structural])
-            s = starts[group]
-            template = flat[starts[first] + idx]
-            same = (flat[s[:, None] + idx[None, :]] == template[None, :]).all(axis=1)
-            members, group = group[same], group[~same]
-            s = starts[members]
-            sec = _gather(flat, s + 4, '<i4').astype(np.int64)
-            nsec = _gather(flat, s + 8, '<u4').astype(np.int64)
-            stamps[members] = stamp_ns(sec, nsec)
-            offsets, error = _joint_field_offsets(names, arrays, fields, mode)
-            for j, off in enumerate(offsets):
-                if off is not None:
-                    values[members, j] = _gather(flat, s + off, '<f8')
-            if error and mode != 'partial':
-                values[members] = np.nan
-                for i in members:
-                    errors.setdefault(int(i), error)
+            if layouts < max_layouts:           # every message of this layout at once
+                layouts += 1
+                idx = np.concatenate([np.arange(a, b, dtype=np.int64)
+                                      for a, b in layout.structure])
+                template = flat[starts[first] + idx]
+                s = starts[group]
+                same = (flat[s[:, None] + idx[None, :]] == template[None, :]).all(axis=1)
+                members, group = group[same], group[~same]
+            else:                               # one by one, with the same walk
+                members, group = group[:1], group[1:]
+            _read_joint_state(layout, members, flat, starts, fields, mode, stamps, values,
+                              errors)
             done[members] = True
+
+
+def _read_joint_state(layout, members, flat, starts, fields, mode, stamps, values, errors):
+    """Read the stamps and fields of the messages ``members``, all of one layout."""
+    s = starts[members]
+    sec = _gather(flat, s + 4, '<i4').astype(np.int64)
+    nsec = _gather(flat, s + 8, '<u4').astype(np.int64)
+    stamps[members] = stamp_ns(sec, nsec)
+    offsets, error = _joint_field_offsets(list(layout.names), layout.arrays, fields, mode)
+    for j, off in enumerate(offsets):
+        if off is not None:
+            values[members, j] = _gather(flat, s + off, '<f8')
+    if error and mode != 'partial':
+        values[members] = np.nan
+        for i in members:
+            errors.setdefault(int(i), error)

@@ -25,6 +25,7 @@ from .cdr_decode import CLOCK, decode_messages, decode_packed, Decoded, FLOAT64,
 from .errors import BagToolError
 from .spill import count_true, spill_folder, SpilledColumn
 from ..core.estimators.admission import stamp_ns
+from ..sensors import max_components, too_many_components
 
 __all__ = ['IMU', 'JOINT_STATE', 'FLOAT64', 'CLOCK', 'VEHICLE_TOPICS', 'jazzy_typestore',
            'normalize_namespace', 'BagInfo', 'BagReader', 'bag_info', 'TopicMap',
@@ -234,6 +235,8 @@ def _vector_fallback(bag, names, mode):
         got = list(msg.name)
         position = np.asarray(msg.position, dtype=float)
         if mode == 'vector':
+            if max(len(got), len(position)) > max_components(names):  # as the nodes refuse it
+                raise ValueError(too_many_components('', max(len(got), len(position)), names))
             if len(position) != len(got):
                 raise ValueError(f'{len(got)} names but {len(position)} positions')
             if not got and len(position) == len(names):

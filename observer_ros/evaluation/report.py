@@ -235,7 +235,7 @@ def write_results(result, out, force=False, plots=True, results_bag=True,
 
 def _joint_state_bytes(names, stamp_ns, values):
     """Serialize JointState messages (name, position) for many stamps at once."""
-    from ..bag.cdr_decode import joint_state_layout   # the same layout rules as the decoder
+    from ..bag.joint_state_cdr import joint_state_layout   # the walk the decoder uses
     store = jazzy_typestore()
     js = store.types['sensor_msgs/msg/JointState']
     hdr = store.types['std_msgs/msg/Header']
@@ -244,8 +244,7 @@ def _joint_state_bytes(names, stamp_ns, values):
     msg = js(header=hdr(stamp=tm(sec=0, nanosec=0), frame_id=''), name=list(names),
              position=np.zeros(k), velocity=np.zeros(0), effort=np.zeros(0))
     template = np.frombuffer(bytes(store.serialize_cdr(msg, js.__msgtype__)), np.uint8)
-    _, arrays, _ = joint_state_layout(template.tobytes())
-    off, count = arrays['position']
+    off, count = joint_state_layout(template.tobytes()).arrays['position']
     assert count == k
     N = stamp_ns.size
     rows = np.tile(template, (N, 1))

@@ -23,6 +23,7 @@ from .parameters import declare_parameters, GatedParameterService, set_undeclare
 from .topic_watch import level_rank, TopicWatch
 from ..core.errors import ObserverError
 from ..core.estimators.admission import check_stamp
+from ..sensors import max_components, too_many_components
 from ..timeutil import sec_to_stamp_parts, stamp_to_sec
 from ..vehicle import vehicle_from_parameters
 
@@ -131,17 +132,6 @@ def about(topic, err):
     """
     text = str(err)
     return text if text.startswith(f'{topic}:') else f'{topic}: {text}'
-
-
-def max_components(names):
-    """Return the most components a vector message of ``names`` may carry (extra joints)."""
-    return max(64, 4 * len(names))
-
-
-def too_many_components(topic, count, names):
-    """Return the error text of a vector message of ``count`` components, too many for names."""
-    return (f'{topic}: {count} components, more than the {max_components(names)} accepted '
-            f'for {len(names)}')
 
 
 def _few(items, limit=5):

@@ -7,13 +7,14 @@ three numpy arrays) and every message published back into C structures. The obse
 the compensator skip both: they subscribe with ``raw=True`` and publish bytes (P1 in
 benchmarks/README.md measures the node against a bare relay). The readers here take the
 fields a node uses at fixed offsets of the little-endian CDR layout (the layouts
-:mod:`observer_ros.bag.cdr_decode` reads in bulk), and
+:mod:`observer_ros.bag.cdr_decode` reads in bulk; a JointState's found by the walk of
+:mod:`observer_ros.bag.joint_state_cdr` both sides use), and
 :class:`JointStateWriter` writes a JointState from a template made once per frame.
 
 One rule keeps each message judged as its message object was: the fast path answers only
 for a well-formed little-endian message whose values are all finite and whose joints are
-where it expects them. Anything else (a big-endian publisher, a string that is not plain
-UTF-8 ended by one NUL, a missing joint, a NaN) goes through rclpy's own
+where it expects them (a joint name is read as rclpy reads it). Anything else (a
+big-endian publisher, a missing joint, a NaN) goes through rclpy's own
 ``deserialize_message`` and the message-object functions
 (:func:`observer_ros.sensors.extract_measurement`,
 :func:`observer_ros.nodes.common.vector_from_joint_state`), which give the same value or
@@ -30,6 +31,7 @@ from rclpy.serialization import deserialize_message
 
 from .common import max_components, too_many_components, vector_from_joint_state
 from ..bag.cdr_decode import IMU_OFFSETS, IMU_TAIL
+from ..bag.joint_state_cdr import CdrError, joint_state_counts, joint_state_layout, LITTLE_ENDIAN
 from ..core.errors import ObserverError
 from ..sensors import extract_measurement, IMU, JOINT_STATE
 from ..timeutil import sec_to_stamp_parts
@@ -37,12 +39,10 @@ from ..timeutil import sec_to_stamp_parts
 __all__ = ['WireError', 'SensorReader', 'VectorReader', 'JointStateWriter', 'stamp_bytes',
            'stamp_of']
 
-# the encapsulation header of little-endian plain CDR (the second byte: the scheme)
-_LE = b'\x00\x01'
+_LE = LITTLE_ENDIAN
 _U32 = struct.Struct('<I')
 _STAMP = struct.Struct('<iI')
 _F64 = struct.Struct('<d')
-_JOINT_ARRAYS = ('position', 'velocity', 'effort')
 # names a JointState's layout is kept for at most: a larger message is read as an object
 # (or refused from its counts), not remembered
 _LAYOUT_NAMES = 256
@@ -111,66 +111,13 @@ class _Layout:
 
 
 def _joint_state_layout(raw):
-    """
-    Return the layout of a well-formed little-endian JointState, or None.
-
-    None also for a JointState that is well formed but not plain (a string not ended by
-    exactly one NUL, not UTF-8): rclpy reads those its own way.
-    """
-    size = len(raw)
-    if size < 16 or raw[0:2] != _LE:
-        return None
-    u32 = _U32.unpack_from
-    pos = 12
-    frame = u32(raw, pos)[0]
-    pos += 4 + frame
-    if pos > size:
-        return None
-    regions = [12]      # alternating starts and ends of the structural bytes
-    pos = pos + (-(pos - 4)) % 4        # aligned to 4 (from the end of the header)
-    if pos + 4 > size:
-        return None
-    count = u32(raw, pos)[0]
-    pos += 4
-    if count > (size - pos) // 5 or count > _LAYOUT_NAMES:   # a name takes 5 bytes at least
-        return None
-    names = []
-    for _ in range(count):
-        pos = pos + (-(pos - 4)) % 4
-        if pos + 4 > size:
-            return None
-        n = u32(raw, pos)[0]
-        end = pos + 4 + n
-        if n < 1 or end > size:
-            return None
-        text = raw[pos + 4:end - 1]
-        if raw[end - 1] != 0 or b'\x00' in text:
-            return None
-        try:
-            names.append(text.decode('utf-8'))
-        except UnicodeDecodeError:
-            return None
-        pos = end
-    arrays = {}
-    for array in _JOINT_ARRAYS:
-        pos = pos + (-(pos - 4)) % 4
-        if pos + 4 > size:
-            return None
-        c = u32(raw, pos)[0]
-        pos += 4
-        if c:
-            pos = pos + (-(pos - 4)) % 8
-            regions.append(pos)             # the values are not structure
-            if c > (size - pos) // 8:
-                return None
-            arrays[array] = (pos, c)
-            pos += 8 * c
-            regions.append(pos)
-        else:
-            arrays[array] = (pos, 0)
-    regions.append(pos)
-    spans = tuple((a, b, raw[a:b]) for a, b in zip(regions[::2], regions[1::2]) if b > a)
-    return _Layout(size, spans, tuple(names), arrays)
+    """Return the layout of a little-endian JointState (:mod:`..bag.joint_state_cdr`), or None."""
+    try:
+        layout = joint_state_layout(raw, _LAYOUT_NAMES)
+    except CdrError:
+        return None                     # rclpy is left to read it or to say why not
+    spans = tuple((a, b, raw[a:b]) for a, b in layout.outside_values())
+    return _Layout(layout.size, spans, layout.names, layout.arrays)
 
 
 class _JointStateLayouts:
@@ -198,43 +145,6 @@ class _JointStateLayouts:
             self._known.append(layout)
             self._last = layout
         return layout
-
-
-def _joint_state_counts(raw):
-    """
-    Return ``(names, positions)``: the counts of a well-formed little-endian JointState.
-
-    None for bytes that are not one (rclpy is left to say why). Walks the lengths without
-    decoding a name: a message of 10^6 components is judged by its size without the
-    Python objects (about 90 MiB) rclpy would make of it.
-    """
-    size = len(raw)
-    if size < 16 or raw[0:2] != _LE:
-        return None
-    u32 = _U32.unpack_from
-    pos = 16 + u32(raw, 12)[0]
-    counts = []
-    for part in ('name',) + _JOINT_ARRAYS:
-        pos += -(pos - 4) % 4
-        if pos + 4 > size:
-            return None
-        count = u32(raw, pos)[0]
-        pos += 4
-        if part == 'name':
-            if count > (size - pos) // 5:
-                return None
-            for _ in range(count):
-                pos += -(pos - 4) % 4
-                if pos + 4 > size:
-                    return None
-                pos += 4 + u32(raw, pos)[0]
-        elif count:
-            pos += -(pos - 4) % 8
-            pos += 8 * count
-        if pos > size:
-            return None
-        counts.append(count)
-    return counts[0], counts[1]
 
 
 def _values_struct(offsets):
@@ -388,11 +298,14 @@ class VectorReader:
                     values = _unpack(plan, raw) if plan[0].size else []
                     if all(map(_isfinite, values)):
                         return _STAMP.unpack_from(raw, 4) + (raw[4:12],), values, None
-            counts = _joint_state_counts(raw)
-            if counts is not None and max(counts) > self._limit:
+            try:
+                most = max(joint_state_counts(raw)[:2])
+            except CdrError:
+                most = 0                # rclpy is left to say why not
+            if most > self._limit:
                 # refused by its size, as vector_from_joint_state does, before any object
                 return (_STAMP.unpack_from(raw, 4) + (raw[4:12],), None,
-                        too_many_components(self.topic, max(counts), self.names))
+                        too_many_components(self.topic, most, self.names))
         return self._object(_deserialize(raw, _joint_state_class(), self.topic))
 
     def _object(self, msg):
