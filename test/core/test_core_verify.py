@@ -8,6 +8,7 @@ import control
 from hypothesis import given, HealthCheck, settings, strategies as st
 import numpy as np
 from numpy.testing import assert_allclose
+from observer_ros.core import pole_placement
 from observer_ros.core.analysis import observability_report
 from observer_ros.core.design import kalman_gain, kalman_update_gain
 from observer_ros.core.errors import (DesignVerificationError, DimensionError, ObserverError,
@@ -221,9 +222,21 @@ def _achieved_ok(poles, discrete):
     return bool(np.all(np.abs(poles) < 1.0)) if discrete else bool(np.all(poles.real < 0))
 
 
+# The claim holds for any gain the design accepts, however long the robust placement
+# searched: capped at 60 iterations (twice python-control's 30, so that the longer search
+# stays a candidate of its own), multi-input plants of 7-12 states no longer run it to its
+# 300-iteration limit (at that limit the search is 85 % of this test's time).
+PROPERTY_ROBUST_MAXITER = 60
+
+
+@pytest.fixture
+def capped_robust_search(monkeypatch):
+    monkeypatch.setattr(pole_placement, 'ROBUST_MAXITER', PROPERTY_ROBUST_MAXITER)
+
+
 @settings(max_examples=30, deadline=None, suppress_health_check=list(HealthCheck))
 @given(systems())
-def test_property_every_accepted_design_is_verified(v):
+def test_property_every_accepted_design_is_verified(capped_robust_search, v):
     try:
         d = design_quietly(v)
     except ObserverError as err:
