@@ -36,8 +36,9 @@ are judged against that in the same run:
   judged, in every loop alike) and then ``--sweep-steps`` judged steps (10000: the rate
   holds with at most 10 of them late; one late step is 0.01 %, the resolution). From
   500 Hz up by 1.5x to the first rate that misses (down by 1.5x to the first that holds
-  when 500 Hz misses), then geometric bisections between the two (``--sweep-bisections``,
-  3, fewer once missed / held <= 1.06); the loops probed in turn, the order reversed
+  when 500 Hz misses, 148 Hz at the lowest), then geometric bisections between the two
+  (``--sweep-bisections``, 3, fewer once missed / held <= 1.06); the loops probed in
+  turn, the order reversed
   from one round to the next. Figure: nodes / bare [>= 0.9], bracketed by the rates each
   loop missed, with both rates and the bare loop's round trip at the main rate (the
   host's relay figure) beside it. Each probe says where its late steps fell: in the
@@ -103,7 +104,7 @@ ON_TIME = 0.999             # the on-time fraction a rate of the sweep must keep
 SWEEP_START = 500.0         # Hz, the sweep's first rate
 SWEEP_FACTOR = 1.5          # and its steps up, to the first rate that misses
 SWEEP_MAX = 8000.0          # Hz: the sweep stops here even if every rate held
-SWEEP_MIN = 60.0            # Hz: and goes no lower when the first rate misses
+SWEEP_MIN = 140.0           # Hz: and goes no lower when the first rate misses (148 Hz)
 # steps judged per rate of the sweep: 0.1 % of them is 10 steps, one late step 0.01 %
 SWEEP_STEPS = 10000
 # s of closed loop at the start of every run of the sweep, in every loop alike, whose

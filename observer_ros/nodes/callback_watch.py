@@ -43,10 +43,10 @@ from diagnostic_msgs.msg import DiagnosticStatus
 
 __all__ = ['BEAT', 'LAG_LIMIT', 'LAG_RESUME', 'FLOOD_MESSAGES', 'FLOOD_HOLD', 'CallbackWatch']
 
-# s (wall): the heartbeat's period, and how often the thread looks: each is a wake-up of
-# the process (the heartbeat one of the executor's thread too), which an idle node pays
-# as much as a message; five and ten a second see a LAG_LIMIT late heartbeat within 0.1 s
-BEAT = 0.2
+# s (wall): the heartbeat's period, and how often the thread looks (each look is a
+# wake-up of the process, which an idle node pays as much as a message: ten a second see
+# a LAG_LIMIT late heartbeat within 0.1 s)
+BEAT = 0.1
 WATCH = 0.1
 # s: the heartbeat this late, with messages still being taken: a flood; messages are shed
 LAG_LIMIT = 0.5

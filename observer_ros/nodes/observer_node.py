@@ -119,6 +119,7 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
             self._watch_ns = round(1e9 * silence_watch_period(
                 rate, [s.timeout for s in v.sensors]))
             self._predicting = False
+            self._look_ns = self._watch_ns
             self._predict_timer = self.wall_timer(self._watch_ns * 1e-9, self._on_predict)
             if v.observer.publish_rate_hz:
                 self._publish_timer = self.wall_timer(1.0 / v.observer.publish_rate_hz,
@@ -451,19 +452,39 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
         self.get_logger().warning(text, throttle_duration_sec=1.0)
 
     def _on_predict(self):
-        """Predict only while all sensors are silent; the estimate keeps coming."""
+        """
+        Predict only while all sensors are silent; the estimate keeps coming.
+
+        While a sensor speaks, the next look is a watch period past the moment the last
+        one would fall silent (its newest message plus its timeout), not every watch
+        period: the first prediction still comes at most a watch period after the
+        timeout, and a gyro at 250 Hz costs two wake-ups a second instead of twenty.
+        """
         now_wall = self.wall_now()
-        # no estimate yet (before the first measurement, after a reset): nothing to predict
-        speaking = self.history.t is None or any(
-            now_wall - self._last_seen.get(s.name, -np.inf) <= s.timeout
-            for s in self.vehicle.sensors)
-        if speaking == self._predicting:       # the sensors fell silent, or spoke again
-            # predictions at the rate, or back to watching (from the timer's next call)
-            self._predicting = not speaking
-            self._predict_timer.timer_period_ns = \
-                self._watch_ns if speaking else self._predict_ns
-        if not speaking:
-            self._publish_prediction('predictions')
+        if self.history.t is None:
+            # no estimate yet (before the first measurement, after a reset): nothing to
+            # predict; looked at every watch period
+            speaking, quiet_at = True, now_wall
+        else:
+            quiet_at = max(self._last_seen.get(s.name, -np.inf) + s.timeout
+                           for s in self.vehicle.sensors)
+            speaking = now_wall <= quiet_at
+        if speaking:
+            # back to watching, or watching on: the next look from now
+            self._predicting = False
+            self._look_in(round((quiet_at - now_wall) * 1e9) + self._watch_ns)
+            return
+        if not self._predicting:                # the sensors fell silent: at the rate
+            self._predicting = True
+            self._look_in(self._predict_ns)
+        self._publish_prediction('predictions')
+
+    def _look_in(self, period_ns):
+        """Call _on_predict next after period_ns from now, and every period_ns after."""
+        if period_ns != self._look_ns:      # unchanged: the timer goes on as it is
+            self._look_ns = period_ns
+            self._predict_timer.timer_period_ns = period_ns
+            self._predict_timer.reset()
 
     def _on_publish_rate(self):
         """Publish the estimate predicted to now (``observer.publish_rate_hz``)."""
