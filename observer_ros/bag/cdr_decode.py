@@ -233,7 +233,7 @@ def _decode_imu(flat, starts, lengths, little, fields, stamps, values, done):
     s = starts[rows]
     strlen = _gather(flat, s + 12, '<u4').astype(np.int64)
     base = 4 + (12 + strlen + 7) // 8 * 8          # aligned start of orientation
-    fits = (strlen >= 1) & (base + IMU_TAIL <= lengths[rows])
+    fits = base + IMU_TAIL <= lengths[rows]       # an empty frame_id too, as rclpy reads it
     rows, s, base = rows[fits], s[fits], base[fits]
     sec = _gather(flat, s + 4, '<i4').astype(np.int64)
     nsec = _gather(flat, s + 8, '<u4').astype(np.int64)

@@ -10,7 +10,8 @@ names are the ones rclpy deserializes, the offsets hold the values, and a messag
 short is refused naming the field. Then every case is read by the node's byte readers
 (:mod:`observer_ros.nodes.wire`) and by the offline decoder with the replay's fallback
 (:mod:`observer_ros.bag.reader`): both accept the same messages with the same values and
-stamps, and refuse the same ones.
+stamps, and refuse the same ones; so are Imu and Float64 messages (an empty frame_id,
+big-endian, NaN, cut short).
 """
 
 import re
@@ -27,7 +28,8 @@ from observer_ros.nodes.wire import SensorReader, VectorReader, WireError
 import pytest
 from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.typesys import get_typestore, Stores
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import Imu, JointState
+from std_msgs.msg import Float64
 
 STORE = get_typestore(Stores.ROS2_JAZZY)
 _ROSBAGS_JS = STORE.types[JOINT_STATE]
@@ -276,3 +278,66 @@ def test_the_cases_cover_acceptance_and_refusal():
                 if _node(VectorReader(('a', 'b'), 'u'), raw) is not None]
     assert 'big-endian' in accepted and 'a name not UTF-8' not in accepted
     assert re.search('empty frame', ' '.join(accepted))
+
+
+# ------------------------------------------- the other sensor types: Imu and Float64
+
+def _imu(frame='imu_link', value=0.25):
+    msg = Imu()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = 7, 11
+    msg.header.frame_id = frame
+    msg.orientation.w = 1.0
+    msg.angular_velocity.y = value
+    msg.linear_acceleration.z = 9.81
+    return serialize_message(msg)
+
+
+def _empty_frame(raw):
+    """Return the same message with a frame_id of length 0 (rclpy writes one NUL)."""
+    assert raw[12:17] == b'\x01\x00\x00\x00\x00'
+    return raw[:12] + bytes(4) + raw[16:]
+
+
+def _rosbags_imu(little_endian):
+    msg = STORE.deserialize_cdr(_imu(), 'sensor_msgs/msg/Imu')
+    return bytes(STORE.serialize_cdr(msg, 'sensor_msgs/msg/Imu', little_endian=little_endian))
+
+
+IMU_CASES = {
+    'plain': _imu(), 'an odd frame': _imu('abc'), 'NaN': _imu(value=float('nan')),
+    'an empty frame': _empty_frame(_imu('')), 'rosbags': _rosbags_imu(True),
+    'big-endian': _rosbags_imu(False),
+}
+IMU_CASES.update({f'cut at {cut}': _imu()[:cut] for cut in (0, 3, 15, 20, 200, 300)})
+FLOAT64_CASES = {
+    'plain': serialize_message(Float64(data=1.5)),
+    'NaN': serialize_message(Float64(data=float('nan'))),
+    'big-endian': bytes(STORE.serialize_cdr(STORE.types['std_msgs/msg/Float64'](data=2.5),
+                                            'std_msgs/msg/Float64', little_endian=False)),
+    'cut at 10': serialize_message(Float64(data=1.5))[:10],
+}
+
+
+@pytest.mark.parametrize('msgtype, msg_class, key, fields', [
+    ('sensor_msgs/msg/Imu', Imu, k, f) for k in IMU_CASES
+    for f in [('angular_velocity.y',), ('linear_acceleration.z', 'orientation.pitch')]] + [
+    ('std_msgs/msg/Float64', Float64, k, ('data',)) for k in FLOAT64_CASES])
+def test_the_node_and_the_replay_judge_other_sensors_alike(msgtype, msg_class, key, fields):
+    raw = (IMU_CASES if msg_class is Imu else FLOAT64_CASES)[key]
+    sensor = SensorSpec(name='s', topic='s', msg_type=msgtype, fields=fields,
+                        outputs=tuple(f'y{i}' for i in range(len(fields))),
+                        noise_std=np.ones(len(fields)))
+    try:
+        header, node, _ = SensorReader(sensor, msg_class).read(raw)
+    except WireError:
+        node = None
+    dec = decode_messages([raw], msgtype, fields, fallback=_sensor_fallback(_Bag, sensor))
+    assert (node is not None) == bool(dec.valid[0]), (node, dec.first_error)
+    if node is not None:
+        assert _same(node, dec.values[0].tolist())
+        if msg_class is Imu:
+            assert header[0] * 10**9 + header[1] == dec.stamp_ns[0]
+    if key.startswith('cut'):
+        assert node is None
+    elif key in ('plain', 'an empty frame', 'big-endian'):
+        assert node is not None
