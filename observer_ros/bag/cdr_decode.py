@@ -19,7 +19,7 @@ from typing import Optional
 
 import numpy as np
 
-from .joint_state_cdr import JOINT_ARRAYS, joint_state_layout
+from .joint_state_cdr import field_offsets, JOINT_ARRAYS, joint_state_layout
 from ..core.estimators.admission import stamp_ns
 from ..sensors import max_components, too_many_components
 
@@ -70,7 +70,6 @@ def _joint_field_offsets(names, arrays, fields, mode):
     Returns (offsets, error): offsets is a list with None for a missing field.
 
     """
-    offsets, error = [], ''
     if mode == 'vector':
         count = arrays['position'][1]
         if max(count, len(names)) > max_components(fields):    # as the nodes refuse it
@@ -80,21 +79,7 @@ def _joint_field_offsets(names, arrays, fields, mode):
         if not names and count == len(fields):      # positional, as the nodes accept
             start = arrays['position'][0]
             return [start + 8 * i for i in range(count)], ''
-    for f in fields:
-        array, _, joint = f.partition('.')
-        start, count = arrays.get(array, (0, 0))
-        if joint not in names:
-            offsets.append(None)
-            error = error or f'joint {joint!r} is not in JointState.name {names}'
-            continue
-        i = names.index(joint)
-        if i >= count:
-            offsets.append(None)
-            error = error or (f'joint {joint!r}: JointState.{array} has {count} values '
-                              f'for {len(names)} names')
-            continue
-        offsets.append(start + 8 * i)
-    return offsets, error
+    return field_offsets(names, arrays, fields)
 
 
 def decode_messages(raws, msgtype, fields, mode='sensor', fallback=None, max_layouts=64):
@@ -299,7 +284,7 @@ def _read_joint_state(layout, members, flat, starts, fields, mode, stamps, value
     sec = _gather(flat, s + 4, '<i4').astype(np.int64)
     nsec = _gather(flat, s + 8, '<u4').astype(np.int64)
     stamps[members] = stamp_ns(sec, nsec)
-    offsets, error = _joint_field_offsets(list(layout.names), layout.arrays, fields, mode)
+    offsets, error = _joint_field_offsets(layout.names, layout.arrays, fields, mode)
     for j, off in enumerate(offsets):
         if off is not None:
             values[members, j] = _gather(flat, s + off, '<f8')

@@ -23,7 +23,7 @@ at the offsets given here. No ROS import: the offline tools use it without rclpy
 import struct
 
 __all__ = ['JOINT_ARRAYS', 'LITTLE_ENDIAN', 'CdrError', 'JointStateLayout', 'joint_state_layout',
-           'joint_state_counts', 'is_little_endian']
+           'joint_state_counts', 'field_offsets', 'is_little_endian']
 
 JOINT_ARRAYS = ('position', 'velocity', 'effort')
 # the encapsulation header of little-endian plain CDR (the second byte: the scheme)
@@ -165,3 +165,32 @@ def joint_state_counts(raw):
         joint_state_layout(raw)         # raises, naming the field that does not fit
         raise
     return (count,) + tuple(arrays[a][1] for a in JOINT_ARRAYS)
+
+
+def field_offsets(names, arrays, fields):
+    """
+    Return ``(offsets, error)``: where a layout holds each ``array.joint`` field.
+
+    ``names`` and ``arrays`` as in :class:`JointStateLayout`; ``offsets`` has the byte
+    offset of each field's value, None where the message lacks it (the joint is not
+    named, or its array is shorter than its index); ``error`` says why the first missing
+    one is missing ('' when none is). The joint is the first of its name, as
+    :func:`~observer_ros.sensors.extract_measurement` looks it up.
+
+    """
+    offsets, error = [], ''
+    for f in fields:
+        array, _, joint = f.partition('.')
+        start, count = arrays.get(array, (0, 0))
+        if joint not in names:
+            offsets.append(None)
+            error = error or f'joint {joint!r} is not in JointState.name {list(names)}'
+            continue
+        i = names.index(joint)
+        if i >= count:
+            offsets.append(None)
+            error = error or (f'joint {joint!r}: JointState.{array} has {count} values '
+                              f'for {len(names)} names')
+            continue
+        offsets.append(start + 8 * i)
+    return offsets, error

@@ -31,7 +31,8 @@ from rclpy.serialization import deserialize_message
 
 from .common import max_components, too_many_components, vector_from_joint_state
 from ..bag.cdr_decode import IMU_OFFSETS, IMU_TAIL
-from ..bag.joint_state_cdr import CdrError, joint_state_counts, joint_state_layout, LITTLE_ENDIAN
+from ..bag.joint_state_cdr import (CdrError, field_offsets, joint_state_counts, joint_state_layout,
+                                   LITTLE_ENDIAN)
 from ..core.errors import ObserverError
 from ..sensors import extract_measurement, IMU, JOINT_STATE
 from ..timeutil import sec_to_stamp_parts
@@ -253,17 +254,8 @@ class SensorReader:
         """Return how to read the fields in a layout, None when one is not there."""
         if len(self._plans) >= 8:
             self._plans.clear()
-        offsets = []
-        for field in self.sensor.fields:
-            array, _, joint = field.partition('.')
-            if joint not in layout.names or array not in layout.arrays:
-                return None
-            start, count = layout.arrays[array]
-            index = layout.names.index(joint)
-            if index >= count:
-                return None
-            offsets.append(start + 8 * index)
-        return _values_struct(offsets)
+        offsets, missing = field_offsets(layout.names, layout.arrays, self.sensor.fields)
+        return None if missing else _values_struct(offsets)
 
 
 class VectorReader:

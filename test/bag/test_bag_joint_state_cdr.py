@@ -20,8 +20,8 @@ import struct
 from hypothesis import given, HealthCheck, settings, strategies as st
 import numpy as np
 from observer_ros.bag.cdr_decode import decode_messages, JOINT_STATE
-from observer_ros.bag.joint_state_cdr import (CdrError, JOINT_ARRAYS, joint_state_counts,
-                                              joint_state_layout)
+from observer_ros.bag.joint_state_cdr import (CdrError, field_offsets, JOINT_ARRAYS,
+                                              joint_state_counts, joint_state_layout)
 from observer_ros.bag.reader import _sensor_fallback, _vector_fallback
 from observer_ros.core.spec import SensorSpec
 from observer_ros.nodes.wire import SensorReader, VectorReader, WireError
@@ -190,6 +190,21 @@ def test_counts_no_name_is_decoded_for():
         joint_state_counts(bytes(raw))
     with pytest.raises(CdrError, match='more than the 2 read here'):
         joint_state_layout(_rclpy(['a', 'b', 'c']), max_names=2)
+
+
+def test_field_offsets_name_the_first_missing_field():
+    raw = _rclpy(['a', 'b', 'a'], [1.0, 2.0, 3.0], [4.0])
+    layout = joint_state_layout(raw)
+    offsets, error = field_offsets(layout.names, layout.arrays,
+                                   ['position.a', 'velocity.b', 'position.c', 'effort.a'])
+    assert offsets[0] == layout.arrays['position'][0]      # the first joint of the name
+    assert offsets[1:] == [None, None, None]
+    assert error == "joint 'b': JointState.velocity has 1 values for 3 names"
+    _, error = field_offsets(layout.names, layout.arrays, ['position.c'])
+    assert error == "joint 'c' is not in JointState.name ['a', 'b', 'a']"
+    offsets, error = field_offsets(layout.names, layout.arrays, ['velocity.a', 'position.b'])
+    assert error == '' and _values_at(raw, offsets[0], 1) == [4.0]
+    assert _values_at(raw, offsets[1], 1) == [2.0]
 
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
