@@ -32,7 +32,7 @@ __all__ = ['IMU', 'JOINT_STATE', 'FLOAT64', 'MESSAGE_FIELDS', 'FIELD_UNITS', 'fi
            'MeasurementError',
            'FieldAccessor', 'parse_field', 'field_help', 'extract_measurement',
            'fill_measurement', 'quaternion_to_euler', 'euler_to_quaternion',
-           'max_components', 'too_many_components']
+           'max_components', 'too_many_components', 'vector_from_joint_state']
 
 IMU = 'sensor_msgs/msg/Imu'
 JOINT_STATE = 'sensor_msgs/msg/JointState'
@@ -387,3 +387,45 @@ def too_many_components(topic, count, names):
     """Return the error text of a vector message of ``count`` components, too many for names."""
     text = f'{count} components, more than the {max_components(names)} accepted for {len(names)}'
     return f'{topic}: {text}' if topic else text
+
+
+def _few(items, limit=5):
+    """Return at most ``limit`` items as text, with the count of the rest (bounded logs)."""
+    items = list(items[:limit + 1])
+    text = ', '.join(repr(x) for x in items[:limit])
+    return f'[{text}, ...]' if len(items) > limit else f'[{text}]'
+
+
+def vector_from_joint_state(msg, names, topic):
+    """
+    Read the components ``names`` of a vector topic by name, in that order.
+
+    The node (its readers and the simulator) and the replay judge a vector message here.
+    Raises ObserverError naming the topic for unknown/missing names, wrong sizes or
+    values that are not finite. The sizes are checked first, before anything is
+    converted (a message of 10^6 components costs two ``len`` calls), and the error
+    texts list at most a few names and values. A repeated name gives its first
+    position, as a sensor's joint does (:func:`extract_measurement`).
+
+    """
+    n_names, n_values = len(msg.name), len(msg.position)
+    limit = max_components(names)
+    if max(n_names, n_values) > limit:
+        raise ObserverError(too_many_components(topic, max(n_names, n_values), names))
+    if n_values != n_names:
+        raise ObserverError(f'{topic}: {n_names} names but {n_values} positions')
+    if (msg.name == list(names)) if msg.name else len(msg.position) == len(names):
+        # the usual case, the names in order (or none): no lookup
+        values = np.array(msg.position, dtype=float)
+    else:
+        index = {}
+        for i, name in enumerate(msg.name):
+            index.setdefault(name, i)
+        missing = [name for name in names if name not in index]
+        if missing:
+            raise ObserverError(f'{topic}: missing component(s) {_few(missing)}; '
+                                f'got names {_few(msg.name)}')
+        values = np.array([msg.position[index[name]] for name in names], dtype=float)
+    if not all(map(math.isfinite, values.tolist())):     # floats: a third of np.isfinite's
+        raise ObserverError(f'{topic}: non-finite value in {_few(values.tolist())}')
+    return values

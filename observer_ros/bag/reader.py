@@ -24,8 +24,9 @@ from .bag_topics import normalize_namespace, resolve_topics, TopicMap, VEHICLE_T
 from .cdr_decode import CLOCK, decode_messages, decode_packed, Decoded, FLOAT64, IMU, JOINT_STATE
 from .errors import BagToolError
 from .spill import count_true, spill_folder, SpilledColumn
+from ..core.errors import ObserverError
 from ..core.estimators.admission import stamp_ns
-from ..sensors import max_components, too_many_components
+from ..sensors import vector_from_joint_state
 
 __all__ = ['IMU', 'JOINT_STATE', 'FLOAT64', 'CLOCK', 'VEHICLE_TOPICS', 'jazzy_typestore',
            'normalize_namespace', 'BagInfo', 'BagReader', 'bag_info', 'TopicMap',
@@ -228,26 +229,24 @@ def _sensor_fallback(bag, sensor):
     return decode
 
 
-def _vector_fallback(bag, names, mode):
+def _vector_fallback(bag, names, mode, topic):
     def decode(raw):
         msg = bag.deserialize(raw, JOINT_STATE)
         stamp = stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec)
-        got = list(msg.name)
+        if mode == 'vector':            # judged as the nodes judge it
+            try:
+                return stamp, vector_from_joint_state(msg, names, topic)
+            except ObserverError as err:
+                raise ValueError(str(err)) from None
+        # partial (residuals): the components the message has, NaN for the others
         position = np.asarray(msg.position, dtype=float)
-        if mode == 'vector':
-            if max(len(got), len(position)) > max_components(names):  # as the nodes refuse it
-                raise ValueError(too_many_components('', max(len(got), len(position)), names))
-            if len(position) != len(got):
-                raise ValueError(f'{len(got)} names but {len(position)} positions')
-            if not got and len(position) == len(names):
-                return stamp, position
-        index = {n: i for i, n in enumerate(got)}
+        index = {}
+        for i, n in enumerate(msg.name):
+            index.setdefault(n, i)      # a repeated name: its first position
         out = np.full(len(names), np.nan)
         for j, n in enumerate(names):
             if n in index and index[n] < len(position):
                 out[j] = position[index[n]]
-            elif mode != 'partial':
-                raise ValueError(f'missing component {n!r}; got names {got}')
         return stamp, out
     return decode
 
@@ -323,7 +322,7 @@ def read_recording(path, vehicle, namespace=None, progress=None, vectors=True, s
                 mode = 'partial' if key == 'residual' else 'vector'
                 accs[topic] = (key, _Accumulator(
                     topic, JOINT_STATE, names, [f'position.{n}' for n in names], mode,
-                    _vector_fallback(bag, names, mode), *sizes(topic)))
+                    _vector_fallback(bag, names, mode, topic), *sizes(topic)))
         total = sum(info.topics[t][1] for t in accs)
         by_conn = {}
         for conn in bag.connections(accs):

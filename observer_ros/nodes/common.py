@@ -2,7 +2,6 @@
 """Shared pieces of the observer_ros nodes: vehicle parameters, QoS, conversions."""
 
 import array
-import math
 import sys
 import time
 
@@ -23,7 +22,7 @@ from .parameters import declare_parameters, GatedParameterService, set_undeclare
 from .topic_watch import level_rank, TopicWatch
 from ..core.errors import ObserverError
 from ..core.estimators.admission import check_stamp
-from ..sensors import max_components, too_many_components
+from ..sensors import max_components, too_many_components, vector_from_joint_state
 from ..timeutil import sec_to_stamp_parts, stamp_to_sec
 from ..vehicle import vehicle_from_parameters
 
@@ -132,44 +131,6 @@ def about(topic, err):
     """
     text = str(err)
     return text if text.startswith(f'{topic}:') else f'{topic}: {text}'
-
-
-def _few(items, limit=5):
-    """Return at most ``limit`` items as text, with the count of the rest (bounded logs)."""
-    items = list(items[:limit + 1])
-    text = ', '.join(repr(x) for x in items[:limit])
-    return f'[{text}, ...]' if len(items) > limit else f'[{text}]'
-
-
-def vector_from_joint_state(msg, names, topic):
-    """
-    Read the components ``names`` of a vector topic by name, in that order.
-
-    Raises ObserverError naming the topic for unknown/missing names, wrong sizes or
-    values that are not finite. The sizes are checked first, before anything is
-    converted (a message of 10^6 components costs two ``len`` calls), and the error
-    texts list at most a few names and values.
-
-    """
-    n_names, n_values = len(msg.name), len(msg.position)
-    limit = max_components(names)
-    if max(n_names, n_values) > limit:
-        raise ObserverError(too_many_components(topic, max(n_names, n_values), names))
-    if n_values != n_names:
-        raise ObserverError(f'{topic}: {n_names} names but {n_values} positions')
-    if (msg.name == list(names)) if msg.name else len(msg.position) == len(names):
-        # the usual case, the names in order (or none): no lookup
-        values = np.array(msg.position, dtype=float)
-    else:
-        index = {name: i for i, name in enumerate(msg.name)}
-        missing = [name for name in names if name not in index]
-        if missing:
-            raise ObserverError(f'{topic}: missing component(s) {_few(missing)}; '
-                                f'got names {_few(msg.name)}')
-        values = np.array([msg.position[index[name]] for name in names], dtype=float)
-    if not all(map(math.isfinite, values.tolist())):     # floats: a third of np.isfinite's
-        raise ObserverError(f'{topic}: non-finite value in {_few(values.tolist())}')
-    return values
 
 
 class VehicleNode(Node):

@@ -25,6 +25,7 @@ from observer_ros.bag.joint_state_cdr import (CdrError, field_offsets, JOINT_ARR
 from observer_ros.bag.reader import _sensor_fallback, _vector_fallback
 from observer_ros.core.spec import SensorSpec
 from observer_ros.nodes.wire import SensorReader, VectorReader, WireError
+from observer_ros.sensors import extract_measurement, vector_from_joint_state
 import pytest
 from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.typesys import get_typestore, Stores
@@ -88,6 +89,7 @@ CASES = {
     'velocity and effort only': _rclpy(['a', 'b'], [], [1.0, 2.0], [3.0]),
     'effort longer than position': _rclpy(['a', 'b'], [1.0], [], [3.0, 4.0, 5.0]),
     'NaN value': _rclpy(['a', 'b'], [float('nan'), 2.0]),
+    'a repeated name': _rclpy(['a', 'b', 'a'], [1.0, 2.0, 3.0], [4.0, 5.0, 6.0]),
     'many joints': _rclpy(MANY, [float(i) for i in range(300)], [0.0] * 300),
     'many joints, rosbags': _rosbags(MANY, [float(i) for i in range(300)]),
     'big-endian': _rosbags(['a', 'b'], [1.0, 2.0], [3.0, 4.0], little_endian=False),
@@ -276,7 +278,7 @@ def test_the_node_and_the_replay_judge_each_message_alike(key):
     for names in VECTORS:
         node = _node(VectorReader(names, 'control/u'), raw)
         offline = _replay(raw, [f'position.{n}' for n in names], 'vector',
-                          _vector_fallback(_Bag, names, 'vector'))
+                          _vector_fallback(_Bag, names, 'vector', 'control/u'))
         assert (node is None) == (offline is None), (names[:3], node, offline)
         if node is not None:
             assert node[0] == offline[0] and _same(node[1], offline[1]), (names[:3], node)
@@ -356,3 +358,14 @@ def test_the_node_and_the_replay_judge_other_sensors_alike(msgtype, msg_class, k
         assert node is None
     elif key in ('plain', 'an empty frame', 'big-endian'):
         assert node is not None
+
+
+def test_a_vector_with_a_repeated_name_gives_its_first_position():
+    """As a sensor's joint: the node's readers and the replay read the same component."""
+    msg = JointState(name=['a', 'b', 'a'], position=[1.0, 2.0, 3.0])
+    assert vector_from_joint_state(msg, ['b', 'a'], 'state/true').tolist() == [2.0, 1.0]
+    assert extract_measurement(msg, _sensor(['position.a'])).tolist() == [1.0]
+    raw = serialize_message(msg)
+    assert VectorReader(['b', 'a'], 'state/true').read(raw)[1] == [2.0, 1.0]
+    assert _replay(raw, ['position.b', 'position.a'], 'vector',
+                   _vector_fallback(_Bag, ['b', 'a'], 'vector', 'state/true'))[1] == [2.0, 1.0]
