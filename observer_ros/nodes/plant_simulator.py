@@ -152,6 +152,11 @@ class PlantSimulatorNode(VehicleNode):
             period = self.dt / v.simulator.realtime_factor
             self._step_timer = self.wall_timer(period, self._realtime_step)
             self.count('late_commands', 0)
+            # said now, before any step: a process's first log line costs tens to hundreds
+            # of ms (234 ms at load 27), which at the first step made the timer's next
+            # ticks come at once, each a late command (benchmarks P2)
+            self.get_logger().info(f'{v.name}: realtime at {1.0 / period:g} Hz; step 0 '
+                                   'goes out until a command answers it')
         self._diag_timer = self.wall_timer(self.param('diagnostics_period'),
                                            self._on_diagnostics)
         self.add_on_set_parameters_callback(self._on_set_parameters)
