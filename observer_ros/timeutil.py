@@ -1,7 +1,7 @@
 # observer_ros.timeutil: one conversion between ROS stamps and seconds, used everywhere.
 """Stamp conversions shared by the nodes and the bag tools (no ROS imports)."""
 
-__all__ = ['stamp_to_sec', 'stamp_to_ns', 'sec_to_stamp_parts', 'ns_to_sec']
+__all__ = ['stamp_to_sec', 'stamp_to_ns', 'sec_to_stamp_parts', 'ns_to_sec', 'ns_to_secs']
 
 
 def stamp_to_ns(stamp):
@@ -12,6 +12,15 @@ def stamp_to_ns(stamp):
 def ns_to_sec(ns):
     """Return float seconds of integer nanoseconds (the one conversion used everywhere)."""
     return int(ns) * 1e-9
+
+
+def ns_to_secs(ns):
+    """
+    Return float seconds of an array of integer nanoseconds, each as :func:`ns_to_sec`.
+
+    ``ns`` is anything with numpy's ``astype`` (an int64 array, a spilled column).
+    """
+    return ns.astype('float64') * 1e-9
 
 
 def stamp_to_sec(stamp):

@@ -27,6 +27,7 @@ from .spill import count_true, spill_folder, SpilledColumn
 from ..core.errors import ObserverError
 from ..core.estimators.admission import stamp_ns
 from ..sensors import vector_from_joint_state
+from ..timeutil import ns_to_secs
 
 __all__ = ['IMU', 'JOINT_STATE', 'FLOAT64', 'CLOCK', 'VEHICLE_TOPICS', 'jazzy_typestore',
            'normalize_namespace', 'BagInfo', 'BagReader', 'bag_info', 'TopicMap',
@@ -65,7 +66,7 @@ class Stream:
     @property
     def t(self):
         """Stamps in seconds (float64), as ``stamp_to_sec``."""
-        return self.stamp_ns.astype(np.float64) * 1e-9
+        return ns_to_secs(self.stamp_ns)
 
     def __len__(self):
         """Return the number of messages."""

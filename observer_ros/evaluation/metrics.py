@@ -14,6 +14,7 @@ from .running_metrics import BLOCK, blocked_state_metrics
 from ..bag.spill import blocks, count_true, is_spilled, pairwise_sum, Sink, SortedColumn
 from ..core.innovation import ljung_box_acf, ljung_box_of_products
 from ..replay.replay import innovation_health
+from ..timeutil import ns_to_secs
 
 __all__ = ['DEFAULT_TOLERANCE', 'STEADY_FRACTION', 'WHITENESS_LAGS', 'truth_at',
            'TruthAt', 'StateError',
@@ -178,7 +179,7 @@ class _Seconds:
         self.size = stamp_ns.size
 
     def __getitem__(self, rows):
-        return self.stamp_ns[rows].astype(np.float64) * 1e-9
+        return ns_to_secs(self.stamp_ns[rows])
 
 
 def _truth_rows(out, sel, ns, tn, tv, x):

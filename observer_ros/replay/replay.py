@@ -61,6 +61,7 @@ from ..core.estimators.admission import (Admission, CLOCK_JUMP, CLOCK_JUMP_AGREE
                                          FUTURE_TOLERANCE, LATE, restart_state)
 from ..core.health import max_prediction_gap
 from ..core.innovation import whiten
+from ..timeutil import ns_to_secs
 
 __all__ = ['Replay', 'replay', 'live_replay', 'epochs_of', 'affine_scan', 'innovation_health',
            'CLOCK_JUMP_TOLERANCE', 'FUTURE_TOLERANCE', 'CLOCK_JUMP_AGREEMENT', 'COUNTERS',
@@ -116,7 +117,7 @@ class Replay:
     @property
     def t(self):
         """Stamps in seconds (``ns * 1e-9``)."""
-        return self.stamp_ns.astype(np.float64) * 1e-9
+        return ns_to_secs(self.stamp_ns)
 
     def __len__(self):
         """Return the number of estimates."""
