@@ -8,7 +8,6 @@ import warnings
 import late_sensors
 import numpy as np
 from observer_ros.core.design_review import review_design
-from observer_ros.core.errors import ObserverError
 from observer_ros.core.model import Plant
 from observer_ros.core.spec import (ControllerSpec, ObserverSpec, SensorSpec, SimulatorSpec,
                                     Vehicle)
@@ -111,20 +110,19 @@ def random_vehicle(seed):
                    ControllerSpec(poles=cp), SimulatorSpec(1000.0, np.zeros(n)))
 
 
-def test_every_design_growing_above_1e4_is_warned_of_sensitivity_and_growth():
-    big = 0
-    for seed in range(40):
-        v = random_vehicle(seed)
-        try:
-            d, r = reviewed(v)
-        except ObserverError:
-            continue            # refused (verification): nothing to review
-        growth = max(r.closed_loop_growth[0], r.observer_growth[0])
-        if growth > 1e4:
-            big += 1
-            assert any(w.startswith('pole sensitivity') for w in r.warnings), v.name
-            assert any(w.startswith('transient growth') for w in r.warnings), v.name
-    assert big >= 3
+# The random vehicles among seeds 0-39 whose designs grow above 1e4 (the other 32 grow
+# less, 9.95e3 at most, or are refused by the verification): the claim's cases, each
+# checked to still grow that much.
+GROWING_SEEDS = (0, 15, 17, 22, 25, 29, 31, 39)
+
+
+@pytest.mark.parametrize('seed', GROWING_SEEDS)
+def test_every_design_growing_above_1e4_is_warned_of_sensitivity_and_growth(seed):
+    v = random_vehicle(seed)
+    d, r = reviewed(v)
+    assert max(r.closed_loop_growth[0], r.observer_growth[0]) > 1e4, v.name
+    assert any(w.startswith('pole sensitivity') for w in r.warnings), v.name
+    assert any(w.startswith('transient growth') for w in r.warnings), v.name
 
 
 def test_review_of_an_observer_without_controller():
