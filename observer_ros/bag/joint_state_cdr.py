@@ -99,19 +99,26 @@ def _walk(raw, decode, max_names):
                        f'{size - pos} bytes left of the {size}-byte message')
     if max_names is not None and count > max_names:
         raise CdrError(f'JointState.name: {count} names, more than the {max_names} read here')
-    names = [] if decode else count
-    for i in range(count):
-        pos += -(pos - 4) % 4
-        if pos + 4 > size:
-            raise _past_end(f'name[{i}]', 'its length', pos, size)
-        end = pos + 4 + u32(raw, pos)[0]
-        if decode:                      # counting, the next length's check finds it
+    if not decode:                      # counting: past the names as fast as it goes
+        for _ in range(count):
+            pos += -(pos - 4) % 4
+            if pos + 4 > size:          # the caller walks again to name the field
+                raise _past_end('name', 'a length', pos, size)
+            pos += 4 + u32(raw, pos)[0]
+        names = count
+    else:
+        names = []
+        for i in range(count):
+            pos += -(pos - 4) % 4
+            if pos + 4 > size:
+                raise _past_end(f'name[{i}]', 'its length', pos, size)
+            end = pos + 4 + u32(raw, pos)[0]
             if end > size:
                 raise _past_end(f'name[{i}]', f'{end - pos - 4} bytes', pos + 4, size)
             structure.append((pos, end))
             # as rclpy reads it: up to the first NUL (a C string), bad UTF-8 replaced
             names.append(raw[pos + 4:end].partition(_NUL)[0].decode('utf-8', 'replace'))
-        pos = end
+            pos = end
     arrays = {}
     for array in JOINT_ARRAYS:
         pos += -(pos - 4) % 4
