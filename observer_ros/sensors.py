@@ -32,7 +32,7 @@ __all__ = ['IMU', 'JOINT_STATE', 'FLOAT64', 'MESSAGE_FIELDS', 'FIELD_UNITS', 'fi
            'MeasurementError',
            'FieldAccessor', 'parse_field', 'field_help', 'extract_measurement',
            'fill_measurement', 'quaternion_to_euler', 'euler_to_quaternion',
-           'max_components', 'too_many_components', 'vector_from_joint_state']
+           'max_components', 'too_many_components', 'vector_indices', 'vector_from_joint_state']
 
 IMU = 'sensor_msgs/msg/Imu'
 JOINT_STATE = 'sensor_msgs/msg/JointState'
@@ -385,8 +385,8 @@ def max_components(names):
 
 def too_many_components(topic, count, names):
     """Return the error text of a vector message of ``count`` components, too many for names."""
-    text = f'{count} components, more than the {max_components(names)} accepted for {len(names)}'
-    return f'{topic}: {text}' if topic else text
+    return _about(topic, f'{count} components, more than the {max_components(names)} accepted '
+                         f'for {len(names)}')
 
 
 def _few(items, limit=5):
@@ -396,36 +396,58 @@ def _few(items, limit=5):
     return f'[{text}, ...]' if len(items) > limit else f'[{text}]'
 
 
+def vector_indices(got, n_values, names, topic=''):
+    """
+    Return where each of ``names`` stands in a vector message; None: in order.
+
+    The one judgement of a vector topic's message (state, estimate, command), made on
+    its names ``got`` (a list) and its number of positions ``n_values``, so the nodes
+    (on the message object) and the replay (on the bytes' layout) decide alike. The
+    sizes are checked first: a message of 10^6 components costs no lookup. A repeated
+    name stands at its first position, as a sensor's joint does
+    (:func:`extract_measurement`).
+
+    Raises
+    ------
+    ObserverError
+        Too many components, as many names as positions not given, a name missing; the
+        text names the topic (when one is given) and lists at most a few names.
+
+    """
+    n_names = len(got)
+    if max(n_names, n_values) > max_components(names):
+        raise ObserverError(too_many_components(topic, max(n_names, n_values), names))
+    if n_values != n_names:
+        raise ObserverError(_about(topic, f'{n_names} names but {n_values} positions'))
+    if (got == list(names)) if got else n_values == len(names):
+        return None                     # the usual case, in order (or unnamed): no lookup
+    index = {}
+    for i, name in enumerate(got):
+        index.setdefault(name, i)
+    missing = [name for name in names if name not in index]
+    if missing:
+        raise ObserverError(_about(topic, f'missing component(s) {_few(missing)}; '
+                                          f'got names {_few(got)}'))
+    return [index[name] for name in names]
+
+
+def _about(topic, text):
+    return f'{topic}: {text}' if topic else text
+
+
 def vector_from_joint_state(msg, names, topic):
     """
     Read the components ``names`` of a vector topic by name, in that order.
 
-    The node (its readers and the simulator) and the replay judge a vector message here.
-    Raises ObserverError naming the topic for unknown/missing names, wrong sizes or
-    values that are not finite. The sizes are checked first, before anything is
-    converted (a message of 10^6 components costs two ``len`` calls), and the error
-    texts list at most a few names and values. A repeated name gives its first
-    position, as a sensor's joint does (:func:`extract_measurement`).
+    Judged by :func:`vector_indices`; raises ObserverError naming the topic as it does,
+    and for values that are not finite (the text lists at most a few).
 
     """
-    n_names, n_values = len(msg.name), len(msg.position)
-    limit = max_components(names)
-    if max(n_names, n_values) > limit:
-        raise ObserverError(too_many_components(topic, max(n_names, n_values), names))
-    if n_values != n_names:
-        raise ObserverError(f'{topic}: {n_names} names but {n_values} positions')
-    if (msg.name == list(names)) if msg.name else len(msg.position) == len(names):
-        # the usual case, the names in order (or none): no lookup
+    order = vector_indices(msg.name, len(msg.position), names, topic)
+    if order is None:
         values = np.array(msg.position, dtype=float)
     else:
-        index = {}
-        for i, name in enumerate(msg.name):
-            index.setdefault(name, i)
-        missing = [name for name in names if name not in index]
-        if missing:
-            raise ObserverError(f'{topic}: missing component(s) {_few(missing)}; '
-                                f'got names {_few(msg.name)}')
-        values = np.array([msg.position[index[name]] for name in names], dtype=float)
+        values = np.array([msg.position[i] for i in order], dtype=float)
     if not all(map(math.isfinite, values.tolist())):     # floats: a third of np.isfinite's
         raise ObserverError(f'{topic}: non-finite value in {_few(values.tolist())}')
     return values

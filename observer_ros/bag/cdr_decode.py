@@ -20,8 +20,9 @@ from typing import Optional
 import numpy as np
 
 from .joint_state_cdr import field_offsets, JOINT_ARRAYS, joint_state_layout
+from ..core.errors import ObserverError
 from ..core.estimators.admission import stamp_ns
-from ..sensors import max_components, too_many_components
+from ..sensors import vector_indices
 
 __all__ = ['IMU', 'JOINT_STATE', 'FLOAT64', 'CLOCK', 'IMU_OFFSETS', 'IMU_TAIL', 'Decoded',
            'decode_messages', 'decode_packed']
@@ -70,15 +71,13 @@ def _joint_field_offsets(names, arrays, fields, mode):
     Returns (offsets, error): offsets is a list with None for a missing field.
 
     """
-    if mode == 'vector':
-        count = arrays['position'][1]
-        if max(count, len(names)) > max_components(fields):    # as the nodes refuse it
-            return [None] * len(fields), too_many_components('', max(count, len(names)), fields)
-        if count != len(names):
-            return [None] * len(fields), f'{len(names)} names but {count} positions'
-        if not names and count == len(fields):      # positional, as the nodes accept
-            start = arrays['position'][0]
-            return [start + 8 * i for i in range(count)], ''
+    if mode == 'vector':                # judged as the nodes judge it
+        start, count = arrays['position']
+        try:
+            order = vector_indices(list(names), count, [f.partition('.')[2] for f in fields])
+        except ObserverError as err:
+            return [None] * len(fields), str(err)
+        return [start + 8 * i for i in (range(count) if order is None else order)], ''
     return field_offsets(names, arrays, fields)
 
 

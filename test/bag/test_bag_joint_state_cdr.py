@@ -23,9 +23,10 @@ from observer_ros.bag.cdr_decode import decode_messages, JOINT_STATE
 from observer_ros.bag.joint_state_cdr import (CdrError, field_offsets, JOINT_ARRAYS,
                                               joint_state_counts, joint_state_layout)
 from observer_ros.bag.reader import _sensor_fallback, _vector_fallback
+from observer_ros.core.errors import ObserverError
 from observer_ros.core.spec import SensorSpec
 from observer_ros.nodes.wire import SensorReader, VectorReader, WireError
-from observer_ros.sensors import extract_measurement, vector_from_joint_state
+from observer_ros.sensors import extract_measurement, vector_from_joint_state, vector_indices
 import pytest
 from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.typesys import get_typestore, Stores
@@ -369,3 +370,18 @@ def test_a_vector_with_a_repeated_name_gives_its_first_position():
     assert VectorReader(['b', 'a'], 'state/true').read(raw)[1] == [2.0, 1.0]
     assert _replay(raw, ['position.b', 'position.a'], 'vector',
                    _vector_fallback(_Bag, ['b', 'a'], 'vector', 'state/true'))[1] == [2.0, 1.0]
+
+
+def test_vector_indices_one_judgement_with_or_without_a_topic():
+    assert vector_indices(['a', 'b'], 2, ['a', 'b']) is None
+    assert vector_indices([], 0, []) is None
+    assert vector_indices(['b', 'a', 'b'], 3, ['b', 'a']) == [0, 1]
+    for args, text in [((['a'], 2, ['a']), '1 names but 2 positions'),
+                       (([], 2, ['a', 'b']), '0 names but 2 positions'),
+                       ((['a', 'c'], 2, ['a', 'b']),
+                        r"missing component\(s\) \['b'\]; got names \['a', 'c'\]"),
+                       ((['x'] * 65, 65, ['a']), '65 components, more than the 64 accepted')]:
+        with pytest.raises(ObserverError, match='^' + text):
+            vector_indices(*args)
+        with pytest.raises(ObserverError, match='^control/u: ' + text):
+            vector_indices(*args, topic='control/u')
