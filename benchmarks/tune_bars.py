@@ -14,7 +14,8 @@ worst; and the steady-state ratio that one run's scatters around), and how often
 
 Run: ``.venv/bin/python benchmarks/tune_bars.py [--seeds 10] [--steps 10000]
 [--systems chain,submarine,submarine_input,chain3] [--out DIR]``. ``chain3`` is three
-masses in a row (:func:`three_mass_chain`), a system no other file describes.
+masses in a row (``three_mass_chain`` of test/irregular_bags.py), a system no other file
+describes.
 
 """
 
@@ -34,7 +35,6 @@ sys.path.insert(0, str(ROOT / 'test'))
 
 import irregular_bags as ib  # noqa: E402,I100
 from observer_ros.evaluation.evaluator import evaluate_bag  # noqa: E402
-from observer_ros.tuning.identify import FILE_FLOOR, filter_Q  # noqa: E402
 from observer_ros.tuning.tune import tune  # noqa: E402
 
 
@@ -71,67 +71,12 @@ def steady_rms(sysm, Qc, R, Qc_true, R_true):
     return float(np.sqrt(np.trace(scipy.linalg.solve_discrete_lyapunov(J @ Ad, W))))
 
 
-def three_mass_chain(Qc):
-    """
-    Return three masses in a row on springs and dampers, force on the third (x1..v3).
-
-    Noise on the three velocities; positions of the first and third masses measured, on
-    two topics. Unlike the spring chain of test/irregular_bags.py: six states, three
-    process noises from two outputs, the sensor far from the force.
-
-    """
-    k, c, m = [3.0, 2.0, 1.5], [0.2, 0.15, 0.1], [1.0, 0.7, 0.5]
-    A = np.zeros((6, 6))
-    for i in range(3):
-        A[2 * i, 2 * i + 1] = 1.0
-    K = np.array([[k[0] + k[1], -k[1], 0.0], [-k[1], k[1] + k[2], -k[2]], [0.0, -k[2], k[2]]])
-    D = np.array([[c[0] + c[1], -c[1], 0.0], [-c[1], c[1] + c[2], -c[2]], [0.0, -c[2], c[2]]])
-    for i in range(3):
-        A[2 * i + 1, 0::2] = -K[i] / m[i]
-        A[2 * i + 1, 1::2] = -D[i] / m[i]
-    B = np.zeros((6, 1))
-    B[5, 0] = 1.0 / m[2]
-    C = np.zeros((2, 6))
-    C[0, 0] = C[1, 4] = 1.0
-    sensors = [ib.Sensor('cart1/joint_states', ib.JOINT_STATE, [0], [0.002], 'c1'),
-               ib.Sensor('cart3/joint_states', ib.JOINT_STATE, [1], [0.004], 'c3')]
-    return ib.System(A, B, C, np.eye(6)[:, [1, 3, 5]], np.diag(Qc), sensors, 0.02,
-                     ['x1', 'v1', 'x2', 'v2', 'x3', 'v3'], ['force'])
-
-
-def vehicle_file(sysm, name, path):
-    """Write a vehicle file of a System (full observer by poles); return its path."""
-    n = sysm.A.shape[0]
-    outputs = [sysm.state_names[int(np.argmax(row))] for row in sysm.C]
-    lines = ['/**:', '  ros__parameters:', '    vehicle:', f'      name: {name}',
-             '    model:', '      time_domain: continuous',
-             f'      states: [{", ".join(sysm.state_names)}]',
-             f'      inputs: [{", ".join(sysm.input_names)}]',
-             f'      outputs: [{", ".join(outputs)}]',
-             f'      A: {_floats(sysm.A)}', f'      B: {_floats(sysm.B)}',
-             f'      C: {_floats(sysm.C)}', '    sensors:',
-             f'      names: [{", ".join(s.field for s in sysm.sensors)}]']
-    for s in sysm.sensors:
-        lines += [f'      {s.field}:', f'        topic: {s.topic}',
-                  f'        type: {s.msgtype}', f'        fields: [position.{s.field}]',
-                  f'        outputs: [{", ".join(outputs[r] for r in s.rows)}]',
-                  f'        noise_std: {_floats(s.std)}']
-    lines += ['    observer:', '      type: full',
-              f'      poles: {_floats(np.linspace(-1.0, -4.0, n))}', '    controller:',
-              f'      poles: {_floats(-1.0 - 0.1 * np.arange(n))}', '    simulator:',
-              f'      rate_hz: {1.0 / sysm.h}', '      duration: 10.0',
-              f'      initial_state: {_floats(np.zeros(n))}']
-    path = Path(path)
-    path.write_text('\n'.join(lines) + '\n')
-    return path
-
-
 def system(name, root):
     """Return (System, vehicle file, tune keywords, true Qc diagonal, true R diagonal)."""
     if name == 'chain3':
         Qc = [0.001, 0.002, 0.004]
-        s = three_mass_chain(Qc)
-        return (s, vehicle_file(s, 'three_mass_chain', root / 'three_mass_chain.yaml'),
+        s = ib.three_mass_chain(Qc)
+        return (s, ib.vehicle_file(s, 'three_mass_chain', root / 'three_mass_chain.yaml'),
                 {'states': ['v1', 'v2', 'v3']}, Qc, [0.002 ** 2, 0.004 ** 2])
     if name == 'chain':
         Qc = [0.0016, 0.0036]
@@ -171,7 +116,7 @@ def one(name, seed, steps, root, passes=None):
     ev = evaluate_bag(bag, vehicle, {'truekf': true}, compare={'tuned': res.vehicle_file},
                       include_live=False, include_design=False)
     rmse = {n: ev.variants[n].summary['error_rms'] for n in ('truekf', 'tuned')}
-    written = np.diag(filter_Q(ident.result, FILE_FLOOR))      # the tuned file's Qd
+    written = np.diag(ident.file_Q)                 # the tuned file's Qd
     expected = steady_rms(sysm, written, np.diag(ident.result.R), Qc, R) / \
         steady_rms(sysm, Qc, R, Qc, R)
     health = ev.variants['truekf'].sensors

@@ -121,7 +121,7 @@ def _one_step(A, B, S, tau):
     return E[:n, :n], E[:n, n:], 0.5 * (Qd + Qd.T)
 
 
-def simulate(system, steps, seed, dropout=0.05, jitter=0.2, t0=1.0):
+def simulate(system, steps, seed, dropout=0.05, jitter=0.2, t0=1.0, x0=None):
     """
     Return the samples of a closed-loop run (see the module).
 
@@ -129,7 +129,8 @@ def simulate(system, steps, seed, dropout=0.05, jitter=0.2, t0=1.0):
     -------
     run : dict
         ``t`` (stamps, s), ``x`` (true states), ``y`` (measurements, NaN where the
-        message was lost), ``u`` (commands).
+        message was lost), ``u`` (commands). The plant starts at ``x0`` (default zero),
+        the controller's filter at zero.
 
     """
     s = system
@@ -153,7 +154,7 @@ def simulate(system, steps, seed, dropout=0.05, jitter=0.2, t0=1.0):
     Ws = (Vw * np.sqrt(np.maximum(lw, 0.0))[:, None, :]) @ rng.standard_normal((steps - 1, n, 1))
     Pf = scipy.linalg.solve_discrete_are(Ad0.T, Cs.T, Qd0 + 1e-12 * np.eye(n), R)
     Kf = Pf @ Cs.T @ np.linalg.inv(Cs @ Pf @ Cs.T + R)
-    x = np.zeros(n)
+    x = np.zeros(n) if x0 is None else np.array(x0, dtype=float)
     xh = np.zeros(n)
     X, Y, U = np.empty((steps, n)), np.full((steps, p), np.nan), np.empty((steps, m))
     lost = rng.random((steps, len(s.sensors))) < dropout
@@ -227,6 +228,67 @@ def write(path, system, run, frame='base_link_frd', latency=1e-3):
                 else:
                     put(sensor.topic, JOINT_STATE, sec, _joint_state(sec, [sensor.field], y))
             put('control/u', JOINT_STATE, sec, _joint_state(sec, s.input_names, run['u'][k]))
+    return path
+
+
+def _floats(values):
+    return '[' + ', '.join(repr(float(x)) for x in np.ravel(values)) + ']'
+
+
+def three_mass_chain(Qc):
+    """
+    Return three masses in a row on springs and dampers, force on the third (x1..v3).
+
+    Noise on the three velocities; positions of the first and third masses measured, on
+    two topics. Unlike :func:`spring_chain`: six states, three
+    process noises from two outputs, the sensor far from the force.
+
+    """
+    k, c, m = [3.0, 2.0, 1.5], [0.2, 0.15, 0.1], [1.0, 0.7, 0.5]
+    A = np.zeros((6, 6))
+    for i in range(3):
+        A[2 * i, 2 * i + 1] = 1.0
+    K = np.array([[k[0] + k[1], -k[1], 0.0], [-k[1], k[1] + k[2], -k[2]], [0.0, -k[2], k[2]]])
+    D = np.array([[c[0] + c[1], -c[1], 0.0], [-c[1], c[1] + c[2], -c[2]], [0.0, -c[2], c[2]]])
+    for i in range(3):
+        A[2 * i + 1, 0::2] = -K[i] / m[i]
+        A[2 * i + 1, 1::2] = -D[i] / m[i]
+    B = np.zeros((6, 1))
+    B[5, 0] = 1.0 / m[2]
+    C = np.zeros((2, 6))
+    C[0, 0] = C[1, 4] = 1.0
+    sensors = [Sensor('cart1/joint_states', JOINT_STATE, [0], [0.002], 'c1'),
+               Sensor('cart3/joint_states', JOINT_STATE, [1], [0.004], 'c3')]
+    return System(A, B, C, np.eye(6)[:, [1, 3, 5]], np.diag(Qc), sensors, 0.02,
+                  ['x1', 'v1', 'x2', 'v2', 'x3', 'v3'], ['force'])
+
+
+def vehicle_file(sysm, name, path, observer_poles=None):
+    """Write a vehicle file of a System (full observer by poles, default -1..-4)."""
+    n = sysm.A.shape[0]
+    poles = np.linspace(-1.0, -4.0, n) if observer_poles is None else observer_poles
+    outputs = [sysm.state_names[int(np.argmax(row))] for row in sysm.C]
+    lines = ['/**:', '  ros__parameters:', '    vehicle:', f'      name: {name}',
+             '    model:', '      time_domain: continuous',
+             f'      states: [{", ".join(sysm.state_names)}]',
+             f'      inputs: [{", ".join(sysm.input_names)}]',
+             f'      outputs: [{", ".join(outputs)}]',
+             f'      A: {_floats(sysm.A)}', f'      B: {_floats(sysm.B)}',
+             f'      C: {_floats(sysm.C)}', '    sensors:',
+             f'      names: [{", ".join(s.field for s in sysm.sensors)}]']
+    for s in sysm.sensors:
+        lines += [f'      {s.field}:', f'        topic: {s.topic}',
+                  f'        type: {s.msgtype}', f'        fields: [position.{s.field}]',
+                  f'        outputs: [{", ".join(outputs[r] for r in s.rows)}]',
+                  f'        noise_std: {_floats(s.std)}']
+    lines += ['    observer:', '      type: full',
+              f'      poles: {_floats(poles)}',
+              '    controller:',
+              f'      poles: {_floats(-1.0 - 0.1 * np.arange(n))}', '    simulator:',
+              f'      rate_hz: {1.0 / sysm.h}', '      duration: 10.0',
+              f'      initial_state: {_floats(np.zeros(n))}']
+    path = Path(path)
+    path.write_text('\n'.join(lines) + '\n')
     return path
 
 

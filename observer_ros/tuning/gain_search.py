@@ -355,9 +355,12 @@ def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exac
         from .identify import FILE_FLOOR, filter_Q
         Qd = np.asarray(base.observer.Qd, float)
         # the file's Qd: the identified one, or the tuned file's (each variance the data
-        # do not tell from zero raised to its standard error); the model's noise is the
-        # identified one either way
-        for filt in (np.asarray(model.result.Q, float), filter_Q(model.result, FILE_FLOOR)):
+        # do not determine chosen in its +-2 sigma, or raised to half its standard
+        # error); the model's noise is the identified one either way
+        for filt in (np.asarray(model.result.Q, float), filter_Q(model.result, FILE_FLOOR),
+                     getattr(model, 'tuned_Q', None)):
+            if filt is None:
+                continue
             if Qd.shape == filt.shape and np.any(filt) and np.allclose(Qd, filt):
                 predicted = model_errors(*parts[:4], scales, filter_Qk=parts[4](filt))
                 break

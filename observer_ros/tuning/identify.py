@@ -35,7 +35,9 @@ from typing import Dict, List
 
 import numpy as np
 
-from .sampled import noise_input, reference_gain, sampled_data, sampled_model
+from .sampled import (noise_input, present_patterns, reference_gain, sampled_data,
+                      sampled_model, unit_kalman_gain, unstable_pattern)
+from .undetermined import minimax_Q
 from ..bag.errors import BagToolError
 from ..bag.reader import read_recording
 from ..core.als import (ALSError, choose_lags, DEFAULT_LAGS, identify_noise,
@@ -50,7 +52,7 @@ from ..evaluation.cli import resolve_vehicle
 from ..evaluation.results import jsonable
 
 __all__ = ['BLOCK', 'TRANSIENT_DECAY', 'RATE_TOLERANCE', 'POOR_FIT', 'Identification',
-           'identify', 'filter_Q', 'FILE_FLOOR', 'PASSES',
+           'identify', 'filter_Q', 'FILE_FLOOR', 'PASSES', 'tuned_Q',
            'uncertain_entries']
 
 #: Samples dropped at the start of each bag: until the reference predictor's slowest mode
@@ -88,6 +90,13 @@ class Identification:
     warnings: List[str] = field(default_factory=list)
     irregular: Dict[str, dict] = field(default_factory=dict)   # bag -> missing, steps
     lags_given: bool = False
+    tuned_Q: np.ndarray = None      # the Q the tuned file's filter is given (:func:`tuned_Q`)
+    choice: object = None           # undetermined.Choice of the entries chosen, or None
+
+    @property
+    def file_Q(self):
+        """Return the Q of the tuned file's Kalman filter."""
+        return self.tuned_Q if self.tuned_Q is not None else filter_Q(self.result, FILE_FLOOR)
 
     @property
     def result(self):
@@ -103,6 +112,8 @@ class Identification:
             'reference': self.reference, 'samples': self.samples, 'burn': self.burn,
             'Qd': r.Q.tolist(), 'Rd': r.R.tolist(), 'Qd_std': r.Q_std.tolist(),
             'Rd_std': r.R_std.tolist(), 'condition': r.condition,
+            'Qd_tuned': np.asarray(self.file_Q).tolist(),
+            'undetermined_choice': None if self.choice is None else self.choice.to_dict(),
             'entries': [{'kind': k, 'name': n, 'value': v, 'std': s}
                         for k, n, v, s in r.entries()],
             'passes': [p.to_dict() for p in self.passes], 'irregular': self.irregular,
@@ -275,6 +286,26 @@ def filter_Q(res, floor=1.0):
     return Q + np.diag(raise_)
 
 
+def tuned_Q(res, Ad, C, F):
+    """
+    Return ``(Q, choice)``: the Q the tuned file's Kalman filter is given.
+
+    A diagonal Q with entries the data do not determine (+-2 sigma reaching zero): each
+    such entry at the value in its +-2 sigma whose filter's excess mean square error over
+    the filter that knew the true value is least at worst
+    (:func:`~observer_ros.tuning.undetermined.minimax_Q`, on the sampled model ``Ad``,
+    ``C`` and the noise map ``F``), ``choice`` saying which and why. Otherwise (or a full
+    Q) :func:`filter_Q` at :data:`FILE_FLOOR` and None.
+
+    """
+    if not res.full and res.Q_std is not None:
+        basis = [F(np.diag(e)) for e in np.eye(res.Q.shape[0])]
+        choice = minimax_Q(Ad, C, basis, res.Q, res.Q_std, res.R)
+        if choice.entries:
+            return choice.Q, choice
+    return filter_Q(res, FILE_FLOOR), None
+
+
 def _poor_fit(res, fits, current):
     """
     Return the text of a poor fit, and whether another noise structure fits far better.
@@ -298,8 +329,13 @@ def _poor_fit(res, fits, current):
             'may differ from the plant'), False
 
 
-def uncertain_entries(res, lags_given, samples):
-    """Return a warning for each entry whose +-2 sigma reaches zero, with the remedies."""
+def uncertain_entries(res, lags_given, samples, choice=None):
+    """
+    Return a warning for each entry whose +-2 sigma reaches zero, with the remedies.
+
+    ``choice`` (:func:`tuned_Q`'s) says what the tuned filter is given for such an entry.
+
+    """
     out = []
     entries = res.entries()
     corr = res.correlation() if res.cov is not None and np.all(np.isfinite(res.cov)) \
@@ -335,14 +371,59 @@ def uncertain_entries(res, lags_given, samples):
                 remedies.append(f'fewer unknowns (it trades off with {entries[k][1]}: '
                                 f'correlation {_fmt(corr[u, k])}; estimate fewer noise '
                                 'entries, e.g. --states or --input-noise)')
+        chosen = [j for j, i in enumerate(choice.entries) if res.labels[u] == ('Q', i, i)] \
+            if choice is not None else []
         raised = kind == 'Q' and FILE_FLOOR * std > value and \
             res.labels[u][1] == res.labels[u][2]
-        written = (f'; the tuned Kalman filter is given half its standard error, '
-                   f'{_fmt(FILE_FLOOR * std)}, not zero' if raised else '')
+        if chosen:
+            j = chosen[0]
+            i = choice.entries[j]
+            written = (f'; the tuned Kalman filter is given {_fmt(choice.Q[i, i])}, the value '
+                       f'in its +-2 sigma ({_fmt(choice.low[j])} .. {_fmt(choice.high[j])}) '
+                       'whose excess error over the filter that knew the true value is least '
+                       'at worst (its predicted RMS error at most '
+                       f"{choice.worst:.3f} times that filter's there)")
+        elif raised:
+            written = (f'; the tuned Kalman filter is given half its standard error, '
+                       f'{_fmt(FILE_FLOOR * std)}, not zero')
+        else:
+            written = ''
         out.append(f'{what} {name} = {_fmt(value)} +- {_fmt(std)} (1 sigma): +-2 sigma '
                    f'reaches zero, so these data do not determine it{written}; remedies: '
                    + '; '.join(remedies))
     return out
+
+
+def _masked_reference(vehicle, Ad, C, dt, G, Lp, reference, data, warn):
+    """
+    Return the reference for bags with outputs missing at some samples, and what it is.
+
+    The reference runs at the bag's samples with the outputs present there. A gain
+    whose columns offset one another (observer poles placed close together: three
+    masses in a row with two position sensors and poles at -3..-3.5 amplify the error by
+    1.39 at each sample with the first sensor lost) is unstable with an output missing;
+    the innovations then do not follow the fitted model (chi2/dof 2.7e4, R refused). Such
+    a reference is replaced by the Kalman predictor of unit noise when that is stable at
+    every pattern of outputs present (or less unstable), and a warning says so.
+
+    """
+    patterns = present_patterns(data)
+    bad = unstable_pattern(Ad, C, Lp, patterns)
+    if bad is None:
+        return Lp, reference
+    names = list(vehicle.plant.output_names)
+    only = ', '.join(n for n, keep in zip(names, bad[1]) if keep)
+    Lk = unit_kalman_gain(vehicle, Ad, dt, G)
+    other = unstable_pattern(Ad, C, Lk, patterns)
+    text = (f'the reference ({reference}) is unstable at samples with only {only} present '
+            f"(|z| {bad[0]:.3g} there: its gain's columns offset one another, e.g. observer "
+            'poles placed close together)')
+    if other is not None and other[0] >= bad[0]:
+        warn.append(text + '; its innovations may not fit the model: give the vehicle '
+                    'observer poles further apart, or a kalman observer')
+        return Lp, reference
+    warn.append(text + '; the first pass takes a Kalman predictor of unit noise instead')
+    return Lk, f'a Kalman predictor of unit noise ({reference} is unstable with {only} alone)'
 
 
 def identify(bags, vehicle, namespace=None, lags=DEFAULT_LAGS, full=False, states=None,
@@ -407,6 +488,8 @@ def identify(bags, vehicle, namespace=None, lags=DEFAULT_LAGS, full=False, state
     G, noise_names = noise_input(vehicle, states, input_noise)
     F = process_noise_map(plant.A, G, dt, plant.is_discrete)
     Lp, reference = reference_gain(vehicle, Ad, dt, G)
+    if not regular:
+        Lp, reference = _masked_reference(vehicle, Ad, C, dt, G, Lp, reference, data, warn)
     rho = float(np.max(np.abs(np.linalg.eigvals(Ad - Lp @ C))))
     drop = max(10, int(math.ceil(math.log(TRANSIENT_DECAY) / math.log(rho)))) \
         if 0.0 < rho < 1.0 else 10
@@ -530,7 +613,8 @@ def identify(bags, vehicle, namespace=None, lags=DEFAULT_LAGS, full=False, state
     _, extra = run(gain, 1, white=True)
     after = _whiteness(*extra, outputs)
     final = results[-1]
-    warn += uncertain_entries(final, lags is not None, samples)
+    Qf, choice = tuned_Q(final, Ad, C, F)
+    warn += uncertain_entries(final, lags is not None, samples, choice)
     return Identification(vehicle, [str(b) for b in bags], dt, G, noise_names, reference,
                           results, {r.name: int(r.measured.size) for r in runs},
-                          drop, before, after, warn, irregular, lags is not None)
+                          drop, before, after, warn, irregular, lags is not None, Qf, choice)

@@ -28,7 +28,8 @@ from ..core.design import observer_gain
 from ..core.model import map_poles_to_discrete, zoh_matrices
 
 __all__ = ['BLOCK', 'GRID_TOLERANCE', 'REGULAR', 'Sampled', 'sampled_data', 'sampled_model',
-           'noise_input', 'reference_gain']
+           'noise_input', 'reference_gain', 'present_patterns', 'unstable_pattern',
+           'unit_kalman_gain']
 
 #: Samples looked at a time by :func:`sampled_data`'s command look-up.
 BLOCK = 1 << 16
@@ -244,6 +245,46 @@ def reference_gain(vehicle, Ad, dt, G) -> Tuple[np.ndarray, str]:
         Lp = kalman_predictor_gain(Ad, C, F(np.asarray(obs.Qd, float)),
                                    np.asarray(obs.Rd, float))
         return Lp, "the vehicle's Kalman filter (its Qd, Rd)"
-    Lp = kalman_predictor_gain(Ad, C, process_noise_map(plant.A, G, dt, plant.is_discrete)(
-        np.eye(G.shape[1])), np.eye(plant.p))
+    Lp = unit_kalman_gain(vehicle, Ad, dt, G)
     return Lp, 'a Kalman predictor of unit noise (the vehicle has no full or kalman observer)'
+
+
+def unit_kalman_gain(vehicle, Ad, dt, G):
+    """Return the Kalman predictor gain of unit noise on G's columns and on each output."""
+    plant = vehicle.plant
+    return kalman_predictor_gain(Ad, np.asarray(plant.C, float), process_noise_map(
+        plant.A, G, dt, plant.is_discrete)(np.eye(G.shape[1])), np.eye(plant.p))
+
+
+def present_patterns(samples):
+    """Return the distinct sets of outputs present at a measured sample, as bool rows."""
+    rows = []
+    for s in samples:
+        present = np.isfinite(s.y)
+        present = present[present.any(axis=1)]
+        if present.size:
+            codes = np.packbits(present, axis=1, bitorder='little')
+            rows.append(present[np.unique(codes, axis=0, return_index=True)[1]])
+    if not rows:
+        return np.zeros((0, 0), dtype=bool)
+    return np.unique(np.concatenate(rows), axis=0)
+
+
+def unstable_pattern(Ad, C, Lp, patterns):
+    """
+    Return ``(radius, pattern)`` of the worst predictor step with only some outputs present.
+
+    The step from a sample with the outputs ``pattern`` present is ``Ad - Lp_S C_S`` (the
+    gain's other columns unused). None when every such step (all outputs present
+    excluded) has spectral radius below 1.
+
+    """
+    worst = None
+    for row in patterns:
+        if row.all():
+            continue
+        S = np.flatnonzero(row)
+        rho = float(np.max(np.abs(np.linalg.eigvals(Ad - Lp[:, S] @ C[S]))))
+        if rho >= 1.0 and (worst is None or rho > worst[0]):
+            worst = (rho, row)
+    return worst

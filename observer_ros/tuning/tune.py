@@ -42,7 +42,7 @@ import warnings
 import numpy as np
 
 from .gain_search import DEFAULT_SCALES, gain_search, search_overrides
-from .identify import FILE_FLOOR, filter_Q, Identification, identify, PASSES
+from .identify import Identification, identify, PASSES
 from .pole_search import DEFAULT_EVALUATIONS, pole_search, pole_set
 from .report import format_report, write_report
 from .tuned_vehicle import OBSERVER_KEYS, write_tuned_vehicle
@@ -71,9 +71,18 @@ def _tuned_observer(ident):
     std = {'Q': [], 'R': []}
     for kind, name, value, sd in r.entries():
         std[kind].append(f'{name} {value:.4g} +- {sd:.2g}')
-    Q = filter_Q(r, FILE_FLOOR)
+    Q = ident.file_Q
+    choice = ident.choice
+    if choice is not None:
+        chosen = [f'{ident.noise_names[i]} {Q[i, i]:.4g} (in {lo:.2g} .. {hi:.2g})'
+                  for i, lo, hi in zip(choice.entries, choice.low, choice.high)]
+        std['Q'].append('; not determined by these data (+-2 sigma reaching zero), so given '
+                        'the value in their +-2 sigma whose filter loses least at worst '
+                        '(predicted RMS error at most '
+                        f'{choice.worst:.3f} times the filter that knew the true value): '
+                        f'{", ".join(chosen)}')
     raised = [f'{name} {Q[i, i]:.4g}' for i, name in enumerate(ident.noise_names)
-              if Q[i, i] != r.Q[i, i]]
+              if Q[i, i] != r.Q[i, i] and (choice is None or i not in choice.entries)]
     if raised:
         std['Q'].append('; not told from zero by these data, so given half their standard '
                         'error (a filter given zero stops following that noise): '

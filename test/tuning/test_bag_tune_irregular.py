@@ -89,9 +89,12 @@ def test_submarine_theta_noise_the_gyro_cannot_determine(tmp_path):
     assert len(warning) == 1, ident.warnings
     assert '+-2 sigma reaches zero, so these data do not determine it' in warning[0]
     assert 'a longer bag' in warning[0]
-    if theta < 0.5 * theta_sd:
-        assert 'the tuned Kalman filter is given half its standard error, ' \
-            f'{0.5 * theta_sd:.3g}' in warning[0]
+    # the tuned filter's value: chosen in the +-2 sigma range (minimax), said
+    choice = ident.choice
+    assert choice.entries == [0] and 0 < ident.file_Q[0, 0] <= theta + 2 * theta_sd
+    assert ident.file_Q[1, 1] == w
+    assert f'the tuned Kalman filter is given {ident.file_Q[0, 0]:.3g}, the value in its ' \
+        '+-2 sigma' in warning[0]
     assert [p.lags for p in ident.passes] == [p.auto_lags for p in ident.passes]
     assert ident.passes[0].lags > 15 and ident.passes[0].decay * 4 >= ident.passes[0].lags
 
@@ -161,3 +164,35 @@ def test_a_sensor_that_never_reports_is_refused(chain, tmp_path):
     other = load_vehicle(vehicle, overrides=['sensors.mass2.topic:=mass3/joint_states'])
     with pytest.raises(Exception, match="sensor 'mass2'|mass3"):
         identify([bag], other, states=['v1', 'v2'])
+
+
+def test_reference_unstable_with_an_output_missing_is_replaced(tmp_path):
+    # three masses in a row, observer poles at -3..-3.5: the gain's columns offset one
+    # another, and a sample with x3 alone amplifies the error by 1.39; with lost messages
+    # that reference is replaced by a Kalman predictor of unit noise, with a warning
+    from observer_ros.tuning.identify import _masked_reference
+    from observer_ros.tuning.sampled import (noise_input, present_patterns, reference_gain,
+                                             sampled_model, unstable_pattern)
+    system = ib.three_mass_chain([0.001, 0.002, 0.004])
+    vehicle = load_vehicle(ib.vehicle_file(system, 'three_mass_chain', tmp_path / 'c3.yaml',
+                                           np.linspace(-3.0, -3.5, 6)))
+    Ad, _ = sampled_model(vehicle, system.h)
+    C = np.asarray(vehicle.plant.C, float)
+    G, _ = noise_input(vehicle, ['v1', 'v2', 'v3'])
+    Lp, reference = reference_gain(vehicle, Ad, system.h, G)
+
+    class Data:
+        y = np.array([[1.0, 1.0], [np.nan, 1.0], [1.0, np.nan], [np.nan, np.nan]])
+    patterns = present_patterns([Data])
+    assert patterns.tolist() == [[False, True], [True, False], [True, True]]
+    rho, only = unstable_pattern(Ad, C, Lp, patterns)
+    assert 1.3 < rho < 1.5 and only.tolist() == [False, True]
+    warn = []
+    gain, what = _masked_reference(vehicle, Ad, C, system.h, G, Lp, reference, [Data], warn)
+    assert what.startswith('a Kalman predictor of unit noise') and 'x3 alone' in what
+    assert unstable_pattern(Ad, C, gain, patterns) is None
+    assert len(warn) == 1 and 'unstable at samples with only x3 present (|z| 1.39' in warn[0]
+    # every output at every sample: the vehicle's own observer stays
+    regular = type('Regular', (), {'y': np.ones((3, 2))})
+    gain, what = _masked_reference(vehicle, Ad, C, system.h, G, Lp, reference, [regular], [])
+    assert gain is Lp and what == reference
