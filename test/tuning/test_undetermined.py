@@ -66,8 +66,9 @@ def _check(Ad, C, basis, Q, S, R, idx):
                           0.5 * (lo + hi), hi) if v > 0]
     for v in others:
         assert mine <= _worst_excess(Ad, C, basis, q, R, idx, v, truths) * (1 + 1e-9), v
-    # its worst RMS error ratio, and the identified value's, as stated
-    assert 1.0 < choice.worst <= choice.worst_identified
+    # its worst RMS error ratio over the range, stated (the minimax is on the excess, so
+    # it may be above the identified value's, which is stated too)
+    assert 1.0 < choice.worst < np.inf and 1.0 < choice.worst_identified
     return choice
 
 
