@@ -17,7 +17,7 @@ where it expects them (a joint name is read as rclpy reads it). Anything else (a
 big-endian publisher, a missing joint, a NaN) goes through rclpy's own
 ``deserialize_message`` and the message-object functions
 (:func:`observer_ros.sensors.extract_measurement`,
-:func:`observer_ros.nodes.common.vector_from_joint_state`), which give the same value or
+:func:`observer_ros.sensors.vector_from_joint_state`), which give the same value or
 the same error text as before. Bytes rclpy cannot deserialize raise :class:`WireError`,
 which the nodes count as a bad message. A reader also takes a message object (tests and
 in-process drivers call the callbacks with one), and reads it as the object it is.
@@ -29,12 +29,12 @@ import struct
 
 from rclpy.serialization import deserialize_message
 
-from .common import max_components, too_many_components, vector_from_joint_state
 from ..bag.cdr_decode import IMU_OFFSETS, IMU_TAIL
 from ..bag.joint_state_cdr import (CdrError, field_offsets, joint_state_counts, joint_state_layout,
                                    LITTLE_ENDIAN)
 from ..core.errors import ObserverError
-from ..sensors import extract_measurement, IMU, JOINT_STATE
+from ..sensors import (extract_measurement, IMU, JOINT_STATE, max_components,
+                       too_many_components, vector_from_joint_state)
 from ..timeutil import sec_to_stamp_parts
 
 __all__ = ['WireError', 'SensorReader', 'VectorReader', 'JointStateWriter', 'stamp_bytes',
@@ -264,7 +264,7 @@ class VectorReader:
 
     ``read(raw)`` returns ``(header, values, problem)`` as :class:`SensorReader` does:
     ``values`` a list of floats in the order of ``names``, or None with ``problem`` the
-    text :func:`~observer_ros.nodes.common.vector_from_joint_state` raises.
+    text :func:`~observer_ros.sensors.vector_from_joint_state` raises.
 
     """
 
