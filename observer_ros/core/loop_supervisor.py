@@ -173,6 +173,9 @@ class LoopSupervisor:
         self.safe_mode = None           # how the last safe command was decided
         self.plant_time = None          # realtime: the newest sensor stamp
         self._sensor_time = {}
+        self._plant_start = None        # the first sensor stamp: the plant's step 0
+        self.plant_stepping = False     # a later stamp came: the plant steps
+        self._stepping_wall = None      # wall time it was seen to step first
 
     # ------------------------------------------------------------ set-up
 
@@ -321,11 +324,20 @@ class LoopSupervisor:
         if t < self._sensor_time.get(sensor, t) - self.jump_tolerance:
             self._sensor_time.clear()        # that sensor's clock started over
             self.plant_time = None
+            self._plant_start, self.plant_stepping = None, False
             if self.plant_clock is not None:
                 self.plant_clock.reset()
             if self.standby is not None:
                 self.standby.reset()
         self._sensor_time[sensor] = t
+        if self._plant_start is None:
+            self._plant_start = t
+        elif not self.plant_stepping and t > self._plant_start:
+            # a realtime plant waits at its step 0 until a command reaches it: that wait
+            # is no lag of this process (the plant's clock starts here)
+            self.plant_stepping, self._stepping_wall = True, now
+            if self.plant_clock is not None:
+                self.plant_clock.reset()
         if self.plant_clock is not None:
             self.plant_clock.seen(t, now)
         if self.plant_time is None or t > self.plant_time:
@@ -350,16 +362,28 @@ class LoopSupervisor:
         A check that comes more than ``controller.stale_timeout`` after the one before
         judges nothing (``watchdog_deferred``): the compensator's own process did not run
         meanwhile, and the estimates that reached it wait in its queue, taken after this
-        check. The next check, a watchdog period later, judges.
+        check. The next check, a watchdog period later, judges. Once the sensors are
+        heard (realtime), nothing is judged before the plant steps (a sensor stamp later
+        than its first): a realtime simulator waits at its step 0 until a command reaches
+        it, and no estimate is due meanwhile.
         """
         last, self._last_watch = self._last_watch, now
         if self._last_wall is None or self.mode == 'stale':
+            return False
+        if self._plant_start is not None and not self.plant_stepping:
+            # the plant still waits at its step 0 (its measurements say so): no estimate
+            # is due before it steps
             return False
         if last is not None and now - last > self.vehicle.controller.stale_timeout:
             self._count('watchdog_deferred')
             return False
         age = now - self._last_wall
-        if age <= self.vehicle.controller.stale_timeout:
+        if self._stepping_wall is not None and now - self._stepping_wall < age:
+            # the estimate of the plant's step 0 came before it stepped: the next one is
+            # due from the plant's first step on
+            if now - self._stepping_wall <= self.vehicle.controller.stale_timeout:
+                return False
+        elif age <= self.vehicle.controller.stale_timeout:
             return False
         c = self.vehicle.controller
         how = 'the standby observer closes the loop' if self.standby is not None else \
@@ -594,6 +618,7 @@ class LoopSupervisor:
         self._answered = self._followed = self._answer = None
         self._problem, self._refusals = None, 0
         self.safe.reset()
+        self._plant_start, self.plant_stepping = None, False
         if self.delay is not None:
             self.delay.reset()
             self.plant_clock.reset()
@@ -628,8 +653,9 @@ class LoopSupervisor:
         its stamp; at most ``observer.history_length`` later.
         """
         plant = self.plant_time
-        if plant is None or now is None or self.plant_clock is None:
-            return plant
+        if plant is None or now is None or self.plant_clock is None or \
+                not self.plant_stepping:
+            return plant        # (a plant at its step 0 waits: it is where it says)
         behind = self.plant_clock.behind(plant, now) - self.dt
         return plant if behind <= 0.0 else plant + min(behind, self.delay.max_delay)
 

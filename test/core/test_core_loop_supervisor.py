@@ -412,6 +412,47 @@ def test_the_plant_clock_moves_stamps_only_when_measurements_queued():
     assert abs(command.t - (t + lead * 0.01)) < 1e-9, command
 
 
+def test_no_estimate_is_due_while_the_plant_waits_at_its_first_step():
+    """
+    A realtime simulator sends its step 0 and waits for a command before it steps.
+
+    The watchdog judges nothing meanwhile (no false stale), and the wait is no lag of
+    the compensator: the first commands after it are stamped their measurement's stamp
+    plus the lead. Once the plant steps, a silent observer is stale as ever.
+    """
+    sup, counts, logs = supervisor('cart_pendulum', 'simulator.mode:=realtime')
+    lead = sup.delay.lead
+    x = [0.0, 0.0, 0.0, 0.0]
+    for now in (99.2, 99.6, 100.0):     # step 0, sent again until a command answers it
+        sup.measurement('encoder', 1.0, None, now)
+    command = sup.estimate(1.0, x, 100.001)
+    assert abs(command.t - (1.0 + lead * 0.01)) < 1e-9, command
+    # the command reaches the plant late (DDS matching on a busy host); step 0 re-sent
+    for k in range(1, 16):
+        now = 100.0 + 0.1 * k
+        if k % 4 == 0:
+            sup.measurement('encoder', 1.0, None, now)
+            assert sup.estimate(1.0, x, now + 0.001) is command     # a repeat
+        assert not sup.watchdog(now + 0.05), now
+        assert sup.safe_tick(now + 0.05) is None
+    assert not sup.stale and 'safe_commands' not in counts, counts
+    assert not any(text.startswith('estimate stale') for _, text in logs), logs
+    # the plant steps: its measurements on time, the commands stamped without the wait;
+    # the estimate of step 1 is due from the plant's first step, not from step 0's
+    sup.measurement('encoder', 1.01, None, 101.61)
+    assert not sup.watchdog(101.62) and not sup.stale
+    for k in range(1, 6):
+        t, now = 1.0 + 0.01 * k, 101.6 + 0.01 * k
+        if k > 1:
+            sup.measurement('encoder', t, None, now)
+        command = sup.estimate(t, x, now + 0.002)
+        assert abs(command.t - (t + lead * 0.01)) < 1e-9, (k, command)
+    # then the observer falls silent while the plant steps: stale
+    assert not sup.watchdog(101.7)
+    assert sup.watchdog(102.2) and sup.stale
+    assert logs[-1][1].startswith('estimate stale (0.'), logs[-1]
+
+
 def test_a_second_observer_with_the_same_topic_does_not_move_the_cart():
     loop = CartLoop(jitter=0.002)       # which observer's estimate comes first varies
     loop.observer()
