@@ -162,9 +162,9 @@ def test_paused_observer_the_standby_holds_the_cart(loop_of):
     lp.wait_converged(since, t_cont + 1.0)
 
 
-@pytest.mark.xfail(strict=False, reason='not met in every run: at 1-min load 23-31 it held in 3 '
-                   'of 5 runs (0.188, 0.039, 0.066 m), 0.36 m in one, one diverged; the second '
-                   "observer's start stalled the compensator 0.3 s or more (2026-11-27)")
+@pytest.mark.xfail(strict=False, reason='not met in every run on a loaded host: 3 of 5 at 1-min '
+                   'load 23-31; under two CPU hogs (load 21-29) the realtime loop itself did not '
+                   'hold in 6 of 6, the simulator at about 40 % of real time (2026-11-27)')
 @pytest.mark.realtime
 def test_a_second_observer_with_the_same_name_does_not_move_the_cart(loop_of):
     """Two observers on state/estimate: the compensator follows one stream and says so."""
