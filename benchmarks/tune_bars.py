@@ -13,9 +13,10 @@ worst; and the steady-state ratio that one run's scatters around), and how often
 ``observer-eval`` called the true-covariance filter WARN against the level it states.
 
 Run: ``.venv/bin/python benchmarks/tune_bars.py [--seeds 10] [--steps 10000]
-[--systems chain,submarine,submarine_input,chain3] [--out DIR]``. ``chain3`` is three
-masses in a row (``three_mass_chain`` of test/irregular_bags.py), a system no other file
-describes.
+[--systems chain,submarine,submarine_input,chain3,spring] [--out DIR]``. ``chain3`` is
+three masses in a row (``three_mass_chain`` of test/irregular_bags.py), ``spring`` a mass
+on a spring with one position sensor and noise on both states (``mass_spring``): systems
+no other file describes.
 
 """
 
@@ -78,6 +79,11 @@ def system(name, root):
         s = ib.three_mass_chain(Qc)
         return (s, ib.vehicle_file(s, 'three_mass_chain', root / 'three_mass_chain.yaml'),
                 {'states': ['v1', 'v2', 'v3']}, Qc, [0.002 ** 2, 0.004 ** 2])
+    if name == 'spring':
+        Qc = [2e-6, 4e-2]
+        s = ib.mass_spring(Qc)
+        return (s, ib.vehicle_file(s, 'mass_spring', root / 'mass_spring.yaml'),
+                {'states': ['x', 'v']}, Qc, [1e-6])
     if name == 'chain':
         Qc = [0.0016, 0.0036]
         return (ib.spring_chain(Qc), ib.chain_vehicle(root / 'spring_chain.yaml'),

@@ -263,6 +263,14 @@ def three_mass_chain(Qc):
                   ['x1', 'v1', 'x2', 'v2', 'x3', 'v3'], ['force'])
 
 
+def mass_spring(Qc):
+    """Return a mass on a spring (x, v) with one position sensor, noise on both states."""
+    A = np.array([[0.0, 1.0], [-4.0, -0.4]])
+    sensors = [Sensor('mass/joint_states', JOINT_STATE, [0], [0.001], 'm')]
+    return System(A, np.array([[0.0], [1.0]]), np.array([[1.0, 0.0]]), np.eye(2),
+                  np.diag(Qc), sensors, 0.01, ['x', 'v'], ['force'])
+
+
 def vehicle_file(sysm, name, path, observer_poles=None):
     """Write a vehicle file of a System (full observer by poles, default -1..-4)."""
     n = sysm.A.shape[0]
