@@ -55,6 +55,7 @@ import math
 
 import numpy as np
 import scipy.linalg
+import scipy.signal
 
 from .als_stats import (als_rows, autocovariance_covariance, lag_cap, plant_lags,
                         weighted_als)
@@ -71,6 +72,8 @@ DEFAULT_LAGS = None
 #: The ALS matrix (columns scaled to unit norm) is rank deficient when its smallest
 #: singular value is below this fraction of the largest.
 RANK_TOL = 1e-9
+#: Eigenvector condition up to which a predictor runs mode by mode (see :func:`_modes`).
+MODAL_CONDITION = 1e6
 
 
 class ALSError(ObserverError, ValueError):
@@ -200,15 +203,61 @@ def predictor_innovations(Ad, Bd, C, D, Lp, y, u, u_meas=None, x0=None, states=F
     drive = u @ Bd.T
     Abar = Ad - Lp @ C
     x = np.zeros(n) if x0 is None else np.asarray(x0, dtype=float).reshape(n)
-    out = np.empty((N, p))
-    xs = np.empty((N, n)) if states else None
-    for k in range(N):
-        if states:
-            xs[k] = x
-        out[k] = z[k] - C @ x
-        x = Abar @ x + drive[k] + Lp @ z[k]
+    modes = _modes(Abar)
+    if modes is not None and N:
+        xs, x = _modal_states(modes, x, drive + z @ Lp.T)
+        out = z - xs @ C.T
+    else:
+        out = np.empty((N, p))
+        xs = np.empty((N, n)) if states else None
+        for k in range(N):
+            if states:
+                xs[k] = x
+            out[k] = z[k] - C @ x
+            x = Abar @ x + drive[k] + Lp @ z[k]
     got = (out,) + ((xs,) if states else ()) + ((x,) if final else ())
     return got if len(got) > 1 else out
+
+
+def _modes(Abar):
+    """
+    Return ``(eigenvalues, V, V^-1)`` of ``Abar``, or None when not safely diagonal.
+
+    The recursion ``x[k+1] = Abar x[k] + w[k]`` then runs as one first-order filter per
+    mode (scipy.signal.lfilter, in C) instead of a Python step per sample; a matrix
+    whose eigenvectors are nearly dependent (condition above :data:`MODAL_CONDITION`)
+    keeps the step-by-step recursion.
+
+    """
+    try:
+        lam, V = np.linalg.eig(Abar)
+        if not np.all(np.isfinite(lam)) or np.linalg.cond(V) > MODAL_CONDITION:
+            return None
+        return lam, V, np.linalg.inv(V)
+    except np.linalg.LinAlgError:
+        return None
+
+
+def _modal_states(modes, x0, w):
+    """Return the states ``x[0..N-1]`` and ``x[N]`` of ``x[k+1] = Abar x[k] + w[k]``."""
+    lam, V, Vi = modes
+    xs = np.zeros(w.shape)
+    last = np.zeros(w.shape[1])
+    for i, li in enumerate(lam):
+        # the mode's input, real and imaginary parts by real products (BLAS)
+        Wi = (w @ Vi[i].real) + 1j * (w @ Vi[i].imag) if np.iscomplexobj(Vi) else w @ Vi[i]
+        start = Vi[i] @ x0
+        # y[k] = li y[k-1] + Wi[k], y[-1] = start: y[k] is the mode at step k + 1
+        nxt = scipy.signal.lfilter([1.0], [1.0, -li], Wi, zi=[li * start])[0]
+        xi = np.empty_like(nxt)
+        xi[0] = start
+        xi[1:] = nxt[:-1]
+        # the mode's share of the states (conjugate pairs' imaginary parts cancel)
+        xs += np.multiply.outer(xi.real, V[:, i].real)
+        last += (V[:, i] * nxt[-1]).real
+        if np.iscomplexobj(xi):
+            xs -= np.multiply.outer(xi.imag, V[:, i].imag)
+    return xs, last
 
 
 def predictor_blocks(Ad, Bd, C, D, Lp, y, u, u_meas=None, x0=None, sinks=(),
@@ -218,7 +267,7 @@ def predictor_blocks(Ad, Bd, C, D, Lp, y, u, u_meas=None, x0=None, sinks=(),
 
     Each block of innovations goes to ``sink.add(block)`` of every sink (e.g. a
     :class:`~observer_ros.core.autocovariance.LaggedSums`), so they are never held whole;
-    the predictions are those of one call over every row.
+    the predictions are those of one call over every row (up to rounding).
 
     """
     N = np.asarray(y).shape[0]

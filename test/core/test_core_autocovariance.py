@@ -91,11 +91,39 @@ def test_blocked_predictor_gives_the_same_innovations_and_prediction():
     keep = Keep()
     got = predictor_blocks(Ad, Bd, C, D, Lp, y, u, um, x0=x0, sinks=[keep], block=37)
     assert len(keep.parts) == 14
-    np.testing.assert_array_equal(np.vstack(keep.parts), e)
-    np.testing.assert_array_equal(got, x)
+    # each block starts from the last one's real prediction: equal up to rounding
+    np.testing.assert_allclose(np.vstack(keep.parts), e, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got, x, rtol=0, atol=1e-12)
     # no rows: the start itself (zeros when not given)
     np.testing.assert_array_equal(predictor_blocks(Ad, Bd, C, D, Lp, y[:0], u[:0]),
                                   np.zeros(2))
+
+
+def _stepwise(Ad, Bd, C, Lp, y, u, x0):
+    """Return the innovations and last prediction of the recursion, one step at a time."""
+    x, out = np.array(x0, float), []
+    for k in range(y.shape[0]):
+        out.append(y[k] - C @ x)
+        x = (Ad - Lp @ C) @ x + Bd @ u[k] + Lp @ y[k]
+    return np.array(out), x
+
+
+@pytest.mark.parametrize('Ad', [
+    np.array([[0.9, 0.3, 0.0], [-0.3, 0.9, 0.01], [0.0, 0.0, 0.995]]),   # a complex pair
+    np.array([[1.0, 0.01, 0.0], [0.0, 0.99, 0.01], [0.0, 0.0, 0.995]]),  # real modes
+    np.array([[0.5, 1.0, 0.0], [0.0, 0.5, 1.0], [0.0, 0.0, 0.5]]),       # one Jordan block
+])
+def test_predictor_run_mode_by_mode_equals_the_recursion(Ad):
+    rng = np.random.default_rng(3)
+    Bd, C = rng.standard_normal((3, 1)), np.array([[1.0, 0.0, 1.0]])
+    Lp = np.array([[0.02], [0.1], [0.3]])
+    y, u = rng.standard_normal((3000, 1)), rng.standard_normal((3000, 1))
+    x0 = np.array([1.0, -2.0, 0.5])
+    e, x = predictor_innovations(Ad, Bd, C, None, Lp, y, u, x0=x0, final=True)
+    want_e, want_x = _stepwise(Ad, Bd, C, Lp, y, u, x0)
+    scale = np.max(np.abs(want_e))
+    np.testing.assert_allclose(e, want_e, rtol=0, atol=1e-12 * scale)
+    np.testing.assert_allclose(x, want_x, rtol=0, atol=1e-12 * np.max(np.abs(want_x)))
 
 
 def test_summing_a_longer_sequence_needs_no_more_memory():
