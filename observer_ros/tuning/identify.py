@@ -30,6 +30,7 @@ the identified covariances) is judged by the test of the node and ``observer-eva
 """
 
 from dataclasses import dataclass, field
+from functools import cached_property
 import math
 from typing import Dict, List
 
@@ -145,18 +146,42 @@ def _whiteness(white, rms, names):
 
 
 class _Bag:
-    """One bag's data as the passes use them."""
+    """
+    One bag's data as the passes use them.
+
+    The stamps in seconds, ``y - D u`` and the measured steps are made on first use
+    (only data with gaps or jitter need them: regular data run on ``y`` itself).
+
+    """
 
     def __init__(self, name, s, D, drop):
         self.name = name
         self.s = s
-        self.t = s.t
-        self.z = s.y - s.u_meas @ D.T if D.size else s.y.copy()
-        measured = np.flatnonzero(np.isfinite(s.y).any(axis=1))
-        self.measured = measured
-        self.drop = int(min(drop, measured.size))
+        self._D = D
+        self.count = int(s.measured)            # steps with a measurement
+        self.drop = int(min(drop, self.count))
         # the step (incl. command-only steps) where the summed innovations start
-        self.first = int(measured[self.drop]) if self.drop < measured.size else s.y.shape[0]
+        if s.regular:
+            self.first = self.drop
+        else:
+            self.first = int(self.measured[self.drop]) if self.drop < self.count \
+                else s.y.shape[0]
+
+    @cached_property
+    def t(self):
+        """Return the steps' stamps in seconds from the first."""
+        return self.s.t
+
+    @cached_property
+    def z(self):
+        """Return the outputs less the inputs' direct feedthrough, ``y - D u_meas``."""
+        D = self._D
+        return self.s.y - self.s.u_meas @ D.T if D.size else self.s.y.copy()
+
+    @cached_property
+    def measured(self):
+        """Return the steps with a measurement."""
+        return np.flatnonzero(np.isfinite(self.s.y).any(axis=1))
 
     def sequence(self):
         """Return (t, present, start) of its measured steps for the time-varying model."""
@@ -507,7 +532,7 @@ def identify(bags, vehicle, namespace=None, lags=DEFAULT_LAGS, full=False, state
     irregular = {r.name: {'missing': r.s.missing, 'step_range': list(r.s.steps),
                           'measured_steps': r.s.measured, 'steps': int(r.s.y.shape[0])}
                  for r in runs}
-    samples = sum(r.measured.size - r.drop for r in runs)
+    samples = sum(r.count - r.drop for r in runs)
 
     def model(gain):
         return StepModel(A, B, C, gain, dt, plant.is_discrete)
@@ -616,5 +641,5 @@ def identify(bags, vehicle, namespace=None, lags=DEFAULT_LAGS, full=False, state
     Qf, choice = tuned_Q(final, Ad, C, F)
     warn += uncertain_entries(final, lags is not None, samples, choice)
     return Identification(vehicle, [str(b) for b in bags], dt, G, noise_names, reference,
-                          results, {r.name: int(r.measured.size) for r in runs},
+                          results, {r.name: r.count for r in runs},
                           drop, before, after, warn, irregular, lags is not None, Qf, choice)

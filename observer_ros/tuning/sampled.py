@@ -61,28 +61,81 @@ class Sampled:
 
 
 def _sensor_stamps(sensor, stream, warnings):
-    """Return a sensor's valid stamps (sorted) and the rows of its values they come from."""
-    sel = np.flatnonzero(stream.valid)
-    ns = stream.stamp_ns[sel]
-    if ns.size > 1:
-        steps = np.diff(ns)
-        if np.any(steps < 0):
+    """
+    Return a sensor's valid stamps (sorted) and the rows of its values they come from.
+
+    The rows are None when they are every row in order (no copy of the stamps is made).
+
+    """
+    sel = None if stream.valid.all() else np.flatnonzero(stream.valid)
+    ns = stream.stamp_ns if sel is None else stream.stamp_ns[sel]
+    if ns.size > 1 and not _increasing(ns):
+        if _any_back(ns):
+            steps = np.diff(ns)
             typical = float(np.median(np.abs(steps))) if steps.size else 0.0
             back = float(-steps.min())
+            del steps
             if back > max(10.0 * typical, 1e9):
                 raise BagToolError(f'sensor {sensor.name!r} ({stream.topic}): its stamps go '
                                    f'back by {back * 1e-9:.3g} s (a clock jump: two runs in '
                                    'one bag): cut the bag to one run')
             order = np.argsort(ns, kind='stable')
-            sel, ns = sel[order], ns[order]
-        same = np.flatnonzero(np.diff(ns) == 0)
+            sel = order if sel is None else sel[order]
+            ns = ns[order]
+        same = np.flatnonzero(ns[1:] == ns[:-1])
         if same.size:
             keep = np.ones(ns.size, dtype=bool)
             keep[same] = False                      # the later message of a stamp wins
             warnings.append(f'sensor {sensor.name!r}: {same.size} messages repeat an '
                             'earlier stamp; the last of each is used')
-            sel, ns = sel[keep], ns[keep]
+            sel = np.flatnonzero(keep) if sel is None else sel[keep]
+            ns = ns[keep]
     return ns, sel
+
+
+def _increasing(ns, block=BLOCK):
+    """Tell whether the stamps strictly increase (checked a block at a time)."""
+    return all(_later(ns[a:a + block + 1]).all() for a in range(0, ns.size - 1, block))
+
+
+def _any_back(ns, block=BLOCK):
+    """Tell whether a stamp is earlier than the one before it."""
+    return any((part[1:] < part[:-1]).any()
+               for part in (ns[a:a + block + 1] for a in range(0, ns.size - 1, block)))
+
+
+def _later(part):
+    """Return whether each stamp of ``part`` is after the one before it."""
+    return part[1:] > part[:-1]
+
+
+def _sorted_union(parts):
+    """Return the sorted distinct values of sorted arrays (one array: itself, no copy)."""
+    if len(parts) == 1:
+        return parts[0]
+    out = np.sort(np.concatenate(parts), kind='stable')
+    keep = np.ones(out.size, dtype=bool)
+    keep[1:] = out[1:] != out[:-1]
+    return out[keep]
+
+
+def _all_in(values, steps, block=BLOCK):
+    """Tell whether every one of ``values`` is one of the sorted ``steps``."""
+    for a in range(0, values.size, block):
+        v = values[a:a + block]
+        at = np.minimum(np.searchsorted(steps, v), steps.size - 1)
+        if not np.array_equal(steps[at], v):
+            return False
+    return True
+
+
+def _step_range(meas, block=BLOCK):
+    """Return the shortest and longest step between stamps (ns), a block at a time."""
+    lo, hi = np.inf, -np.inf
+    for a in range(0, meas.size - 1, block):
+        d = np.diff(meas[a:a + block + 1])
+        lo, hi = min(lo, float(d.min())), max(hi, float(d.max()))
+    return lo, hi
 
 
 def sampled_data(recording, vehicle, block=BLOCK):
@@ -106,20 +159,23 @@ def sampled_data(recording, vehicle, block=BLOCK):
             raise BagToolError(f'sensor {sensor.name!r} ({stream.topic}) has no valid '
                                'message: its outputs cannot be identified')
         picks.append((sensor, stream, ns, sel))
-    meas = np.unique(np.concatenate([ns for _, _, ns, _ in picks]))
+    meas = _sorted_union([ns for _, _, ns, _ in picks])
     if meas.size < 100:
         raise BagToolError(f'{meas.size} samples: too few to identify noise covariances '
                            '(need at least 100)')
-    dt = float(np.median(np.diff(meas))) * 1e-9
+    dt = float(np.median(np.diff(meas), overwrite_input=True)) * 1e-9
     cmd = recording.command
     m = plant.m
     c_ns = c_val = None
     if m and (cmd is None or not cmd.valid.any()):
         warnings.append('no control/u in the bag: the inputs are taken as zero')
     elif m:
-        sel = np.flatnonzero(cmd.valid)
-        order = np.argsort(cmd.stamp_ns[sel], kind='stable')
-        c_ns, c_val = cmd.stamp_ns[sel][order], cmd.values[sel][order]
+        sel = None if cmd.valid.all() else np.flatnonzero(cmd.valid)
+        c_ns = cmd.stamp_ns if sel is None else cmd.stamp_ns[sel]
+        c_val = cmd.values if sel is None else cmd.values[sel]
+        if c_ns.size > 1 and _any_back(c_ns):
+            order = np.argsort(c_ns, kind='stable')
+            c_ns, c_val = c_ns[order], c_val[order]
     if plant.is_discrete:
         T = float(vehicle.sample_time)
         steps, index = _grid(meas, T)
@@ -128,23 +184,30 @@ def sampled_data(recording, vehicle, block=BLOCK):
                 int(round(T * 1e9))
         dt = T
     else:
-        steps = meas
+        steps, index = meas, None           # None: every step is a measurement's
         if c_ns is not None:
-            inside = c_ns[(c_ns > meas[0]) & (c_ns < meas[-1])]
-            if inside.size and not np.isin(inside, meas).all():
-                steps = np.union1d(meas, inside)
-        index = np.searchsorted(steps, meas)
+            a = np.searchsorted(c_ns, meas[0], side='right')
+            b = np.searchsorted(c_ns, meas[-1], side='left')
+            inside = c_ns[a:max(a, b)]                  # strictly between the first and last
+            if inside.size and not _all_in(inside, meas):
+                steps = _sorted_union([meas, inside])
+                index = np.searchsorted(steps, meas)
     N = steps.size
     y = np.full((N, plant.p), np.nan)
     present = np.zeros((N, plant.p), dtype=bool)
     for sensor, stream, ns, sel in picks:
-        at = index[np.searchsorted(meas, ns)]
+        if ns is meas and index is None:
+            at = slice(None)                    # the one sensor's stamps are the steps
+        else:
+            at = np.searchsorted(meas, ns)
+            if index is not None:
+                at = index[at]
         if plant.is_discrete and np.any(np.diff(at) == 0):
             raise BagToolError(f'sensor {sensor.name!r}: two of its stamps fall on one sample '
                                "of the discrete model's grid (model.sample_time "
                                f'{vehicle.sample_time:.6g} s)')
         for j, row in enumerate(plant.output_rows(sensor.outputs)):
-            y[at, row] = stream.values[sel, j]
+            y[at, row] = stream.values[:, j] if sel is None else stream.values[sel, j]
             present[at, row] = True
     measured = present.any(axis=1)
     count = int(np.count_nonzero(measured))
@@ -159,11 +222,11 @@ def sampled_data(recording, vehicle, block=BLOCK):
             before = np.searchsorted(c_ns, t, side='left') - 1    # stamp < t_k
             u[a:a + block][at >= 0] = c_val[at[at >= 0]]
             u_meas[a:a + block][before >= 0] = c_val[before[before >= 0]]
-    ratio = np.diff(meas).astype(np.float64) * 1e-9 / dt
+    shortest, longest = (x * 1e-9 / dt for x in _step_range(meas))
     regular = bool(N == meas.size and present.all() and
-                   np.all(np.abs(ratio - 1.0) <= REGULAR))
+                   abs(shortest - 1.0) <= REGULAR and abs(longest - 1.0) <= REGULAR)
     return Sampled(steps, y, u, u_meas, dt, warnings, regular, missing,
-                   (float(ratio.min()), float(ratio.max())), count)
+                   (shortest, longest), count)
 
 
 def _grid(meas, T):
