@@ -57,6 +57,8 @@ MIN_LAGS = 10
 MAX_LAGS = 2000
 #: Most rows (distinct autocovariance entries) of the weighted least squares.
 MAX_ROWS = 1500
+#: Rows of the autocovariances' covariance computed at a time.
+CHUNK = 128
 #: The covariance of the rows is floored at this fraction of its largest eigenvalue.
 FLOOR = 1e-9
 
@@ -115,12 +117,14 @@ def autocovariance_covariance(gamma, rows, counts):
 
     def at(d, x, y, z, w):
         return corr[np.mod(d, nfft), x, y, z, w]
-    J, H = j[:, None], j[None, :]
-    I, A = i[:, None], i[None, :]
-    Lr, B = l_[:, None], l_[None, :]
-    sigma = at(J - H, I, A, Lr, B) + at(J + H, I, B, Lr, A)
+    H, A, B = j[None, :], i[None, :], l_[None, :]
     n = np.asarray(counts, dtype=float)
-    return sigma / np.sqrt(np.outer(n, n))
+    sigma = np.empty((j.size, j.size))
+    for a in range(0, j.size, CHUNK):       # a few rows at a time: no (rows, rows) indices
+        J, I, Lr = j[a:a + CHUNK, None], i[a:a + CHUNK, None], l_[a:a + CHUNK, None]
+        sigma[a:a + CHUNK] = (at(J - H, I, A, Lr, B) + at(J + H, I, B, Lr, A)) / \
+            np.sqrt(np.outer(n[a:a + CHUNK], n))
+    return sigma
 
 
 def _whitener(Sigma):
@@ -131,14 +135,19 @@ def _whitener(Sigma):
     floored at :data:`FLOOR` of the largest, so that no row gets an unbounded weight.
 
     """
-    Sigma = 0.5 * (Sigma + Sigma.T)
-    scale = float(np.max(np.abs(np.diag(Sigma)))) if Sigma.size else 1.0
+    S = Sigma + Sigma.T                     # one (rows, rows) array, scaled in place
+    S *= 0.5
+    scale = float(np.max(np.abs(np.diag(S)))) if S.size else 1.0
     if not scale > 0.0 or not math.isfinite(scale):
         return lambda x: x
-    S = Sigma / scale
+    S /= scale
     root = math.sqrt(scale)
     try:
-        L = scipy.linalg.cholesky(S + FLOOR * np.eye(S.shape[0]), lower=True)
+        floored = S.copy()
+        floored[np.diag_indices_from(floored)] += FLOOR
+        # symmetric: its transpose is the same matrix in the order LAPACK factors in place
+        L = scipy.linalg.cholesky(floored.T, lower=True, overwrite_a=True)
+        del floored
         d = np.diag(L)
         if float(np.min(d)) ** 2 >= FLOOR * float(np.max(d)) ** 2:
             return lambda x: scipy.linalg.solve_triangular(L, x, lower=True) / root
