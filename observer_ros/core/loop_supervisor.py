@@ -48,6 +48,10 @@ Every estimate and every command passes gates first:
   command itself predicts only from the last estimate that passed, and its prediction
   stops (the fallback) where it would leave the envelope.
 
+A clock jump is the observer's (:class:`~.clock_jump.ClockJump`): ``jump_agreement`` sensor
+stamps in a row far back (``clock_jumps``) restart the plant's time, standby and safe command;
+one is skipped (``far_back_stamps``). Estimates: ``far_back_estimates``, then a resync.
+
 The node turns messages into numbers, calls these methods, and publishes the
 :class:`Command` they return; counters and log lines go through the callables it gives.
 
@@ -57,6 +61,8 @@ import math
 
 import numpy as np
 
+from .clock_jump import CLOCK_JUMP, CLOCK_JUMP_AGREEMENT, ClockJump, FAR_BACK, \
+    far_back_text, IN_BASE
 from .control_law import ControlLaw
 from .delay_compensation import DelayCompensation
 from .health import divergence_envelopes, ENVELOPE_PERSIST, SettleCheck, settling_time
@@ -123,8 +129,9 @@ class LoopSupervisor:
         Its design (``K``, the observer poles).
     lead_steps : int
         ``command_lead_steps``: steps a delay-compensated command is stamped ahead.
-    jump_tolerance : float
-        ``clock_jump_tolerance``, s: an estimate this far back means the clock restarted.
+    jump_tolerance, jump_agreement : float, int
+        ``clock_jump_tolerance`` (s), ``clock_jump_agreement``: :attr:`sensor_jumps`,
+        :attr:`estimate_jumps` (:class:`ClockJump`; change them there).
     standby : bool or None
         Keep a standby observer: None (default) for a plant that cannot be held open
         loop in realtime; False never.
@@ -142,12 +149,15 @@ class LoopSupervisor:
     """
 
     def __init__(self, vehicle, design, lead_steps=3, jump_tolerance=0.5, standby=None,
-                 count=None, log=None, clock=None, clock_bound=None):
+                 count=None, log=None, clock=None, clock_bound=None,
+                 jump_agreement=CLOCK_JUMP_AGREEMENT):
         self._count = count or _nothing
         self._log = log or _nothing
         self._clock = clock or (lambda: 0.0)
         self._clock_bound = clock_bound or _nothing
-        self.jump_tolerance = float(jump_tolerance)
+        self.sensor_jumps = ClockJump(jump_tolerance, jump_agreement, self._count)
+        self.estimate_jumps = ClockJump(jump_tolerance, jump_agreement, self._count,
+                                        ('far_back_estimates', 'estimate_clock_jumps'))
         self.lead_steps = int(lead_steps)
         self.mode = 'waiting'
         self.safe = None
@@ -172,7 +182,6 @@ class LoopSupervisor:
         self.publishers = 1             # known publishers of the estimate topic
         self.safe_mode = None           # how the last safe command was decided
         self.plant_time = None          # realtime: the newest sensor stamp
-        self._sensor_time = {}
         self._plant_start = None        # the first sensor stamp: the plant's step 0
         self.plant_stepping = False     # a later stamp came: the plant steps
         self._stepping_wall = None      # wall time it was seen to step first
@@ -260,8 +269,14 @@ class LoopSupervisor:
 
         """
         last = self._last_stamp
-        if last is not None and last - t > self.jump_tolerance:
-            self._clock_restarted(t)
+        jump = self.estimate_jumps.judge(t, last)
+        if jump is CLOCK_JUMP:
+            self._clock_restarted(t, last, now)
+        elif jump is FAR_BACK:
+            # an outlier, or the first of a restarted clock's: ignored until agreed
+            self._log(WARN, far_back_text('state/estimate', t, last,
+                                          self.estimate_jumps.agreement))
+            return None
         elif self._answered is not None and t <= self._answered:
             # a repeat (the observer answers a repeated measurement so; a simulator
             # re-sends step 0 until a command answers it) gets the same command again,
@@ -321,15 +336,13 @@ class LoopSupervisor:
             silent (realtime, with a standby); else None.
 
         """
-        if t < self._sensor_time.get(sensor, t) - self.jump_tolerance:
-            self._sensor_time.clear()        # that sensor's clock started over
-            self.plant_time = None
-            self._plant_start, self.plant_stepping = None, False
-            if self.plant_clock is not None:
-                self.plant_clock.reset()
-            if self.standby is not None:
-                self.standby.reset()
-        self._sensor_time[sensor] = t
+        jump = self.sensor_jumps.judge(t, self.plant_time)
+        if jump is not IN_BASE:
+            if jump is FAR_BACK:
+                self._log(WARN, far_back_text(sensor, t, self.plant_time,
+                                              self.sensor_jumps.agreement))
+                return None
+            self._plant_restarted(sensor, t)
         if self._plant_start is None:
             self._plant_start = t
         elif not self.plant_stepping and t > self._plant_start:
@@ -609,21 +622,34 @@ class LoopSupervisor:
         if self.standby is not None:
             self.standby.command(t, u)
 
-    def _clock_restarted(self, t):
-        """Estimates from a clock that started over: forget the old run's commands."""
-        self._log(WARN, f'state/estimate: clock jumped back {self._last_stamp - t:.3f} s (a '
-                  'restarted simulator?); safe command and limits reset')
-        self._count('clock_jumps')
-        self.mode = 'closed'
+    def _plant_restarted(self, sensor, t):
+        """Sensor stamps agree the plant's clock started over: forget the old run's plant."""
+        self._log(WARN, f'clock jumped back: {sensor} {self.plant_time - t:.3f} s '
+                  f'({self.sensor_jumps.agreement} in a row; a restarted simulator?); plant '
+                  'time, standby observer and safe command reset')
+        self.plant_time = None
+        self._plant_start, self.plant_stepping = None, False
+        if self.plant_clock is not None:
+            self.plant_clock.reset()
+        if self.standby is not None:
+            self.standby.reset()
+        self.safe.reset()
+        if self.delay is not None:
+            self.delay.reset()
+
+    def _clock_restarted(self, t, last, now):
+        """Estimates agree their clock started over: forget the old run's loop; resync."""
+        self._log(WARN, f'clock jumped back: state/estimate {last - t:.3f} s '
+                  f'({self.sensor_jumps.agreement} in a row; a restarted simulator?); safe '
+                  'command and limits reset')
+        self.mode, self._agree = ('resync' if self.standby and self.standby.warm else 'closed'), 0
+        self._last_wall, self._last_stamp = now, t      # the new time base
         self._answered = self._followed = self._answer = None
         self._problem, self._refusals = None, 0
         self.safe.reset()
         self._plant_start, self.plant_stepping = None, False
         if self.delay is not None:
             self.delay.reset()
-            self.plant_clock.reset()
-        if self.standby is not None:
-            self.standby.reset()
         self.x_envelope.reset()
         self.u_envelope.reset()
 
@@ -644,20 +670,10 @@ class LoopSupervisor:
         return self.delay.steps_late(min(plant, t + self.delay.max_delay), t)
 
     def _plant_now(self, now):
-        """
-        Return the plant's time at wall time now (realtime, delay compensation).
-
-        The newest sensor stamp; later by the wall clock (:class:`.plant_clock.PlantClock`)
-        when the measurements queued for this process (it did not run for a while) by
-        more than a step, so that a command answering one still reaches the plant before
-        its stamp; at most ``observer.history_length`` later.
-        """
-        plant = self.plant_time
-        if plant is None or now is None or self.plant_clock is None or \
-                not self.plant_stepping:
-            return plant        # (a plant at its step 0 waits: it is where it says)
-        behind = self.plant_clock.behind(plant, now) - self.dt
-        return plant if behind <= 0.0 else plant + min(behind, self.delay.max_delay)
+        """Return the plant's time at wall time now (:meth:`.PlantClock.plant_now`)."""
+        if self.plant_clock is None or not self.plant_stepping:
+            return self.plant_time  # (a plant at its step 0 waits: it is where it says)
+        return self.plant_clock.plant_now(self.plant_time, now, self.dt, self.delay.max_delay)
 
     def _estimate_clock(self, now):
         """

@@ -77,3 +77,17 @@ class PlantClock:
         """
         plant = self.at(now)
         return 0.0 if plant is None else max(plant - t, 0.0)
+
+    def plant_now(self, plant, now, dt, most):
+        """
+        Return the plant's time at wall time now, ``plant`` the newest sensor stamp.
+
+        That stamp; later by the wall clock when the measurements queued for this process
+        (it did not run for a while) by more than a step ``dt``, so that a command
+        answering one still reaches the plant before its stamp; at most ``most`` s later.
+        None without a stamp; ``plant`` without ``now``.
+        """
+        if plant is None or now is None:
+            return plant
+        behind = self.behind(plant, now) - dt
+        return plant if behind <= 0.0 else plant + min(behind, most)

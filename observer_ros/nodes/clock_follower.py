@@ -7,7 +7,15 @@ A second vehicle's simulator (``simulator.publish_clock: false``) takes its time
 /clock has reached it. :class:`ClockFollower` holds that decision (no ROS here; the
 simulator node feeds it each /clock it hears and asks it before each step).
 
+A /clock more than :data:`CLOCK_RESYNC` before the newest one heard is a clock jump only
+once :data:`~observer_ros.core.clock_jump.CLOCK_JUMP_AGREEMENT` of them come in a row
+(:class:`~observer_ros.core.clock_jump.ClockJump`, the rule of the observer and the
+compensator): a single one is skipped, counted (``far_back_stamps``), and the time base
+stays; the agreed one is counted as ``clock_jumps``.
+
 """
+
+from ..core.clock_jump import CLOCK_JUMP, CLOCK_JUMP_AGREEMENT, ClockJump, FAR_BACK
 
 __all__ = ['ClockFollower', 'CLOCK_RESYNC', 'CLOCK_CATCH_UP']
 
@@ -29,26 +37,39 @@ class ClockFollower:
     first_wait : float
         Wall seconds to wait for the first /clock before running on the simulator's own
         time.
+    count : callable, optional
+        ``count(name)``: bumps ``far_back_stamps`` or ``clock_jumps`` (of /clock).
 
     Attributes
     ----------
     clock : float or None
-        The newest /clock heard (s), None before the first.
+        The last /clock taken (s), None before the first.
+    newest : float or None
+        The newest /clock of the time base (s), far-back ones are judged against it.
     synced : bool
         The time base is placed (on /clock's time, or on the simulator's own after
         ``first_wait``).
 
     """
 
-    def __init__(self, dt, first_wait):
+    def __init__(self, dt, first_wait, count=None):
         self.dt = float(dt)
         self.first_wait = float(first_wait)
         self.clock = None
         self.synced = False
+        self.jumps = ClockJump(CLOCK_RESYNC, CLOCK_JUMP_AGREEMENT, count)
+        self.newest = None          # the newest /clock of the time base
 
     def heard(self, sec, nanosec):
-        """Take a /clock message's time."""
-        self.clock = (int(sec) * 1_000_000_000 + int(nanosec)) * 1e-9
+        """Take a /clock message's time; return False when it is skipped (far back)."""
+        clock = (int(sec) * 1_000_000_000 + int(nanosec)) * 1e-9
+        verdict = self.jumps.judge(clock, self.newest)
+        if verdict == FAR_BACK:
+            return False
+        if verdict == CLOCK_JUMP or self.newest is None or clock > self.newest:
+            self.newest = clock
+        self.clock = clock
+        return True
 
     def start(self, k, waited):
         """

@@ -82,7 +82,7 @@ class CompensatorNode(ManagedVehicleNode):
         self._run_complete = False
         super().__init__('compensator', own_parameters=(
             'publish_array', 'diagnostics_period', 'clock_jump_tolerance',
-            'command_lead_steps'))
+            'clock_jump_agreement', 'command_lead_steps'))
 
     def configure_vehicle(self):
         """Design, create the publishers (nodes/managed.py)."""
@@ -106,7 +106,8 @@ class CompensatorNode(ManagedVehicleNode):
         self.loop = LoopSupervisor(
             self.vehicle, self.design, self.param('command_lead_steps'),
             self.param('clock_jump_tolerance'), count=self.count, log=self._log,
-            clock=self._ros_now, clock_bound=self._followed_clock)
+            clock=self._ros_now, clock_bound=self._followed_clock,
+            jump_agreement=self.param('clock_jump_agreement'))
         self._safe_timer = None
         self._safe_clock = self._clock_still_since = None
         self._publish_reference()
@@ -311,8 +312,11 @@ class CompensatorNode(ManagedVehicleNode):
         for p in params:
             if self.loop is not None and p.name == 'command_lead_steps':
                 self.loop.set_lead_steps(int(p.value))
-            if self.loop is not None and p.name == 'clock_jump_tolerance':
-                self.loop.jump_tolerance = float(p.value)   # checked above: finite, > 0
+            if self.loop is not None and p.name in ('clock_jump_tolerance',
+                                                    'clock_jump_agreement'):
+                # checked above: a finite tolerance > 0, an agreement >= 1
+                for jumps in (self.loop.sensor_jumps, self.loop.estimate_jumps):
+                    setattr(jumps, p.name[len('clock_jump_'):], p.value)
         changed = [p for p in params if p.name.startswith('controller.')]
         if not changed:
             return SetParametersResult(successful=True)

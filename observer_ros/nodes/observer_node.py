@@ -42,6 +42,7 @@ from .observer_health import ObserverHealth
 from .observer_reset import ObserverReset
 from .runner import run_node
 from .wire import JointStateWriter, SensorReader, stamp_bytes, VectorReader, WireError
+from ..core.clock_jump import far_back_text
 from ..core.errors import ObserverError
 from ..core.estimators import History, make_estimator
 from ..core.estimators.admission import (Admission, AHEAD_COMMAND, BAD_STAMP, check_stamp,
@@ -355,9 +356,7 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
         elif verdict is FAR_BACK:
             adm = self._admission
             newest = adm.newest if adm.newest is not None else head
-            text = (f'{topic}: stamp {t:.6f} is {newest - t:.3f} s before the newest '
-                    f'({newest:.6f}); skipped (a clock jump needs '
-                    f'{adm.clock_jump_agreement} such messages in a row)')
+            text = far_back_text(topic, t, newest, adm.clock_jump_agreement)
             if self._lockstep:      # the simulator waits for an answer at this stamp
                 self._publish_estimate(t, stamp, self.estimator.x_hat)
         elif verdict is OUT_OF_ORDER:

@@ -58,6 +58,7 @@ from .common import (joint_state, LATCHED_QOS, MESSAGE_CLASSES, SAFE_COMMAND_FRA
                      SENSOR_QOS, stamp_to_sec, STATE_PUB_QOS, STATE_QOS, to_stamp, TOPICS,
                      vector_from_joint_state, VehicleNode)
 from .runner import run_node
+from ..core.clock_jump import far_back_text
 from ..core.model import zoh_matrices
 from ..core.simulate import process_noise_factor
 from ..sensors import fill_measurement
@@ -116,7 +117,8 @@ class PlantSimulatorNode(VehicleNode):
         self._follower = None
         self._clock_wait = False            # lockstep: the next step waits for /clock
         if not v.simulator.publish_clock:
-            self._follower = ClockFollower(self.dt, READY_WAIT * v.simulator.command_timeout)
+            self._follower = ClockFollower(self.dt, READY_WAIT * v.simulator.command_timeout,
+                                           count=self.count)
             self._clock_sub = self.create_subscription(Clock, '/clock', self._on_clock,
                                                        SENSOR_QOS)
         self._cmd_sub = self.watched_subscription(
@@ -170,7 +172,13 @@ class PlantSimulatorNode(VehicleNode):
 
     # -- following /clock ---------------------------------------------------------------------
     def _on_clock(self, msg):
-        self._follower.heard(msg.clock.sec, msg.clock.nanosec)
+        if not self._follower.heard(msg.clock.sec, msg.clock.nanosec):
+            follower = self._follower
+            self.get_logger().warning(
+                far_back_text('/clock', msg.clock.sec + msg.clock.nanosec * 1e-9,
+                              follower.newest, follower.jumps.agreement),
+                throttle_duration_sec=1.0)
+            return
         if self._clock_wait and self._steps_due() > 0:
             self._clock_wait = False        # lockstep: /clock reached the next step
             self._publish_next()

@@ -309,14 +309,15 @@ SENSOR_KEYS = _keys(
 # The nodes' own parameters (not in a vehicle file; given with -p or a node section).
 NODE_KEYS = _keys(
     KeySpec('clock_jump_tolerance', DOUBLE, 'a stamp this far behind the newest is far back: '
-            'the observer skips it unless clock_jump_agreement such measurements come in a '
-            'row (a clock jump: it resets); the compensator takes an estimate this far back '
-            'for a restarted clock', default=CLOCK_JUMP_TOLERANCE, unit='s', low=0.0,
+            'skipped unless clock_jump_agreement such stamps come in a row (a clock jump: '
+            'the observer resets; the compensator resets its plant time, standby and safe '
+            'command, or on estimates its loop)', default=CLOCK_JUMP_TOLERANCE, unit='s', low=0.0,
             low_open=True, high=MAX_TIMEOUT, details='nodes: observer, compensator'),
-    KeySpec('clock_jump_agreement', INTEGER, 'measurements in a row stamped more than '
-            'clock_jump_tolerance behind the newest that make a clock jump (the estimator '
-            'resets); fewer are outliers, skipped (far_back_stamps)',
-            default=CLOCK_JUMP_AGREEMENT, low=1, high=1000, details='nodes: observer'),
+    KeySpec('clock_jump_agreement', INTEGER, 'measurements (or estimates) in a row stamped '
+            'more than clock_jump_tolerance behind the newest that make a clock jump; fewer '
+            'are outliers, skipped (far_back_stamps, far_back_estimates)',
+            default=CLOCK_JUMP_AGREEMENT, low=1, high=1000,
+            details='nodes: observer, compensator'),
     KeySpec('future_tolerance', DOUBLE, 'a stamp this far ahead of the clock is refused',
             default=FUTURE_TOLERANCE, unit='s', low=0.0, low_open=True, high=1e9,
             details='nodes: observer'),

@@ -91,7 +91,7 @@ def test_a_clock_jump_needs_agreeing_messages_in_a_row():
     assert run.measure('gyro', 1.05) is adm.FAR_BACK
     # an outlier further back does not agree with the one before: a new streak
     assert run.measure('gyro', 1.05 - 3600.0) is adm.FAR_BACK
-    assert run.admission._streak == 1
+    assert run.admission.jumps.streak == 1
     assert run.measure('gyro', 1.1) is adm.FAR_BACK
     # the third in a row (another sensor, the same new time base): the clock jumped
     assert run.measure('pitch', 1.12) is adm.CLOCK_JUMP

@@ -184,30 +184,62 @@ class CartLoop:
         return max(abs(x[0]) for x in states), max(abs(x[1] - 1.0) for x in states)
 
 
-def test_plant_time_is_the_newest_sensor_stamp_started_over_on_a_clock_jump():
-    sup, _, _ = supervisor('cart_pendulum', 'simulator.mode:=realtime')
-    tolerance = sup.jump_tolerance
-    latest, plant = {}, None
+def test_plant_time_is_the_newest_sensor_stamp_started_over_on_an_agreed_clock_jump():
+    sup, counts, _ = supervisor('cart_pendulum', 'simulator.mode:=realtime')
+    tolerance, agreement = sup.sensor_jumps.tolerance, sup.sensor_jumps.agreement
+    plant, streak, jumps = None, 0, 0
     rnd = random.Random(2)
-    clock = {'encoder': 10.0, 'imu': 10.0}
-    jumps = 0
-    for k in range(2000):
-        name = rnd.choice(sorted(clock))
-        if rnd.random() < 0.01:
-            clock[name] = rnd.uniform(1.0, 5.0)          # that sensor's clock restarts
-        clock[name] += rnd.uniform(-0.2, 0.3) * 0.01     # a little out of order at times
-        t = clock[name]
-        if t < latest.get(name, t) - tolerance:
-            latest.clear()
-            plant = None
-            jumps += 1
-        latest[name] = t
-        plant = t if plant is None else max(plant, t)
+    clock = 10.0
+    for k in range(3000):
+        name = rnd.choice(['encoder', 'imu'])
+        if rnd.random() < 0.005:
+            clock = rnd.uniform(1.0, 5.0)               # the simulator restarts
+        clock += rnd.uniform(-0.2, 0.3) * 0.01          # a little out of order at times
+        t = clock
+        if plant is not None and plant - t > tolerance:
+            streak += 1                                 # far back: skipped until agreed
+            if streak == agreement:
+                plant, streak = t, 0
+                jumps += 1
+        else:
+            plant, streak = t if plant is None else max(plant, t), 0
         sup.measurement(name, t, None, float(k))
         assert sup.plant_time == plant, (k, sup.plant_time, plant)
         assert sup._steps_late(t - 0.05) == sup.delay.steps_late(plant, t - 0.05), k
         assert sup._steps_late(t - 0.05, float(k)) == sup._steps_late(t - 0.05), k
-    assert jumps >= 5, jumps
+    assert jumps >= 5 and counts['clock_jumps'] == jumps, (jumps, counts)
+
+
+def test_a_single_wild_sensor_stamp_resets_nothing_a_restart_after_the_agreed_count():
+    sup, counts, logs = supervisor('cart_pendulum', 'simulator.mode:=realtime')
+    x = np.array([0.0, 1.0, 0.0, 0.0])
+    for k in range(150):
+        t = round(10.0 + 0.01 * k, 9)
+        sup.measurement('encoder', t, [1.0], t)
+        sup.estimate(t, x, t)
+    # one stamp from nowhere (2 s, or an hour, back): skipped, counted, said
+    for wild in (8.0, t - 3600.0):
+        before = (sup.plant_time, sup.standby.t, sup.standby.history.x_hat.copy())
+        assert sup.measurement('encoder', wild, [5.0], t) is None
+        assert (sup.plant_time, sup.standby.t) == before[:2]
+        np.testing.assert_array_equal(sup.standby.history.x_hat, before[2])
+        t = round(t + 0.01, 9)
+        sup.measurement('encoder', t, [1.0], t)             # the old time base goes on
+    assert counts['far_back_stamps'] == 2 and 'clock_jumps' not in counts
+    assert any('skipped (a clock jump needs 3 such messages in a row)' in text
+               for _, text in logs)
+    # the simulator restarts at 1.0 s and re-sends its step 0: the third agrees
+    newest = sup.plant_time
+    assert sup.measurement('encoder', 1.0, [0.0], 12.0) is None
+    assert sup.measurement('encoder', 1.0, [0.0], 12.2) is None
+    assert sup.plant_time == newest and sup.standby.warm
+    sup.measurement('encoder', 1.0, [0.0], 12.4)
+    assert counts['clock_jumps'] == 1 and counts['far_back_stamps'] == 4
+    assert sup.plant_time == 1.0 and sup.standby.t == 1.0 and not sup.standby.warm
+    np.testing.assert_array_equal(sup.safe.last_command, [0.0])   # the old run's forgotten
+    # the observer's estimates follow by the same rule: one far back is ignored
+    assert sup.estimate(1.0, np.zeros(4), 12.41) is None
+    assert counts['far_back_estimates'] == 1 and 'estimate_clock_jumps' not in counts
 
 
 @pytest.mark.parametrize('name', ['submarine', 'cart_pendulum'])
@@ -544,9 +576,11 @@ def test_a_restarted_clock_starts_the_loop_over():
     sup.measurement('encoder', 30.0, [1.0], 0.0)
     sup.estimate(30.0, np.array([0.0, 1.0, 0.0, 0.0]), 0.0)
     assert sup.standby.t == 30.0
-    command = sup.estimate(1.01, np.zeros(4), 0.01)
-    assert counts['clock_jumps'] == 1 and command.source == 'observer'
-    assert not sup.standby._recent              # the standby starts over with the clock
+    assert sup.estimate(1.01, np.zeros(4), 0.01) is None      # one alone: an outlier
+    assert sup.estimate(1.01, np.zeros(4), 0.02) is None
+    assert counts['far_back_estimates'] == 2 and sup.standby.t == 30.0
+    command = sup.estimate(1.01, np.zeros(4), 0.03)            # the third agrees
+    assert counts['estimate_clock_jumps'] == 1 and command.source == 'observer'
     assert [stamp for stamp, _ in sup.delay._sent] == [command.t]   # the old run's forgotten
 
 
@@ -565,3 +599,34 @@ def test_safe_commands_are_never_stamped_past_the_clock_followed():
     sup, _, _ = supervisor('submarine', 'simulator.mode:=realtime')
     _gone_stale(sup, x)
     assert sup.safe_tick(7.4).t == pytest.approx(7.4)
+
+
+def test_an_observer_restarted_by_a_clock_jump_resyncs_with_a_warm_standby():
+    """
+    Its new initial transient is not followed: the warm standby answers meanwhile.
+
+    As after an outage (resync): its estimates are followed again once RESYNC_AGREE in a
+    row agree with the standby's.
+    """
+    sup, counts, _ = supervisor('cart_pendulum', 'simulator.mode:=realtime')
+    x = np.array([0.0, 1.0, 0.0, 0.0])
+    t = 10.0
+    for k in range(150):                                # the first run, converged
+        t = round(10.0 + 0.01 * k, 9)
+        sup.measurement('encoder', t, [1.0], t)
+        sup.estimate(t, x, t)
+    wall = t + 2.0                                      # the simulator restarts at 1.0 s
+    for k in range(150):
+        s = round(1.0 + 0.01 * k, 9)
+        sup.measurement('encoder', s, [1.0], wall + 0.01 * k)
+    assert counts['clock_jumps'] == 1 and sup.standby.warm
+    # the observer restarts later, its estimate far from the standby's at first
+    wall, others = wall + 1.5, counts['other_stream_estimates']
+    s = 2.5
+    for k in range(3):
+        sup.measurement('encoder', s, [1.0], wall)
+        command = sup.estimate(s, x + [0.0, 0.0, 3.0, 0.0], wall)
+        s, wall = round(s + 0.01, 9), wall + 0.01
+    assert counts['estimate_clock_jumps'] == 1 and sup.mode == 'resync'
+    assert command is None                          # the standby answers the measurements
+    assert counts['other_stream_estimates'] == others + 1     # its transient: not followed

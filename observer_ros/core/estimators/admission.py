@@ -19,13 +19,11 @@ stamp any sensor has given since the last reset:
   ``out_of_order``);
 - ``t`` more than ``clock_jump_tolerance`` before ``newest``: a stamp far back
   (:data:`FAR_BACK`, ``far_back_stamps``), skipped, the estimate untouched, unless it is
-  the ``clock_jump_agreement``-th such message in a row (no message between them in the
-  old time base, none before the newest of them by more than the tolerance): then the
-  clock jumped back and the estimator restarts at it (:data:`CLOCK_JUMP`,
-  ``clock_jumps``). One glitched stamp is an outlier; a clock that started over (a
-  looping bag, a restarted simulator owning /clock) sends every following message in its
-  new time base. A repeat agrees too: a restarted realtime simulator sends its step 0
-  again until a command answers it, and the node answers only once the jump is agreed;
+  the ``clock_jump_agreement``-th such message in a row: then the clock jumped back and
+  the estimator restarts at it (:data:`CLOCK_JUMP`, ``clock_jumps``). The rule is
+  :class:`~observer_ros.core.clock_jump.ClockJump`'s, the one every component that
+  resets on a clock jump asks; a message older than the history but not far back breaks
+  the streak as one in order does;
 - the stamp this sensor gave last, again: skipped (:data:`DUPLICATE`, ``duplicates``);
 - more than ``future_tolerance`` ahead of the clock: skipped (:data:`FUTURE`,
   ``future_stamps``).
@@ -55,6 +53,8 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
+from ..clock_jump import CLOCK_JUMP as JUMPED, CLOCK_JUMP_AGREEMENT, CLOCK_JUMP_TOLERANCE, \
+    ClockJump
 from ..errors import ObserverError
 from ...timeutil import ns_to_sec
 
@@ -64,12 +64,8 @@ __all__ = ['Admission', 'Verdict', 'check_stamp', 'stamp_ns', 'malformed_ns', 'r
            'FAR_BACK', 'OUT_OF_ORDER', 'DUPLICATE', 'FUTURE', 'BAD_STAMP', 'COMMAND',
            'HELD_COMMAND', 'STALE_COMMAND', 'FUTURE_COMMAND', 'AHEAD_COMMAND']
 
-#: s: a measurement this far before the newest stamp is far back (a clock jump if agreed)
-CLOCK_JUMP_TOLERANCE = 0.5
 #: s: a stamp this far ahead of the clock is refused
 FUTURE_TOLERANCE = 10.0
-#: far-back measurements in a row that make a clock jump (1: every one is a jump)
-CLOCK_JUMP_AGREEMENT = 3
 #: the first stamp that is not malformed, in ns (1 s: a zero stamp reads as unset)
 FIRST_VALID_NS = 1_000_000_000
 #: what :func:`stamp_ns` gives for a malformed stamp (below :data:`FIRST_VALID_NS`)
@@ -219,12 +215,12 @@ class Admission:
                  future_tolerance=FUTURE_TOLERANCE, clock_jump_agreement=CLOCK_JUMP_AGREEMENT,
                  max_gap=math.inf, clock=None, counts=None):
         self.history = history
-        self.clock_jump_tolerance = clock_jump_tolerance
+        self.counts = {} if counts is None else counts
+        self.jumps = ClockJump(clock_jump_tolerance, clock_jump_agreement, self._bump)
+        self._jump = self.jumps.tolerance
         self.future_tolerance = future_tolerance
-        self.clock_jump_agreement = clock_jump_agreement
         self.max_gap = max_gap
         self._clock = clock
-        self.counts = {} if counts is None else counts
         self.previous = None
         self._clear()
 
@@ -235,10 +231,8 @@ class Admission:
 
     @clock_jump_tolerance.setter
     def clock_jump_tolerance(self, value):
-        value = float(value)
-        if not (value > 0.0 and math.isfinite(value)):
-            raise ValueError(f'clock_jump_tolerance must be > 0 and finite; got {value!r}')
-        self._jump = value
+        self.jumps.tolerance = value
+        self._jump = self.jumps.tolerance
 
     @property
     def future_tolerance(self):
@@ -257,20 +251,17 @@ class Admission:
     @property
     def clock_jump_agreement(self):
         """Far-back measurements in a row that make a clock jump."""
-        return self._agreement
+        return self.jumps.agreement
 
     @clock_jump_agreement.setter
     def clock_jump_agreement(self, value):
-        if isinstance(value, bool) or int(value) != value or value < 1:
-            raise ValueError(f'clock_jump_agreement must be an integer >= 1; got {value!r}')
-        self._agreement = int(value)
+        self.jumps.agreement = value
 
     def _clear(self):
         """Forget the stamps seen: a new time base."""
         self._newest = {}           # sensor key -> its newest stamp used
         self._top = None            # the newest of them
-        self._streak = 0            # far-back measurements in a row
-        self._streak_top = None     # the newest of them
+        self.jumps.clear()          # no far-back measurements in a row
         self._bound = -math.inf     # stamps up to here are not ahead of the clock ...
         self._until = -math.inf     # ... until this wall time
 
@@ -287,6 +278,10 @@ class Admission:
         counts = self.counts
         counts[verdict.counter] = counts.get(verdict.counter, 0) + 1
         return verdict
+
+    def _bump(self, counter):
+        counts = self.counts
+        counts[counter] = counts.get(counter, 0) + 1
 
     def _ahead(self, t, wall, now):
         """Tell whether t is more than future_tolerance ahead of the clock."""
@@ -332,11 +327,12 @@ class Admission:
             if (head if top is None else top) - t > self._jump:
                 return self._far_back(key, t)
             if not history.accepts(t):
-                self._streak = 0
+                self.jumps.interrupt()
                 return self._count(OUT_OF_ORDER)
             verdict = LATE
-        if self._streak:
-            self._streak = 0
+        jumps = self.jumps
+        if jumps.streak:
+            jumps.interrupt()
         if previous == t:
             return self._count(DUPLICATE)
         if (t > self._bound or wall >= self._until) and self._ahead(t, wall, now):
@@ -354,16 +350,11 @@ class Admission:
 
     def _far_back(self, key, t):
         """Judge a measurement far before the newest stamp: an outlier, or one more agreeing."""
-        if self._streak and t >= self._streak_top - self._jump:
-            self._streak += 1
-            self._streak_top = max(self._streak_top, t)
-        else:
-            self._streak, self._streak_top = 1, t
-        if self._streak < self._agreement:
-            return self._count(FAR_BACK)
+        if self.jumps.stamp_far_back(t) is not JUMPED:
+            return FAR_BACK                 # counted by the agreement
         self._clear()
         self._newest[key] = self._top = t
-        return self._count(CLOCK_JUMP)
+        return CLOCK_JUMP
 
     def used(self, key, t):
         """Note a measurement the caller used in order without asking (replay in bulk)."""
@@ -372,7 +363,7 @@ class Admission:
             newest[key] = t
         if self._top is None or t > self._top:
             self._top = t
-        self._streak = 0
+        self.jumps.interrupt()
 
     def command(self, t, wall=0.0, now=None):
         """
