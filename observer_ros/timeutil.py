@@ -1,7 +1,8 @@
 # observer_ros.timeutil: one conversion between ROS stamps and seconds, used everywhere.
 """Stamp conversions shared by the nodes and the bag tools (no ROS imports)."""
 
-__all__ = ['stamp_to_sec', 'stamp_to_ns', 'sec_to_stamp_parts', 'ns_to_sec', 'ns_to_secs']
+__all__ = ['stamp_to_sec', 'stamp_to_ns', 'sec_to_stamp_parts', 'ns_to_sec', 'ns_to_secs',
+           'stamp_sec']
 
 
 def stamp_to_ns(stamp):
@@ -26,6 +27,11 @@ def ns_to_secs(ns):
 def stamp_to_sec(stamp):
     """Return float seconds of a stamp (rclpy or rosbags message)."""
     return ns_to_sec(stamp_to_ns(stamp))
+
+
+def stamp_sec(t):
+    """Return t seconds as a receiver reads it back from a stamp (rounded to the nanosecond)."""
+    return ns_to_sec(round(float(t) * 1e9))
 
 
 def sec_to_stamp_parts(t):

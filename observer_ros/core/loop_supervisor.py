@@ -70,6 +70,7 @@ from .loop_status import ERROR, OK, status_message, WARN
 from .plant_clock import PlantClock
 from .safe_command import SafeCommand
 from .standby import StandbyObserver, unstable_plant
+from ..timeutil import stamp_sec
 
 __all__ = ['Command', 'LoopSupervisor', 'OK', 'WARN', 'ERROR', 'CONSISTENCY_TOL',
            'RESYNC_AGREE', 'RESYNC_SETTLINGS']
@@ -616,6 +617,7 @@ class LoopSupervisor:
 
     def _send(self, u, t):
         """Note a command about to be sent: hold, delay compensation, standby."""
+        t = stamp_sec(t)    # as the plant and the observer read it: t + k dt is off by ulps
         self.safe.sent(u)
         if self.delay is not None:
             self.delay.sent(t, u)

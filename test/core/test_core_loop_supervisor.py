@@ -19,6 +19,7 @@ from observer_ros.core.loop_supervisor import ERROR, LoopSupervisor, OK, RESYNC_
 from observer_ros.core.model import zoh_matrices
 from observer_ros.core.standby import unstable_plant
 from observer_ros.core.vehicle_design import design_vehicle
+from observer_ros.timeutil import ns_to_sec, stamp_sec
 from observer_ros.vehicle import load_vehicle
 import pytest
 from ros_helpers import CONFIG
@@ -135,15 +136,16 @@ class CartLoop:
                 continue
             self.commands.append(command)
             u = np.array(command.u, dtype=float)
-            self.at_plant.append((now + self.lag(), command.t, u))
+            stamp = stamp_sec(command.t)        # as it reads back from the wire
+            self.at_plant.append((now + self.lag(), stamp, u))
             for k in range(len(self.observers)):
-                self._at(now + self.lag(), 'command', (k, command.t, u))
+                self._at(now + self.lag(), 'command', (k, stamp, u))
 
     def run(self, until, spike=None):
         """Step the loop to the time ``until``."""
         sup = self.sup
         while True:
-            t = round(1.0 + len(self.trace) * self.dt, 9)
+            t = stamp_sec(1.0 + len(self.trace) * self.dt)     # a stamp read from the wire
             if t > until:
                 return
             # the plant's command at t: those arrived by t, each from its stamp
@@ -380,19 +382,24 @@ def test_before_the_standby_is_warm_the_loop_stays_on_the_estimates():
     assert any(c.source == 'standby' and 2.1 < c.t < 2.3 for c in loop.commands)
 
 
-@pytest.mark.parametrize('seed', [0, 1, 2])
-def test_the_standby_holds_the_cart_when_messages_are_late(seed):
+def test_the_standby_holds_the_cart_when_messages_are_late():
     """
     One message in SPIKES up to 30 ms late: the paused observer's cart stays near x_d.
 
-    The same loop without the standby (predict-and-hold, then hold) drops the pendulum.
+    Over seeds 0-9: |theta| under 0.3 rad in every run, x within 0.2 m of x_d in at least
+    8 and within 0.3 m in all; the same loop without the standby (predict-and-hold, then
+    hold) drops the pendulum.
     """
-    loop = CartLoop(seed, jitter=0.03)
-    loop.observer(pause=(12.0, 15.0))
-    loop.run(17.0)
-    theta, dx = loop.worst(12.0, 15.0)
-    assert theta < 0.3 and dx < 0.2, (theta, dx)
-    assert loop.trace[-1][2] == 'closed'
+    worst = []
+    for seed in range(10):
+        loop = CartLoop(seed, jitter=0.03)
+        loop.observer(pause=(12.0, 15.0))
+        loop.run(17.0)
+        worst.append(loop.worst(12.0, 15.0))
+        assert loop.trace[-1][2] == 'closed', seed
+    assert all(theta < 0.3 and dx < 0.3 for theta, dx in worst), worst
+    assert sum(dx < 0.2 for _, dx in worst) >= 8, worst
+    seed = 0
     bare = CartLoop(seed, jitter=0.03)
     bare.sup.standby = None
     bare.observer(pause=(12.0, 15.0))
@@ -581,7 +588,7 @@ def test_a_restarted_clock_starts_the_loop_over():
     assert counts['far_back_estimates'] == 2 and sup.standby.t == 30.0
     command = sup.estimate(1.01, np.zeros(4), 0.03)            # the third agrees
     assert counts['estimate_clock_jumps'] == 1 and command.source == 'observer'
-    assert [stamp for stamp, _ in sup.delay._sent] == [command.t]   # the old run's forgotten
+    assert [stamp for stamp, _ in sup.delay._sent] == [stamp_sec(command.t)]   # the old run's
 
 
 def test_safe_commands_are_never_stamped_past_the_clock_followed():
@@ -599,6 +606,30 @@ def test_safe_commands_are_never_stamped_past_the_clock_followed():
     sup, _, _ = supervisor('submarine', 'simulator.mode:=realtime')
     _gone_stale(sup, x)
     assert sup.safe_tick(7.4).t == pytest.approx(7.4)
+
+
+def test_commands_for_one_step_reach_the_standby_as_the_plant_reads_them():
+    """
+    Commands for one step, stamped t + k dt from different t, differ in their last bits.
+
+    1.24 and 1.2400000000000002 are one stamp on the wire (to the nanosecond), where the
+    plant and the observer hold the last one sent; so does the standby.
+    """
+    sup, _, _ = supervisor('cart_pendulum', 'simulator.mode:=realtime')
+    v, dt = sup.vehicle, sup.dt
+    t = [ns_to_sec(1_000_000_000 + k * 10_000_000) for k in range(40)]
+    a = 24
+    assert len({t[a - s] + s * dt for s in range(3, 8)}) > 1     # the float stamps differ
+    plant = History(make_estimator(v.plant, v.observer), v.observer.history_length)
+    for k in range(a + 5):
+        sup.measurement('encoder', t[k], [0.001 * k], t[k])
+        plant.correct(t[k], [0.001 * k], (0,))
+        s = a - k
+        if 3 <= s <= 7:                     # five commands for step a; the last one holds
+            sup._send([10.0 * (s - 5)], t[k] + s * dt)
+            if s == 3:
+                plant.set_input(t[a], np.array([-20.0]))
+    np.testing.assert_allclose(sup.standby.history.x_hat, plant.x_hat, rtol=0, atol=1e-12)
 
 
 def test_an_observer_restarted_by_a_clock_jump_resyncs_with_a_warm_standby():
