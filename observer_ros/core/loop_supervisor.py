@@ -66,6 +66,7 @@ from .clock_jump import CLOCK_JUMP, CLOCK_JUMP_AGREEMENT, ClockJump, FAR_BACK, \
 from .control_law import ControlLaw
 from .delay_compensation import DelayCompensation
 from .health import divergence_envelopes, ENVELOPE_PERSIST, SettleCheck, settling_time
+from .loop_command import Command, command_refusal
 from .loop_status import ERROR, OK, status_message, WARN
 from .plant_clock import PlantClock
 from .safe_command import SafeCommand
@@ -92,26 +93,6 @@ CONSISTENCY_STEPS = 50
 # last command meanwhile: the standby is for a silence, not for each delay.
 LAG_LIMIT = 0.1
 LAG_STEPS = 3
-
-
-class Command:
-    """
-    A command to send: ``u`` (m floats), stamped ``t``.
-
-    ``answers``: it answers the estimate (or measurement) just given, so it carries that
-    message's stamp as it is; ``marked``: it answers nothing (a safe command for a stale
-    estimate; lock-step does not take it for an answer); ``source``: ``observer``,
-    ``standby`` or ``safe``.
-    """
-
-    __slots__ = ('u', 't', 'answers', 'marked', 'source')
-
-    def __init__(self, u, t, answers=False, marked=False, source='observer'):
-        self.u, self.t, self.answers, self.marked, self.source = u, t, answers, marked, source
-
-    def __repr__(self):
-        return (f'Command(u={list(self.u)}, t={self.t}, answers={self.answers}, '
-                f'marked={self.marked}, source={self.source!r})')
 
 
 def _nothing(*args, **kwargs):
@@ -428,9 +409,7 @@ class LoopSupervisor:
         """
         fallback = self.vehicle.controller.safe_command
         u = self.safe.last_command if fallback == 'hold' else np.zeros(self.vehicle.plant.m)
-        if self.u_min is not None or self.u_max is not None:
-            u = np.clip(u, self.u_min, self.u_max)
-        u = u.tolist()
+        u = self.law.clip(np.asarray(u, dtype=float).tolist())
         t = self._estimate_clock(now)
         self._send(u, t)
         return Command(u, t, marked=True, source='safe')
@@ -457,7 +436,7 @@ class LoopSupervisor:
             reason = self.law.problem(u)
         else:
             u = self.law(x_apply)
-            reason = self._command_problem(u)
+            reason = command_refusal(self.law, self.u_envelope, u)
         if reason is not None:
             self._count('refused_commands')
             self._refused_command = f'command {reason}: safe command sent instead'
@@ -478,15 +457,6 @@ class LoopSupervisor:
         else:
             self._answer = command
         return command
-
-    def _command_problem(self, u):
-        """Why a command must not be sent (limits; without limits the envelope), or None."""
-        reason = self.law.problem(u)
-        if reason is None and not self.law.limited and not self.u_envelope.inside(u):
-            bound = self.u_envelope.bound
-            reason = (f'{list(u)} beyond the bound +-{bound.tolist()} (100 x K applied to '
-                      "the file's state scale; no controller.u_min/u_max)")
-        return reason
 
     def _refuse(self, t, problem, now):
         """Refuse an implausible estimate or command: the safe command, ERROR, once a change."""
@@ -531,7 +501,11 @@ class LoopSupervisor:
                 ref = self.safe.predict_from(x0, steps)
         if ref is None:
             return True
-        return bool(np.max(np.abs(np.asarray(x_list) - ref) / self._scale) <= CONSISTENCY_TOL)
+        return self._within(x_list, ref, CONSISTENCY_TOL)
+
+    def _within(self, x_list, ref, tol):
+        """Whether an estimate is within tol of each state's scale of the reference ref."""
+        return bool(np.max(np.abs(np.asarray(x_list) - ref) / self._scale) <= tol)
 
     def _back(self, t, x_list, now):
         """Estimates after an outage: resync; return a command, None, or False (close)."""
@@ -547,8 +521,7 @@ class LoopSupervisor:
             if self.mode == 'stale':
                 self.mode, self._agree = 'resync', 0
             ref = self.standby.at(t) if self.standby.warm else None
-            agree = ref is not None and bool(
-                np.max(np.abs(np.asarray(x_list) - ref) / self._scale) <= RESYNC_TOL)
+            agree = ref is not None and self._within(x_list, ref, RESYNC_TOL)
             self._agree = self._agree + 1 if agree else 0
             if self._agree < RESYNC_AGREE:
                 self._count('resync_estimates')
@@ -607,9 +580,7 @@ class LoopSupervisor:
             if ahead > t:
                 t, answers = ahead, False
         u, self.safe_mode = self.safe.command(t)
-        if self.u_min is not None or self.u_max is not None:
-            u = np.clip(u, self.u_min, self.u_max)
-        u = u.tolist()
+        u = self.law.clip(u.tolist())
         self._send(u, t)
         self._count('safe_commands')
         self._count(f'safe_commands_{self.safe_mode}')

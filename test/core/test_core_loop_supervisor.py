@@ -15,6 +15,7 @@ import random
 import numpy as np
 from observer_ros.core.estimators import History, make_estimator
 from observer_ros.core.health import ENVELOPE_FACTOR, ENVELOPE_PERSIST
+from observer_ros.core.loop_command import command_refusal
 from observer_ros.core.loop_supervisor import ERROR, LoopSupervisor, OK, RESYNC_AGREE
 from observer_ros.core.model import zoh_matrices
 from observer_ros.core.standby import unstable_plant
@@ -280,14 +281,14 @@ def test_without_limits_the_command_is_bounded_by_the_design():
     scale = np.array(sup.x_envelope.file_scale)
     want = ENVELOPE_FACTOR * (np.abs(sup.K) @ (scale + np.abs(sup.x_d)))
     np.testing.assert_allclose(sup.u_envelope.bound, want)
-    assert sup._command_problem([0.5 * want[0]]) is None
-    reason = sup._command_problem([2.0 * want[0]])
+    assert command_refusal(sup.law, sup.u_envelope, [0.5 * want[0]]) is None
+    reason = command_refusal(sup.law, sup.u_envelope, [2.0 * want[0]])
     assert 'beyond the bound' in reason and 'no controller.u_min/u_max' in reason
     # with limits the limits decide (a command is clipped into them, never refused by K)
     limited, _, _ = supervisor('cart_pendulum', 'controller.u_min:=[-50.0]',
                                'controller.u_max:=[50.0]')
-    assert limited._command_problem([49.0]) is None
-    assert 'outside the limits' in limited._command_problem([51.0])
+    assert command_refusal(limited.law, limited.u_envelope, [49.0]) is None
+    assert 'outside the limits' in command_refusal(limited.law, limited.u_envelope, [51.0])
 
 
 def test_estimates_beyond_the_envelope_in_a_row_are_diverging():
