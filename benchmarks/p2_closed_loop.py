@@ -145,7 +145,25 @@ def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None,
     sim_params = [f'simulator.duration:={float(duration)}', 'diagnostics_period:=0.25']
     layouts = BARE if loop == 'bare' else LAYOUTS
     procs, logs = [], []
+    sim_parts = next(p for p in layouts[layout] if 'plant_simulator' in p)
+    sim = None
     try:
+        # the simulator first: its run waits for a command to answer step 0, and its
+        # /diagnostics must reach this driver before that run starts (a probe of the sweep
+        # is over in 2 s, less than discovery takes on a loaded host)
+        with state['lock']:
+            state['diag'] = []
+        sim = start(_command(sim_parts, common + sim_params, rt_priority, pythonpath),
+                    logdir / f'{layout}_{loop}_simulator_{run}_{rate:g}Hz.log', pythonpath)
+        deadline = time.monotonic() + 60.0
+        while sim.poll() is None and time.monotonic() < deadline:
+            with state['lock']:
+                if state['diag']:
+                    break
+            time.sleep(0.05)
+        else:
+            raise RuntimeError(f'P2: no diagnostics from the simulator before its run; '
+                               f'see {logdir}')
         for parts in layouts[layout]:
             if 'plant_simulator' in parts:
                 continue
@@ -154,8 +172,6 @@ def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None,
             path = {'bare': None, 'baseline': baseline}.get(loop, own or pythonpath)
             logs.append(logdir / f'{tag}_{run}_{rate:g}Hz.log')
             procs.append(start(_command(parts, common, rt_priority, path), logs[-1], path))
-        with state['lock']:
-            state['diag'] = []
         deadline = time.monotonic() + 60.0
         while procs and time.monotonic() < deadline:
             if node.count_publishers(f'{NS}/state/estimate') >= 1 and \
@@ -167,10 +183,7 @@ def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None,
         else:
             if procs:
                 raise RuntimeError('P2: observer and compensator did not come up')
-        sim_parts = next(p for p in layouts[layout] if 'plant_simulator' in p)
-        sim = start(_command(sim_parts, common + sim_params, rt_priority, pythonpath),
-                    logdir / f'{layout}_{loop}_simulator_{run}_{rate:g}Hz.log', pythonpath)
-        procs.append(sim)
+        procs.append(sim)       # last: _sample_cpu follows it
         names = [parts[-1] if len(parts) == 1 else
                  ('+'.join(parts) if parts[0] == 'relay' else 'container')
                  for parts in layouts[layout] if 'plant_simulator' not in parts]
@@ -180,7 +193,7 @@ def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None,
             raise RuntimeError(f'P2: the simulator did not finish; see {logdir}')
         time.sleep(0.3)                     # the last diagnostics
     finally:
-        stop_all(procs)
+        stop_all(procs + ([sim] if sim is not None and sim not in procs else []))
     with state['lock']:
         diag = list(state['diag'])
     if not diag:
