@@ -83,7 +83,7 @@ class DelayCompensation:
         late = 0.0 if now is None else now - t
         if abs(late) > 100.0 * self.max_delay:
             late = 0.0                          # another time base: nothing to compare
-        if late > self.max_delay:
+        if late > self.max_delay + 1e-9:       # (a lateness capped at it is not past it)
             return None
         steps = int(np.floor(late / self.dt + 0.5)) + self.lead
         if self._sent:

@@ -390,12 +390,14 @@ class LoopSupervisor:
         """
         Return the safe command of a sample time while stale (None when none is due).
 
-        With a standby that answered a measurement within the last two sample times,
-        none: the standby closes the loop.
+        With a standby that answered a measurement within the last two sample times (of
+        wall time at the plant's rate: :attr:`.PlantClock.rate`, measured with delay
+        compensation), none: the standby closes the loop.
         """
         if self.mode != 'stale':
             return None
-        period = self.dt / self.time_rate
+        rate = self.time_rate if self.plant_clock is None else self.plant_clock.rate
+        period = self.dt / rate
         if self._standby_wall is not None and now - self._standby_wall < 2.0 * period:
             return None
         return self._safe_command(self._estimate_clock(now), marked=True)

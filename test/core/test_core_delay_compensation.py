@@ -53,6 +53,8 @@ def test_lateness_is_the_plant_time_past_the_stamp_and_stamps_never_go_back():
     assert comp.steps_late(1.04, 1.0) == 4
     assert comp.steps_late(1.044, 1.0) == 4 and comp.steps_late(1.046, 1.0) == 5
     assert comp.steps_late(1.3, 1.0) is None            # past max_delay: not predicted
+    # late by max_delay (the plant's time capped there), in floats a few ulps more: 25
+    assert (1.78 + 0.25) - 1.78 > 0.25 and comp.steps_late(1.78 + 0.25, 1.78) == 25
     assert comp.steps_late(None, 1.0) == 0              # the plant's time unknown
     assert comp.steps_late(1.7e9, 1.0) == 0             # another time base (wall vs sim)
     # a command was sent for 1.05: the next is stamped no earlier, whatever the lateness

@@ -53,9 +53,13 @@ class CartLoop:
     is later, and ignores one older than the newest it has (the realtime simulator).
     ``stalls``: (from, to) when the compensator's process does not run (a busy host): the
     messages that reach it meanwhile are taken at the end, one after the other.
+    ``plant_rate``: seconds of plant time per wall second (a simulator whose timer skips
+    ticks on a busy host runs slower than the wall clock), each step ``spread`` of its
+    mean wall time early or late at random; times given to the supervisor, lags and
+    stalls are wall times, stamps and the trace plant times.
     """
 
-    def __init__(self, seed=0, jitter=0.0, stalls=()):
+    def __init__(self, seed=0, jitter=0.0, stalls=(), plant_rate=1.0, spread=0.0):
         self.sup, self.counts, self.logs = supervisor('cart_pendulum',
                                                       'simulator.mode:=realtime')
         v = self.v = self.sup.vehicle
@@ -64,6 +68,9 @@ class CartLoop:
         self.rng = np.random.default_rng(seed)
         self.jitter = jitter
         self.stalls = list(stalls)
+        self.plant_rate, self.spread = plant_rate, spread
+        self._walls = [1.0]         # the wall time of each step
+        self.ticks = np.random.default_rng(seed + 1)
         self.known_publishers = True    # the node learns of a publisher from its match
         self.late = []              # commands applied after their stamp: (stamp, arrival)
         self.x = np.zeros(4)
@@ -120,7 +127,7 @@ class CartLoop:
             # the node learns of a publisher from the match, before its first message
             if self.known_publishers:
                 sup.publishers = max(1, sum(t >= o[1] for o in self.observers))
-            if t >= start and not a <= t < b and not a <= now < b:
+            if t >= start and not a <= t < b and not self.wall(a) <= now < self.wall(b):
                 x_hat = self._observe(obs, t, y)
                 if spike is not None and abs(t - spike) < 1e-9:
                     x_hat = np.full(4, 1e304)
@@ -142,32 +149,44 @@ class CartLoop:
             for k in range(len(self.observers)):
                 self._at(now + self.lag(), 'command', (k, stamp, u))
 
+    def wall(self, t):
+        """Return the wall time at which the plant reaches its time t."""
+        if math.isinf(t):
+            return t
+        k, frac = divmod((t - 1.0) / self.dt, 1.0)
+        k = int(k)
+        walls, step = self._walls, self.dt / self.plant_rate
+        while len(walls) < k + 2:
+            walls.append(walls[-1] + step * (1.0 + self.spread * self.ticks.uniform(-1.0, 1.0)))
+        return walls[k] + frac * (walls[k + 1] - walls[k])
+
     def run(self, until, spike=None):
-        """Step the loop to the time ``until``."""
+        """Step the loop to the (plant) time ``until``."""
         sup = self.sup
         while True:
             t = stamp_sec(1.0 + len(self.trace) * self.dt)     # a stamp read from the wire
             if t > until:
                 return
-            # the plant's command at t: those arrived by t, each from its stamp
-            for entry in sorted((e for e in self.at_plant if e[0] <= t + 1e-9),
+            w = self.wall(t)
+            # the plant's command at t: those arrived by its step, each from its stamp
+            for entry in sorted((e for e in self.at_plant if e[0] <= w + 1e-9),
                                 key=lambda e: e[0]):     # in the order sent at one time
                 self.at_plant.remove(entry)
-                if entry[0] > entry[1] + 0.25 * self.dt:
+                if entry[0] > self.wall(entry[1] + 0.25 * self.dt):
                     self.late.append((entry[1], entry[0]))
                 if entry[1] >= self.newest - 0.25 * self.dt:
                     self.newest = max(self.newest, entry[1])
-                    self.scheduled.append((max(entry[1], entry[0]), entry[2]))
+                    self.scheduled.append((max(entry[1], t), entry[2]))
             for entry in sorted((e for e in self.scheduled if e[0] <= t + 1e-9),
                                 key=lambda e: e[0]):
                 self.u = entry[1]
                 self.scheduled.remove(entry)
             y = self.v.plant.C @ self.x + 1e-5 * self.rng.standard_normal(1)
-            self._at(t + self.lag(), 'measurement', (t, y))
+            self._at(w + self.lag(), 'measurement', (t, y))
             for k in range(len(self.observers)):
-                self._at(t + self.lag(), 'observe', (k, t, y))
+                self._at(w + self.lag(), 'observe', (k, t, y))
             # everything that arrives before the next step, in the order it arrives
-            end = t + self.dt
+            end = self.wall(t + self.dt)
             while True:
                 ready = sorted(e for e in self.events if e[0] < end)
                 if not ready:
@@ -450,6 +469,34 @@ def test_the_plant_clock_moves_stamps_only_when_measurements_queued():
     sup.measurement('encoder', t, None, 100.182)
     command = sup.estimate(t, x, 100.183)
     assert abs(command.t - (t + lead * 0.01)) < 1e-9, command
+
+
+@pytest.mark.parametrize('seed', [0, 1])
+@pytest.mark.parametrize('fault', ['second observer', 'observer paused'])
+def test_a_plant_slower_than_the_wall_clock_gets_commands_stamped_from_its_own_time(
+        fault, seed):
+    """
+    The simulator at 40 % of real time, its steps irregular (a timer on a busy host).
+
+    The plant's rate is measured: commands are stamped from the plant's own time, not
+    0.3 s ahead of it, and the standby does not take safe commands between its own for
+    sample times of the wall clock. A second, unconverged observer from t = 8 s or the
+    observer silent 3 s: the cart stays within 0.2 m of x_d, no command applied late.
+    """
+    loop = CartLoop(seed, jitter=0.03, plant_rate=0.4, spread=0.9)
+    loop.observer(pause=(12.0, 15.0) if fault == 'observer paused' else (math.inf, math.inf))
+    if fault == 'second observer':
+        loop.observer(start=8.0)
+    loop.run(15.0)
+    theta, dx = loop.worst(8.0)
+    assert theta < 0.3 and dx < 0.2, (theta, dx)
+    assert loop.late == [], loop.late[:5]
+    assert 0.3 < loop.sup.plant_clock.rate < 0.7, loop.sup.plant_clock.rate
+    if fault == 'observer paused':
+        assert loop.counts['standby_commands'] > 250
+        assert loop.counts.get('safe_commands', 0) < 20, loop.counts
+    else:
+        assert loop.counts['other_stream_estimates'] >= 5
 
 
 def test_no_estimate_is_due_while_the_plant_waits_at_its_first_step():
