@@ -43,7 +43,7 @@ from .report import format_table, write_results
 from .results import EvalResult, jsonable, ScoredReplay, VariantResult
 from ..bag.errors import BagToolError
 from ..bag.reader import read_recording
-from ..bag.spill import blocks, count_true, Sink
+from ..bag.spill import blocks, count_true, is_spilled, Sink
 from ..core.errors import ObserverError
 from ..core.vehicle_design import design_vehicle
 from ..replay.events import epoch_cuts, epochs_from_cuts
@@ -191,7 +191,8 @@ def parse_tolerance(text):
 def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=None,
                  exact=False, progress=None, clock_jump_tolerance=CLOCK_JUMP_TOLERANCE,
                  include_live=True, include_design=True, compare=None, spill=None,
-                 keep_rows=True, health=True, clock_jump_agreement=CLOCK_JUMP_AGREEMENT):
+                 keep_rows=True, health=True, clock_jump_agreement=CLOCK_JUMP_AGREEMENT,
+                 states=True, recording=None):
     """
     Replay a bag through the vehicle's design and variants, and score them.
 
@@ -240,6 +241,14 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
     clock_jump_agreement : int
         Far-back measurements in a row that make a clock jump (the observer node's
         parameter).
+    states : bool
+        Score each state against the truth (``VariantResult.states``, the summary's
+        ``settling_time``); a gain search, whose metric is the error norm's RMS, turns
+        it off (the error is then computed once per row, for that RMS).
+    recording : Recording, optional
+        The bag already read (:func:`~observer_ros.bag.reader.read_recording` of this
+        bag with ``vehicle``'s sensors and ``namespace``): not read again. Its columns
+        stay where they are (in memory: ``spill`` then applies to the replays' rows).
 
     Returns
     -------
@@ -296,8 +305,9 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
             return None
         return lambda done, total: progress(label, done, total)
 
-    recording = read_recording(bag_path, base, namespace, progress=stage('reading'),
-                               spill=spill)
+    if recording is None:
+        recording = read_recording(bag_path, base, namespace, progress=stage('reading'),
+                                   spill=spill)
     warnings_out = list(recording.warnings)
     truth = _truth(recording.truth, clock_jump_tolerance, spill)
     if tolerance is None:
@@ -328,12 +338,13 @@ def evaluate_bag(bag_path, vehicle, variants=None, namespace=None, tolerance=Non
         if not len(rep):
             warnings_out.append(f'{name}: no measurement was accepted')
         _scored(result, VariantResult(name, v.observer.kind, overrides, rep), keep_rows,
-                health)
+                health, states)
         del rep
     if include_live:
         live = live_replay(recording, base, clock_jump_tolerance, spill=spill)
         if live is not None:
-            _scored(result, VariantResult('live', 'recorded', (), live), keep_rows, health)
+            _scored(result, VariantResult('live', 'recorded', (), live), keep_rows, health,
+                    states)
     result.seconds = time.perf_counter() - start
     return result
 
@@ -342,13 +353,14 @@ def _truth(tr, tolerance, spill):
     """
     Return the truth's valid rows as (stamps, values, epochs), or None when it has none.
 
-    With ``spill`` the columns stay in temporary files: the stream's own when every
-    message is valid, else the valid rows copied a block at a time.
+    With ``spill`` the columns of a spilled stream stay in temporary files: the
+    stream's own when every message is valid, else the valid rows copied a block at a
+    time.
 
     """
     if tr is None or not count_true(tr.valid):
         return None
-    if spill is None:
+    if spill is None or not is_spilled(tr.stamp_ns):     # a recording read in memory
         sel = np.flatnonzero(tr.valid)
         t_ns = tr.stamp_ns[sel]
         return t_ns, tr.values[sel], epochs_of(t_ns, tolerance)
@@ -364,9 +376,9 @@ def _truth(tr, tolerance, spill):
     return t_ns, values, epochs_from_cuts(epoch_cuts(t_ns, tolerance), len(t_ns), spill)
 
 
-def _scored(result, vr, keep_rows, health=True):
+def _scored(result, vr, keep_rows, health=True, states=True):
     """Score a variant and add it to the result; without ``keep_rows``, drop its rows."""
-    score_variant(result, vr, health)
+    score_variant(result, vr, health, states)
     if not keep_rows:
         vr.replay, vr.error, vr.matched = ScoredReplay.of(vr.replay), None, None
     result.variants[vr.name] = vr

@@ -365,12 +365,14 @@ def column_whiteness(values, j, lags=WHITENESS_LAGS, spill=None, block=WHITENESS
     return _with_ljung_box(out, *ljung_box_of_products(lagged, denom, N))
 
 
-def score_variant(result, vr, health=True):
+def score_variant(result, vr, health=True, states=True):
     """
     Fill a VariantResult's metrics (states against the truth, outputs' whiteness).
 
     ``health``: also each sensor's innovation health (``vr.sensors``; a gain search,
-    which does not score it, leaves it out).
+    which does not score it, leaves it out). ``states``: also each state's metrics
+    (``vr.states``) and the settling time; without them the summary has the error
+    norm's RMS and the matched count only.
 
     """
     rep = vr.replay
@@ -381,15 +383,17 @@ def score_variant(result, vr, health=True):
         if getattr(result, 'truth_at', None) is None:  # one sorted truth for every variant
             result.truth_at = TruthAt(result.truth)
         vr.error = StateError(rep, result.truth_at)    # computed block by block
-        tol = np.array([result.tolerance[s] for s in plant.state_names])
-        metrics = state_metrics(_Seconds(rep.stamp_ns), vr.error, rep.epoch, tol)
-        vr.states = dict(zip(plant.state_names, metrics))
+        if states:
+            tol = np.array([result.tolerance[s] for s in plant.state_names])
+            metrics = state_metrics(_Seconds(rep.stamp_ns), vr.error, rep.epoch, tol)
+            vr.states = dict(zip(plant.state_names, metrics))
         ok, norm2 = _matched_norm2(vr.error, spill=spill)
         vr.matched = ok
         vr.summary['matched'] = count_true(ok)
         vr.summary['error_rms'] = float(np.sqrt(np.mean(norm2))) if len(norm2) else math.nan
-        settles = [m['settling_time'] for m in metrics]
-        vr.summary['settling_time'] = float(max(settles)) if settles else math.nan
+        if states:
+            settles = [m['settling_time'] for m in metrics]
+            vr.summary['settling_time'] = float(max(settles)) if settles else math.nan
     for j, name in enumerate(plant.output_names):
         vr.outputs[name] = column_whiteness(rep.residual, j, spill=spill) if len(rep) else \
             whiteness([])

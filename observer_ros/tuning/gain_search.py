@@ -132,7 +132,7 @@ def _bag_metric(summaries, outputs, names, ref, truth):
 
 
 def score_variants(bags, vehicle, overrides, ref, namespace=None, exact=False,
-                   progress=None, dask=None, spill=True):
+                   progress=None, dask=None, spill=True, recordings=None):
     """
     Return ({bag: [metric per variant]}, truth) of observers given by their overrides.
 
@@ -143,8 +143,10 @@ def score_variants(bags, vehicle, overrides, ref, namespace=None, exact=False,
     the same numbers. ``spill``: :func:`evaluate_bag`'s (True: the replay's rows in
     temporary files; None: in memory); each variant's rows are dropped once scored.
     Variants with the same overrides are one observer, replayed once (a Qd of zeros
-    times every scale of a grid). The sensors' innovation health is not judged (the
-    metric does not use it).
+    times every scale of a grid). The sensors' innovation health and the per-state
+    metrics are not computed (the metric does not use them). ``recordings``:
+    ``{str(bag): Recording}`` of bags already read (by :func:`~observer_ros.tuning.identify.
+    identify`), replayed without reading them again.
 
     """
     # the same observer is replayed once: its overrides as text name it (a Qd of zeros
@@ -163,7 +165,8 @@ def score_variants(bags, vehicle, overrides, ref, namespace=None, exact=False,
             progress('searching', i, len(bags))
         r = evaluate_bag(bag, vehicle, dict(zip(names, map(list, unique))), namespace,
                          exact=exact, include_live=False, include_design=False, spill=spill,
-                         keep_rows=False, health=False)
+                         keep_rows=False, health=False, states=False,
+                         recording=(recordings or {}).get(str(bag)))
         truth = truth and r.truth is not None
         per_bag[key] = ({n: r.variants[n].summary for n in names},
                         {n: r.variants[n].outputs for n in names})
@@ -209,11 +212,11 @@ def bag_keys(bags):
 
 
 def _scores(bags, vehicle, base, kind, scales, namespace, exact, progress=None, dask=None,
-            spill=True):
+            spill=True, recordings=None):
     """Return ({bag: [metric per scale]}, truth) of one batch of scales."""
     ref = int(np.argmin([abs(math.log(s)) for s in scales]))
     return score_variants(bags, vehicle, [search_overrides(base, kind, s) for s in scales],
-                          ref, namespace, exact, progress, dask, spill)
+                          ref, namespace, exact, progress, dask, spill, recordings)
 
 
 def model_errors(Ad, C, Qk, R, scales, filter_Qk=None):
@@ -267,7 +270,8 @@ def _identified_model(ident):
         return None
 
 
-def _model_first(bags, vehicle, base, scales, predicted, namespace, exact, progress, spill):
+def _model_first(bags, vehicle, base, scales, predicted, namespace, exact, progress, spill,
+                 recordings=None):
     """
     Replay the model's best scale and its neighbours, then more until a minimum is bracketed.
 
@@ -283,7 +287,7 @@ def _model_first(bags, vehicle, base, scales, predicted, namespace, exact, progr
         idx = sorted(batch | {ref})
         got, t = score_variants(bags, vehicle, [search_overrides(base, 'kalman', scales[i])
                                                 for i in idx], idx.index(ref), namespace,
-                                exact, progress, None, spill)
+                                exact, progress, None, spill, recordings)
         truth = truth and t
         if per_bag is None:
             per_bag = {k: [math.nan] * len(scales) for k in got}
@@ -301,7 +305,7 @@ def _model_first(bags, vehicle, base, scales, predicted, namespace, exact, progr
 
 
 def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exact=False,
-                progress=None, refine=0, dask=None, spill=True, model=None):
+                progress=None, refine=0, dask=None, spill=True, model=None, recordings=None):
     """
     Score a family of observers (see the module) on one or many bags.
 
@@ -337,6 +341,9 @@ def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exac
         and replay only the model's best scale and its grid neighbours, then further
         neighbours until the best replayed scale has both replayed (or is at the grid's
         end); the others stay NaN. Without it (or with ``dask``) every scale is replayed.
+    recordings : dict, optional
+        ``{str(bag): Recording}``: bags already read (``identify``'s), not read again
+        in this process.
 
     Returns
     -------
@@ -368,10 +375,10 @@ def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exac
             predicted = None
     if predicted is not None:
         per_bag, truth = _model_first(bags, vehicle, base, scales, predicted, namespace,
-                                      exact, progress, spill)
+                                      exact, progress, spill, recordings)
     else:
         per_bag, truth = _scores(bags, vehicle, base, kind, scales, namespace, exact,
-                                 progress, dask, spill)
+                                 progress, dask, spill, recordings)
     with np.errstate(all='ignore'), warnings.catch_warnings():
         warnings.simplefilter('ignore', RuntimeWarning)     # a scale no bag replayed
         mean = np.nanmean(np.array(list(per_bag.values())), axis=0)
@@ -385,7 +392,7 @@ def gain_search(bags, vehicle, kind, scales=DEFAULT_SCALES, namespace=None, exac
         def cost(logs):
             s = float(math.exp(logs))
             got, _ = _scores(bags, vehicle, base, kind, [s, ref], namespace, exact,
-                             spill=spill)
+                             spill=spill, recordings=recordings)
             extra[s] = {k: v[0] for k, v in got.items()}
             return float(np.nanmean(list(extra[s].values())))
         minimize_scalar(cost, bounds=(math.log(scales[i - 1]), math.log(scales[i + 1])),

@@ -452,7 +452,7 @@ def _masked_reference(vehicle, Ad, C, dt, G, Lp, reference, data, warn):
 
 
 def identify(bags, vehicle, namespace=None, lags=DEFAULT_LAGS, full=False, states=None,
-             burn=None, passes=PASSES, input_noise=False, block=BLOCK):
+             burn=None, passes=PASSES, input_noise=False, block=BLOCK, recordings=None):
     """
     Identify the process and measurement noise covariances from bags (ALS).
 
@@ -478,6 +478,10 @@ def identify(bags, vehicle, namespace=None, lags=DEFAULT_LAGS, full=False, state
         Process noise on the inputs (G = B) instead.
     block : int
         Innovations computed this many at a time (never held whole).
+    recordings : dict, optional
+        Filled with each bag's recording as read (``{str(bag): Recording}``, in memory),
+        for a gain search that follows to replay without reading the bags again;
+        by default only the sampled arrays are kept.
 
     Returns
     -------
@@ -500,7 +504,9 @@ def identify(bags, vehicle, namespace=None, lags=DEFAULT_LAGS, full=False, state
         s = sampled_data(rec, vehicle)
         warn += [f'{bag}: {w}' for w in rec.warnings + s.warnings]
         data.append(s)
-    del rec                 # only the sampled arrays are kept
+        if recordings is not None:
+            recordings[str(bag)] = rec
+    del rec                 # only the sampled arrays are kept (and ``recordings``)
     dt = data[0].dt
     for bag, s in zip(bags, data):
         if abs(s.dt / dt - 1.0) > RATE_TOLERANCE:

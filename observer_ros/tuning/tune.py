@@ -204,8 +204,10 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
         search_overrides(vehicle, 'poles', 1.0)           # refuse early
     if search == 'each-pole':
         pole_set(vehicle)
+    # a gain search in this process replays the bags identification read (not read again)
+    shared = {} if search in ('kalman', 'poles') and dask is None else None
     ident = identify(bags, vehicle, namespace, lags, full, states, burn, passes,
-                     input_noise) \
+                     input_noise, recordings=shared) \
         if als else None
     with StagedOutput(out, force, 'observer-tune') as staged:
         # written aside and put in place whole at the end (outputs/staging.py): an interrupted
@@ -232,7 +234,9 @@ def tune(bags, vehicle_path, out, output=None, namespace=None, lags=DEFAULT_LAGS
             # replayed
             sr = gain_search(bags, tmp if search == 'kalman' else vehicle_path, search, scales,
                              namespace, progress=progress, refine=refine, dask=dask,
-                             spill=spill, model=ident if search == 'kalman' else None)
+                             spill=spill, model=ident if search == 'kalman' else None,
+                             recordings=shared)
+            shared = None
         replace = OBSERVER_KEYS
         if ident is None:           # only the poles change: the rest of the design stays
             replace = ('observer.poles', 'observer.poles_imag')

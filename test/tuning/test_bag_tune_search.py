@@ -196,6 +196,11 @@ def test_the_same_filter_is_replayed_once(monkeypatch):
                          include_design=False)
     assert values[0] == alone.variants['z'].summary['error_rms']
     assert alone.variants['z'].sensors            # observer-eval still judges the health
+    assert set(alone.variants['z'].states) == {'theta', 'q', 'w'}   # and scores each state
+    bare = evaluate_bag(bag, CONFIG / 'submarine.yaml', {'z': zero}, include_live=False,
+                        include_design=False, states=False)      # as the search asks
+    assert bare.variants['z'].states == {} and 'settling_time' not in bare.variants['z'].summary
+    assert bare.variants['z'].summary['error_rms'] == values[0]
 
 
 def test_model_errors_are_least_at_the_true_covariances_and_match_a_simulation():
@@ -256,6 +261,17 @@ def test_the_kalman_search_replays_the_scales_around_the_models_best(two_bags, t
     best = int(np.nanargmin(first.mean))
     # a minimum bracketed by replayed scales (or the grid's end)
     assert all(j in done for j in (best - 1, best + 1) if 0 <= j < len(first.scales))
+    # the bags identification read are replayed as they are: not read again, same numbers
+    from observer_ros.evaluation import evaluator
+    shared, reads = {}, []
+    identify(bags, CONFIG / 'submarine.yaml', input_noise=True, recordings=shared)
+    assert set(shared) == {str(b) for b in bags}
+    monkeypatch.setattr(evaluator, 'read_recording', lambda *a, **k: reads.append(a))
+    again = gs.gain_search(bags, identified, 'kalman', model=ident, recordings=shared)
+    assert not reads
+    assert_allclose(again.mean, first.mean, rtol=0, atol=0)        # NaN where not replayed
+    monkeypatch.undo()
+    monkeypatch.setattr(gs, 'score_variants', counting)
     replayed.clear()
     full = gs.gain_search(bags, identified, 'kalman')     # every scale, the same numbers
     assert full.model is None and len(set(replayed)) == len(full.scales)
@@ -280,3 +296,22 @@ def test_the_kalman_search_replays_the_scales_around_the_models_best(two_bags, t
     assert floored.model is not None and int(np.nanargmin(floored.model)) == 0
     done = [i for i, m in enumerate(floored.mean) if np.isfinite(m)]
     assert 2 <= len(done) < len(floored.scales) and len(set(replayed)) == len(done)
+
+
+def test_the_default_mode_reads_each_bag_once(two_bags, tmp_path, monkeypatch):
+    """Identification's reading of a bag is what the Kalman search replays."""
+    from observer_ros.evaluation import evaluator
+    from observer_ros.tuning import identify as ident_module
+    reads = []
+    real = ident_module.read_recording
+
+    def counting(path, *args, **kw):
+        reads.append(str(path))
+        return real(path, *args, **kw)
+    monkeypatch.setattr(ident_module, 'read_recording', counting)
+    monkeypatch.setattr(evaluator, 'read_recording', counting)
+    bags = two_bags['submarine']
+    res = tune(bags, CONFIG / 'submarine.yaml', tmp_path / 'out', input_noise=True,
+               plots=False)
+    assert sorted(reads) == sorted(map(str, bags))
+    assert res.search is not None and np.isfinite(res.search.mean).sum() >= 3
