@@ -1,6 +1,6 @@
 # benchmarks/run_all.py: run every benchmark (make bench), or their smoke form (--smoke).
 """
-Run the observer_ros benchmarks P1..P5 and print each figure as a ratio to its baseline.
+Run the observer_ros benchmarks P1..P5 and M1 and print each figure as a ratio to its baseline.
 
 Each benchmark runs in its own process (``benchmarks/p*.py``, also runnable alone) with
 the benchmarks' ROS domain (``ROS_DOMAIN_ID`` 47, or ``$BENCH_ROS_DOMAIN_ID``); every
@@ -32,9 +32,11 @@ BENCHMARKS = {
     'P3': ('p3_replay.py', 'observer-eval on a synthetic Imu bag vs rosbags / control'),
     'P4': ('p4_design.py', 'gain design accuracy vs python-control place'),
     'P5': ('p5_rewind.py', 'a late measurement: rewind over 100 ms at 1 kHz vs in order'),
+    'M1': ('m1_memory.py', 'memory per message of the offline tools, spilled vs in memory'),
 }
-TIMEOUT = {'P1': 900, 'P2': 1800, 'P3': 3600, 'P4': 900, 'P5': 600}
-SMOKE_TIMEOUT = {'P1': 120, 'P2': 240, 'P3': 120, 'P4': 120, 'P5': 120}   # P2: six loops
+TIMEOUT = {'P1': 900, 'P2': 1800, 'P3': 3600, 'P4': 900, 'P5': 600, 'M1': 900}
+SMOKE_TIMEOUT = {'P1': 120, 'P2': 240, 'P3': 120, 'P4': 120, 'P5': 120,   # P2: six loops
+                 'M1': 120}
 
 
 def main(argv=None):

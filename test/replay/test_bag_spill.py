@@ -5,18 +5,16 @@ A replay whose rows are spilled (``replay(..., spill=...)``, observer-eval's def
 The spilled rows equal the in-memory ones bit for bit on the replay-blocks cases
 (several sensors, commands, truth, lockstep and realtime, a looping bag, late
 measurements, Kalman), with blocks of 7 rows and bulk pieces of 100 steps; observer-eval
-writes byte-identical files either way; a spilled column indexes like an array; and
-spilled, the memory an evaluation keeps and peaks at grows by a few bytes per estimate
-at most (tracemalloc on P3's synthesised Imu bags): the recording, the events, the
-rows and the scores' per-row figures are all in temporary files.
+writes byte-identical files either way; a spilled column indexes like an array. What
+an evaluation keeps and peaks at per estimate, spilled and in memory, is measured by
+benchmarks/m1_memory.py.
 
 """
 
 import json
 import tempfile
-import tracemalloc
 
-from bag_cases import CASES, p3_benchmark, SAMPLES, spy_on_spill
+from bag_cases import CASES, SAMPLES, spy_on_spill
 from bag_synth import CONFIG, simulate, write_bag
 import numpy as np
 from numpy.testing import assert_array_equal
@@ -24,7 +22,7 @@ from observer_ros.bag import spill as spill_mod
 from observer_ros.bag.reader import read_recording
 from observer_ros.evaluation import evaluate as evaluate_cli, evaluator as evaluate
 from observer_ros.evaluation.report import write_results
-from observer_ros.replay import bulk_runs, health as replay_health, rows as replay_outputs
+from observer_ros.replay import bulk_runs, rows as replay_outputs
 from observer_ros.replay.replay import replay
 from observer_ros.replay.rows import SpilledColumn
 from observer_ros.vehicle import load_vehicle
@@ -147,46 +145,6 @@ def test_observer_eval_spills_by_default_with_the_same_files(tmp_path, monkeypat
                       if p.is_file() and p.suffix in ('.txt', '.csv', '.png', '.mcap')})
     assert spills == [True, None]
     _assert_same_files(*files)
-
-
-def _evaluation_memory(bag, veh, spill):
-    tracemalloc.start()
-    try:
-        result = evaluate.evaluate_bag(bag, veh, spill=spill)
-        kept, peak = tracemalloc.get_traced_memory()
-    finally:
-        tracemalloc.stop()
-    return len(result.variants['design'].replay), kept, peak
-
-
-def test_eval_memory_per_estimate_is_bounded(tmp_path, monkeypatch):
-    # every block of the replay at 2^12 rows (steps), so that bags of 7 and 14 x 10^4 Imu
-    # messages are many blocks long (the scores' blocks, 2^16 rows, are full in both)
-    for module, name in ((bulk_runs, 'RUN_BLOCK'), (bulk_runs, 'MAX_RUN'),
-                         (replay_outputs, 'SPILL_BLOCK'), (replay_health, 'HEALTH_BLOCK')):
-        monkeypatch.setattr(module, name, 1 << 12)
-    p3 = p3_benchmark()
-    veh = load_vehicle(CONFIG / 'submarine.yaml')
-    small = p3.generate(70_000, data=tmp_path, log=lambda *a: None)
-    large = p3.generate(140_000, data=tmp_path, log=lambda *a: None)
-    evaluate.evaluate_bag(small, veh, spill=True)      # the first run's one-off allocations
-    figures = {}
-    for spill in (True, None):
-        n_s, kept_s, peak_s = _evaluation_memory(small, veh, spill)
-        n_l, kept_l, peak_l = _evaluation_memory(large, veh, spill)
-        assert n_l - n_s == 70_000
-        figures[spill] = ((kept_l - kept_s) / (n_l - n_s), (peak_l - peak_s) / (n_l - n_s))
-    print('bytes per estimate (kept, peak): spilled %.1f, %.1f; in memory %.1f, %.1f'
-          % (*figures[True], *figures[None]))
-    kept, peak = figures[True]
-    # measured 1.6 and 2.1 spilled, 93.8 and 103.4 in memory: spilled, the recording, the
-    # merged events, the rows, the truth and the scores' per-row figures are on disk and
-    # what is left is per bulk piece (one per 2^12 steps here) and per epoch; in memory
-    # the recording alone is 36.5 per Imu message (test_bag_reader_memory) and the rows
-    # 49 (stamp 8, x_hat 24, residual 8, epoch 4, seq 4, sensor 1)
-    assert kept < 4.0, kept
-    assert peak < 6.0, peak
-    assert figures[None][0] > kept + 80.0 and figures[None][1] > peak + 80.0
 
 
 def test_eval_spills_to_a_folder_and_leaves_no_file(tmp_path):

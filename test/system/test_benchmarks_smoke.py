@@ -36,6 +36,9 @@ def test_run_all_smoke_prints_every_ratio():
                'placement_error_ours/place_worst_multi_output',
                'acker_chosen_where_it_loses_digits'],
         'P5': [f'rewind_100ms_at_1kHz/in_order[{kind}]' for kind in ('kalman', 'full')],
+        'M1': [f'{what}_{figure}_per_message_spilled/in_memory' for what in ('reader', 'eval')
+               for figure in ('kept', 'peak')] + ['search_peak_4_scales-1_scale_spilled',
+                                                  'eval_spilled_kept_per_further_variant'],
     }.items():
         for name in names:
             assert re.search(rf'^RATIO {bench} {re.escape(name)} = \S+', out, re.M), \
