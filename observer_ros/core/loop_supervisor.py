@@ -335,6 +335,9 @@ class LoopSupervisor:
                 self.plant_clock.reset()
         if self.plant_clock is not None:
             self.plant_clock.seen(t, now)
+            # a busy host delays the commands as the measurements: a longer lead meanwhile
+            self.delay.lead = self.lead_steps + (
+                self.plant_clock.extra_steps(now, self.dt) if self.plant_stepping else 0)
         if self.plant_time is None or t > self.plant_time:
             self.plant_time = t
         standby = self.standby
@@ -390,14 +393,12 @@ class LoopSupervisor:
         """
         Return the safe command of a sample time while stale (None when none is due).
 
-        With a standby that answered a measurement within the last two sample times (of
-        wall time at the plant's rate: :attr:`.PlantClock.rate`, measured with delay
-        compensation), none: the standby closes the loop.
+        With a standby that answered a measurement within the last two sample times (at
+        the plant's rate measured, :attr:`.PlantClock.rate`), none: it closes the loop.
         """
         if self.mode != 'stale':
             return None
-        rate = self.time_rate if self.plant_clock is None else self.plant_clock.rate
-        period = self.dt / rate
+        period = self.dt / (self.time_rate if self.plant_clock is None else self.plant_clock.rate)
         if self._standby_wall is not None and now - self._standby_wall < 2.0 * period:
             return None
         return self._safe_command(self._estimate_clock(now), marked=True)

@@ -24,19 +24,32 @@ clock less it. The rate is measured: each ``window`` of wall time gives its meas
 taken most as it came, and the plant's time between the last three of them over the wall
 time between is its rate (the larger of the two, so one window whose measurements all
 queued does not slow it; at most the nominal rate, at least ``MIN_RATE`` of it, and the
-nominal rate until three windows are seen). A plant that falls behind the wall clock (a simulator paused) makes
-the plant's time too late by as much times the rate for at most ``window``: the commands
-are then stamped further ahead than needed, which the plant and the observers agree on
-(the plant holds the command in force until the new one's stamp, as the model predicts).
+nominal rate until three windows are seen). A plant that falls behind the wall clock (a
+simulator paused) makes the plant's time too late by as much times the rate for at most
+``window``: the commands are then stamped further ahead than needed, which the plant and
+the observers agree on (the plant holds the command in force until the new one's stamp,
+as the model predicts).
+
+A host short of CPU delays the commands on their way to the plant as it delays the
+measurements on their way here: a command that reaches the plant after its stamp is
+applied from when it arrives, not from its stamp as the observers take it. How long a
+measurement waited (how far the plant was past its stamp when it was taken) is kept over
+``WAIT_WINDOW`` s, and :meth:`PlantClock.extra_steps` lengthens the commands' lead by as
+much (at most ``LEAD_MOST``).
 
 """
 
 import collections
+import math
 
 __all__ = ['PlantClock']
 
 # The rate measured is at least this fraction of the nominal rate (a plant that stands).
 MIN_RATE = 0.01
+# Wall seconds over which the longest wait of a measurement is kept (:meth:`waited`).
+WAIT_WINDOW = 2.0
+# s: the most added to a command's lead while measurements wait (:meth:`extra_steps`).
+LEAD_MOST = 0.1
 
 
 class PlantClock:
@@ -71,6 +84,7 @@ class PlantClock:
         self._seen = collections.deque()        # (wall, t) of the last window
         self._anchors = collections.deque(maxlen=3)     # (wall, t): each window's best
         self._block = None                      # [start, wall, t] of the window filling
+        self._waits = collections.deque()       # (wall, wait), waits decreasing
 
     def reset(self):
         """Forget the measurements seen and the rate measured (a clock that started over)."""
@@ -78,6 +92,7 @@ class PlantClock:
         self._seen.clear()
         self._anchors.clear()
         self._block = None
+        self._waits.clear()
         self.rate = self.nominal
 
     def seen(self, t, now):
@@ -96,6 +111,30 @@ class PlantClock:
         while seen[0][0] < now - self.window:
             seen.popleft()
         self._push(now, now * self.rate - t)
+        wait, q = self.behind(t, now), self._waits
+        while q and q[-1][1] <= wait:
+            q.pop()
+        q.append((now, wait))
+
+    def waited(self, now):
+        """
+        Return the longest wait of a measurement over the last ``WAIT_WINDOW`` s (plant s).
+
+        How far the plant was past a measurement's stamp when it was taken: the time it
+        waited for this process (and the transport) on a busy host. 0 before any.
+        """
+        q = self._waits
+        while q and q[0][0] < now - WAIT_WINDOW:
+            q.popleft()
+        return q[0][1] if q else 0.0
+
+    def extra_steps(self, now, dt):
+        """
+        Return the steps of dt to add to the commands' lead: :meth:`waited`, rounded up.
+
+        At most ``LEAD_MOST``.
+        """
+        return math.ceil(min(self.waited(now), LEAD_MOST) / dt - 1e-9)
 
     def _push(self, now, offset):
         q = self._offsets

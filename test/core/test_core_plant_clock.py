@@ -3,6 +3,7 @@
 
 import random
 
+from observer_ros.core import plant_clock
 from observer_ros.core.plant_clock import PlantClock
 import pytest
 
@@ -105,6 +106,25 @@ def test_one_window_of_measurements_all_taken_late_does_not_slow_the_rate():
     t, now, _ = _plant(clock, 1.0, 102.6, t=t + 0.01, now=step)
     assert clock.rate == pytest.approx(1.0)
     assert clock.behind(t, now) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_the_longest_wait_of_a_measurement_is_kept_two_seconds():
+    clock = PlantClock(rate=1.0)
+    assert clock.waited(100.0) == 0.0 and clock.extra_steps(100.0, 0.01) == 0
+    t, _, step = _plant(clock, 1.0, 101.0, late=0.0)
+    assert clock.waited(step) == pytest.approx(0.0, abs=1e-9)
+    # the next measurement taken 40 ms late: the plant is 40 ms past it
+    clock.seen(t + 0.01, step + 0.04)
+    assert clock.waited(step + 0.04) == pytest.approx(0.04)
+    assert clock.extra_steps(step + 0.04, 0.01) == 4
+    t, _, last = _plant(clock, 1.0, step + 1.9, t=t + 0.02, now=step + 0.01, late=0.0)
+    assert clock.waited(last) == pytest.approx(0.04)
+    assert clock.waited(step + 2.05) == pytest.approx(0.0, abs=1e-9)    # 2 s later
+    # a wait longer than LEAD_MOST adds LEAD_MOST to the lead
+    clock.seen(t + 0.01, last + 0.3)
+    assert clock.extra_steps(last + 0.3, 0.01) == round(plant_clock.LEAD_MOST / 0.01)
+    clock.reset()
+    assert clock.waited(step) == 0.0
 
 
 @pytest.mark.parametrize('rate, window', [(0.0, 0.5), (1.0, 0.0), (-1.0, 1.0)])
