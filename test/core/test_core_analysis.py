@@ -294,6 +294,8 @@ def test_staircase_rank_agrees_with_obsv_rank_and_pbh(seed):
 
 @pytest.mark.ros
 def test_core_package_exports_and_stays_ros_free():
+    import importlib
+    import pkgutil
     import subprocess
     import sys
 
@@ -303,7 +305,36 @@ def test_core_package_exports_and_stays_ros_free():
     for name in ('observability_report', 'observer_gain', 'design_vehicle', 'Plant',
                  'NotDetectableError', 'ObserverDesignWarning', 'Vehicle'):
         assert name in core.__all__
-    code = ('import sys, observer_ros.core; '
+    # each exported name is the object a submodule exports under that name
+    subs = [importlib.import_module(m.name)
+            for m in pkgutil.walk_packages(core.__path__, 'observer_ros.core.')]
+    for name in core.__all__:
+        assert any(name in getattr(sub, '__all__', ())
+                   and getattr(sub, name) is getattr(core, name) for sub in subs), name
+    # every module of the core, imported in a fresh interpreter, imports no ROS
+    code = ('import importlib, pkgutil, sys, observer_ros.core as core; '
+            'names = [m.name for m in '
+            'pkgutil.walk_packages(core.__path__, "observer_ros.core.")]; '
+            'assert len(names) > 40, names; '
+            '[importlib.import_module(name) for name in names]; '
             'bad = [m for m in sys.modules if m.split(".")[0] in ("rclpy", "rosbags")]; '
             'assert not bad, bad')
+    subprocess.run([sys.executable, '-c', code], check=True)
+
+
+@pytest.mark.ros
+def test_core_package_imports_a_submodule_when_one_of_its_names_is_asked_for():
+    import subprocess
+    import sys
+
+    code = ('import sys, observer_ros.core as core; '
+            'assert not [m for m in sys.modules if m.startswith("observer_ros.core.")]; '
+            'assert "scipy" not in sys.modules; '
+            'from observer_ros.core import Plant; '
+            'assert "observer_ros.core.model" in sys.modules; '
+            'assert "observer_ros.core.vehicle_design" not in sys.modules; '
+            'assert core.analysis.obsv is core.obsv; '
+            'from observer_ros.core import *; '
+            'assert callable(design_vehicle) and HISTORY_LENGTH == core.spec.HISTORY_LENGTH; '
+            'assert not hasattr(core, "no_such_name")')
     subprocess.run([sys.executable, '-c', code], check=True)
