@@ -10,7 +10,6 @@ function is defined by ``u(s) = -D(s) y(s)``.
 
 import numpy as np
 import scipy.linalg
-import scipy.optimize
 
 from ._lazy import control
 from .design import pole_placement_error, ReducedOrderDesign
@@ -328,7 +327,8 @@ def _spectrum_compare(M, expected, tol, expected_bounds):
         np.asarray(expected_bounds, dtype=float).reshape(-1)
     scale = np.maximum(1.0, np.abs(want))
     cost = np.abs(lam[:, None] - want[None, :]) / scale[None, :]
-    rows, cols = scipy.optimize.linear_sum_assignment(cost)
+    from scipy.optimize import linear_sum_assignment    # scipy.optimize: when first used
+    rows, cols = linear_sum_assignment(cost)
     matched = np.empty_like(want)
     matched[cols] = lam[rows]
     allowed = np.empty(want.size)

@@ -28,8 +28,6 @@ than place's.
 import warnings
 
 import numpy as np
-import scipy.optimize
-import scipy.signal
 
 from ._lazy import control
 from .analysis import format_complex, is_controllable
@@ -103,7 +101,8 @@ def pole_placement_error(M, poles):
     if not np.all(np.isfinite(got)):
         return float('inf')
     cost = np.abs(got[:, None] - want[None, :]) / np.maximum(1.0, np.abs(want))[None, :]
-    rows, cols = scipy.optimize.linear_sum_assignment(cost)
+    from scipy.optimize import linear_sum_assignment    # scipy.optimize: when first used
+    rows, cols = linear_sum_assignment(cost)
     matched = np.empty_like(want)
     matched[cols] = got[rows]
     err = 0.0
@@ -158,10 +157,10 @@ def _error(A, B, K, p):
 
 def _robust(A, B, p):
     """Tits-Yang run to convergence; (K, converged)."""
+    from scipy.signal import place_poles    # scipy.signal: when first used
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter('always')
-        res = scipy.signal.place_poles(A, B, p, method='YT', maxiter=ROBUST_MAXITER,
-                                       rtol=1e-6)
+        res = place_poles(A, B, p, method='YT', maxiter=ROBUST_MAXITER, rtol=1e-6)
     converged = not any('Convergence was not reached' in str(w.message) for w in caught)
     return np.asarray(res.gain_matrix, dtype=float), converged
 

@@ -33,7 +33,6 @@ from typing import Optional
 
 import numpy as np
 import scipy.linalg
-import scipy.optimize
 
 from .errors import DesignVerificationError
 
@@ -289,7 +288,8 @@ def placement_bound(M, perturbation):
 
 def _match(got, want):
     cost = np.abs(got[:, None] - want[None, :]) / np.maximum(1.0, np.abs(want))[None, :]
-    rows, cols = scipy.optimize.linear_sum_assignment(cost)
+    from scipy.optimize import linear_sum_assignment    # scipy.optimize: when first used
+    rows, cols = linear_sum_assignment(cost)
     order = np.empty(want.size, dtype=int)
     order[cols] = rows
     return order
