@@ -6,9 +6,9 @@ P3's synthesised Imu bags of the submarine (``p3_replay.generate``: one Imu mess
 step, a command and a true state every 10 steps) at two sizes, N and 2N messages; each
 figure is the growth from the small bag to the large one per message (or per variant),
 traced by ``tracemalloc`` in this process, after one run that takes the first run's
-one-off allocations. The replay's blocks are 2^12 rows, so both bags are many blocks
-long. The baseline, measured in the same run, is the same work in memory (``spill=None``):
-what the spilled path keeps must be a small fraction of it.
+one-off allocations. Except for finding runs, the replay's blocks are 2^12 rows, so both
+bags are many blocks long. The baseline, measured in the same run, is the same work in
+memory (``spill=None``): what the spilled path keeps must be a small fraction of it.
 
 - **reader**: ``read_recording`` of the bag, spilled against in memory (the columns
   themselves: 29 B per Imu message, about 37 with the commands and true states).
@@ -20,6 +20,10 @@ what the spilled path keeps must be a small fraction of it.
   is the measure's check (it must grow by about 50 B per message and variant).
 - **variants**: observer-eval spilled, 4 variants against 1: what each further variant
   keeps per estimate (its matched flags, about a byte).
+- **finding runs**: the replay's bulk stretches found in blocks of 256 steps (its own
+  other blocks): the growth of the transient memory (peak above what is kept) from the
+  small bag to the large against that of one whole-bag block; what is kept (the
+  measurements' event indices, 8 B each, and the pieces) doubles.
 
 Targets (bytes are per message, from the figures' tracemalloc): spilled / in memory
 <= 0.1 for the reader's and the evaluation's kept and peak growth; the reader in memory
@@ -27,8 +31,10 @@ below 38 B kept and 40 B at the peak; spilled below 1 B kept and 2 B at the peak
 (reader), 4 B kept and 6 B at the peak (eval); the search's peak with 4 scales within
 10 B of 1 scale's, spilled and in memory (and within 2 B of 2 scales' spilled), its
 kept bytes within 3 B; observer-eval's in-memory variants growing by more than 3 x 40 B;
-a further spilled variant under 3 B per estimate. ``--smoke``: bags of 8000 and 16000 messages,
-figures printed, targets not judged.
+a further spilled variant under 3 B per estimate; finding runs in blocks, the transient's
+growth <= 0.1x of one whole-bag block's and the kept within 2.6x from the small bag to
+the large. ``--smoke``: bags of 8000 and 16000 messages, figures printed, targets not
+judged.
 
 """
 
@@ -132,14 +138,44 @@ def variants(bag, veh):
     return (kept4 - kept1) / (len(SCALES) - 1) / len(one.variants['s0'].replay)
 
 
+def _finding_runs(rec, veh, block):
+    """Return the transient peak of finding the replay's runs above what it keeps, and that."""
+    from observer_ros.core.estimators import make_estimator
+    from observer_ros.replay.bulk_runs import find_runs
+    from observer_ros.replay.events import Events
+    counts = dict.fromkeys(('bad_stamps', 'bad_messages', 'bad_commands'), 0)
+    events = Events(rec, list(veh.sensors), veh.plant, counts)
+    est = make_estimator(veh.plant, veh.observer)
+    tracemalloc.start()
+    try:
+        tracemalloc.reset_peak()
+        base = tracemalloc.get_traced_memory()[0]
+        runs = find_runs(events, events.streams, events.command, est, 0.5, 10.0, block=block)
+        kept, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert runs.pieces
+    return peak - kept, kept - base
+
+
+def finding_runs(bags, veh):
+    """Return {block: ((transient, kept) small bag, (transient, kept) large bag)}."""
+    from observer_ros.bag.reader import read_recording
+    recs = [read_recording(bag, veh) for bag in bags]
+    return {block: [_finding_runs(rec, veh, block) for rec in recs]
+            for block in (256, 1 << 40)}
+
+
 def run(smoke=False, data=None):
     """Run M1; return its figures."""
     from observer_ros.vehicle import load_vehicle
-    _small_blocks()
     n = 8_000 if smoke else 70_000
     data = Path(data or p3_replay.DATA)
     bags = [p3_replay.generate(m, data=data, log=lambda *a: None) for m in (n, 2 * n)]
     veh = load_vehicle(VEHICLE)
+    log(f"  M1        finding the replay's runs: bags of {n} and {2 * n} Imu messages")
+    runs = finding_runs(bags, veh)                 # the replay's own blocks
+    _small_blocks()
     records = []
 
     def line(name, ratios, op, target, unit='x', note=''):
@@ -162,6 +198,13 @@ def run(smoke=False, data=None):
     km, pm = read_figures[None]
     line('reader_kept_per_message_in_memory', [km], '<=', 38.0, unit='B')
     line('reader_peak_per_message_in_memory', [pm], '<=', 40.0, unit='B')
+    (t1, k1), (t2, k2) = runs[256]
+    (w1, _), (w2, _) = runs[1 << 40]
+    line('finding_runs_transient_growth_blocks_of_256/one_block', [(t2 - t1) / (w2 - w1)],
+         '<=', 0.1, note=f'transient {t1 / 1024:.0f} -> {t2 / 1024:.0f} KiB in blocks, '
+                         f'{w1 / 1024:.0f} -> {w2 / 1024:.0f} KiB in one block; kept '
+                         f'{k1 / 1024:.0f} -> {k2 / 1024:.0f} KiB')
+    line('finding_runs_kept_large/small_bag[block 256]', [k2 / k1], '<=', 2.6)
     log(f'  M1        gain search over 1, 2 and 4 scales: {n} Imu messages')
     figures, eval_growth = search(bags[0], n, veh)
     for spill, name in ((True, 'spilled'), (None, 'in_memory')):

@@ -13,6 +13,7 @@ from binascii import crc32
 import contextlib
 import io
 from pathlib import Path
+import shutil
 
 from bag_synth import bag_file, CONFIG, simulate, STORE, write_bag
 import numpy as np
@@ -37,6 +38,19 @@ def run():
     return simulate(load_vehicle(VEHICLE), steps=6000)
 
 
+@pytest.fixture(scope='module')
+def written(run, tmp_path_factory):
+    """Return the run written as a plain and a CRC mcap bag, once (copy before changing)."""
+    root = tmp_path_factory.mktemp('written')
+    return {'plain': write_bag(root / 'plain' / 'bag', run['messages']),
+            'crc': write_bag(root / 'crc' / 'bag', run['messages'], writer_class=CrcWriter)}
+
+
+def _copy(bag, to):
+    """Return a copy of a bag folder at ``to`` (a test changes its copy)."""
+    return Path(shutil.copytree(bag, to))
+
+
 def _chunks(path):
     reader = McapReader(bag_file(path))
     reader.open()
@@ -56,9 +70,8 @@ def _messages(path):
         return [(c.topic, t, bytes(raw)) for c, t, raw in reader.messages()]
 
 
-def test_crc_writer_writes_each_chunks_crc32_and_is_otherwise_rosbags_file(tmp_path, run):
-    plain = write_bag(tmp_path / 'plain' / 'bag', run['messages'])
-    crc = write_bag(tmp_path / 'crc' / 'bag', run['messages'], writer_class=CrcWriter)
+def test_crc_writer_writes_each_chunks_crc32_and_is_otherwise_rosbags_file(written):
+    plain, crc = written['plain'], written['crc']
     crcs, datas = _chunks(crc)
     assert len(crcs) >= 2
     for value, (chunk, data) in zip(crcs, datas):
@@ -85,22 +98,23 @@ def test_crc_writer_compressed_chunks_open_with_rosbags(tmp_path, run):
     path = tmp_path / 'zstd'
     writer = CrcWriter(path, version=9, storage_plugin=StoragePlugin.MCAP)
     writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-    with writer:
-        conn = writer.add_connection('/x', 'std_msgs/msg/Float64', typestore=STORE)
-        msg = STORE.types['std_msgs/msg/Float64'](data=0.0)
-        for i in range(200_000):
-            msg.data = float(i)
-            writer.write(conn, i + 1, STORE.serialize_cdr(msg, 'std_msgs/msg/Float64'))
+    kind = 'std_msgs/msg/Float64MultiArray'
+    with writer:            # 8 KiB messages: a chunk (1 MiB before compression) each 128
+        conn = writer.add_connection('/x', kind, typestore=STORE)
+        for i in range(300):
+            msg = STORE.types[kind](layout=STORE.types['std_msgs/msg/MultiArrayLayout'](
+                dim=[], data_offset=0), data=np.arange(1024, dtype=np.float64) + i)
+            writer.write(conn, i + 1, STORE.serialize_cdr(msg, kind))
     crcs, _ = _chunks(path)
     assert all(crcs) and len(crcs) >= 2
-    values = [STORE.deserialize_cdr(raw, 'std_msgs/msg/Float64').data
-              for _, _, raw in _messages(path)]
-    assert values == [float(i) for i in range(200_000)]
+    for i, (_, _, raw) in enumerate(_messages(path)):
+        np.testing.assert_array_equal(STORE.deserialize_cdr(raw, kind).data,
+                                      np.arange(1024, dtype=np.float64) + i)
+    assert i == 299
 
 
-def test_evaluation_says_when_a_bag_has_no_crcs(tmp_path, run):
-    plain = write_bag(tmp_path / 'plain', run['messages'])
-    crc = write_bag(tmp_path / 'crc', run['messages'], writer_class=CrcWriter)
+def test_evaluation_says_when_a_bag_has_no_crcs(tmp_path, run, written):
+    plain, crc = written['plain'], written['crc']
     res_plain = evaluate_bag(plain, VEHICLE)
     res_crc = evaluate_bag(crc, VEHICLE)
     assert any('no chunk CRCs' in w for w in res_plain.warnings)
@@ -132,8 +146,8 @@ def _change_one_value(path):
     f.write_bytes(bytes(blob))
 
 
-def test_a_changed_value_is_detected_with_a_clear_error(tmp_path, run):
-    crc = write_bag(tmp_path / 'crc', run['messages'], writer_class=CrcWriter)
+def test_a_changed_value_is_detected_with_a_clear_error(tmp_path, written):
+    crc = _copy(written['crc'], tmp_path / 'crc')
     _change_one_value(crc)
     with pytest.raises(BagToolError, match='checksum mismatch.*CRC32 does not match'):
         evaluate_bag(crc, VEHICLE)
@@ -144,9 +158,9 @@ def test_a_changed_value_is_detected_with_a_clear_error(tmp_path, run):
     assert code == 2
     lines = err.getvalue().strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith('error: ')
-    assert 'crc.mcap' in lines[0] and 'checksum mismatch' in lines[0]
+    assert bag_file(crc).name in lines[0] and 'checksum mismatch' in lines[0]
     # without CRCs the same change is read silently (what the note warns about)
-    plain = write_bag(tmp_path / 'plain', run['messages'])
+    plain = _copy(written['plain'], tmp_path / 'plain')
     _change_one_value(plain)
     res = evaluate_bag(plain, VEHICLE)
     assert any('no chunk CRCs' in w for w in res.warnings)

@@ -4,8 +4,8 @@ The replay finds its bulk stretches a block of steps at a time (``bulk_runs._Run
 
 Any block size gives the same pieces and bit-identical estimates, residuals and
 counts as one block over the whole bag, on bags with several sensors, commands, truth,
-lockstep reordering, clock jumps and late messages; the transient memory of finding
-them does not grow with the bag.
+lockstep reordering, clock jumps and late messages. That the transient memory of finding
+them does not grow with the bag is measured by benchmarks/m1_memory.py.
 
 """
 
@@ -104,39 +104,6 @@ def test_bag_has_late_in_blocks_equals_the_whole_scan(cases, name):
     assert whole == (name != 'sub')      # a late message, a late command
     for block in (1, 7, 113):
         assert has_late(events, events.streams, events.command, 0.5, block=block) == whole
-
-
-def _transient(rec, veh, block):
-    """Return the peak memory of finding the runs above what it keeps, in bytes."""
-    sensors = list(veh.sensors)
-    counts = dict.fromkeys(('bad_stamps', 'bad_messages', 'bad_commands'), 0)
-    events = Events(rec, sensors, veh.plant, counts)
-    est = make_estimator(veh.plant, veh.observer)
-    tracemalloc.start()
-    try:
-        tracemalloc.reset_peak()
-        base = tracemalloc.get_traced_memory()[0]
-        runs = find_runs(events, events.streams, events.command, est, 0.5, 10.0,
-                         block=block)
-        kept, peak = tracemalloc.get_traced_memory()
-    finally:
-        tracemalloc.stop()
-    assert runs.pieces
-    return peak - kept, kept - base
-
-
-def test_bag_runs_transient_memory_does_not_grow_with_the_bag(tmp_path):
-    veh = load_vehicle(CONFIG / 'submarine.yaml')
-    recs = [read_recording(write_bag(tmp_path / f'steps{steps}',
-                                     simulate(veh, steps=steps, noise=True)['messages']), veh)
-            for steps in (4000, 8000)]
-    assert len(recs[1].sensors['gyro']) > 1.99 * len(recs[0].sensors['gyro'])
-    (t1, k1), (t2, k2) = (_transient(rec, veh, 256) for rec in recs)
-    assert t2 < 1.3 * t1, (t1, t2)
-    # what stays is the measurements' event indices (8 bytes each) and the pieces
-    assert k2 < 1.3 * 2 * k1
-    (w1, _), (w2, _) = (_transient(rec, veh, WHOLE) for rec in recs)
-    assert w2 > 1.6 * w1        # the same measure sees one whole-bag block grow
 
 
 def test_bag_runs_of_no_events_are_none():

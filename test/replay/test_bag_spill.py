@@ -95,9 +95,9 @@ def test_spilled_column_indexes_like_an_array(tmp_path, monkeypatch):
     assert np.asarray(empty).shape == (0, 3)
 
 
-def _written(result, out):
+def _written(result, out, plots=True):
     """Return the files written for an evaluation (the marker's mtimes and run time out)."""
-    write_results(result, out)
+    write_results(result, out, plots=plots)
     files = {}
     for path in sorted(out.rglob('*')):
         if path.is_file() and path.name != '.observer_ros_output.json':   # mtimes
@@ -110,8 +110,8 @@ def _written(result, out):
     return files
 
 
-def _assert_same_files(spilled, memory):
-    assert 'results_bag/results_bag.mcap' in spilled and 'states.png' in spilled
+def _assert_same_files(spilled, memory, plots=True):
+    assert 'results_bag/results_bag.mcap' in spilled and ('states.png' in spilled) == plots
     assert spilled.keys() == memory.keys()
     for key in spilled:
         assert spilled[key] == memory[key], key
@@ -128,8 +128,11 @@ def test_eval_writes_the_same_files_spilled_or_in_memory(name, tmp_path, monkeyp
     late = results[1].variants['design'].replay.counts['late_measurements'] > 0
     assert late == (name == 'late')
     assert isinstance(results[0].variants['design'].replay.x_hat, SpilledColumn) != late
-    _assert_same_files(_written(results[0], tmp_path / 'spilled'),
-                       _written(results[1], tmp_path / 'memory'))
+    # the plots (0.6 s a folder) drawn from spilled columns in one case; the rows they
+    # draw are equal in every case (test_spilled_replay_equals_the_in_memory_one)
+    plots = name == 'two_sensors'
+    _assert_same_files(_written(results[0], tmp_path / 'spilled', plots),
+                       _written(results[1], tmp_path / 'memory', plots), plots)
 
 
 def test_observer_eval_spills_by_default_with_the_same_files(tmp_path, monkeypatch):
