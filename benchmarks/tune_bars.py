@@ -11,12 +11,15 @@ covariances. Printed per system: Rd / true, the fraction of Qd entries within th
 stated +-2 sigma, the RMSE of the tuned filter / the true-covariance one (median and
 worst; and the steady-state ratio that one run's scatters around), and how often
 ``observer-eval`` called the true-covariance filter WARN against the level it states.
+With ``--fresh K`` each seed's tuned filter is also scored on K more runs of the writer
+(seeds ``1000 * seed + 1..K``, the same system) beside the true-covariance filter: the
+mean of those ratios is the filter's own loss, apart from the scatter of one run.
 
 Run: ``.venv/bin/python benchmarks/tune_bars.py [--seeds 10] [--steps 10000]
-[--systems chain,submarine,submarine_input,chain3,spring] [--out DIR]``. ``chain3`` is
-three masses in a row (``three_mass_chain`` of test/irregular_bags.py), ``spring`` a mass
-on a spring with one position sensor and noise on both states (``mass_spring``): systems
-no other file describes.
+[--systems chain,submarine,submarine_input,chain3,spring] [--fresh K] [--out DIR]``.
+``chain3`` is three masses in a row (``three_mass_chain`` of test/irregular_bags.py),
+``spring`` a mass on a spring with one position sensor and noise on both states
+(``mass_spring``): systems no other file describes.
 
 """
 
@@ -100,7 +103,15 @@ def system(name, root):
     raise SystemExit(f'unknown system {name!r}')
 
 
-def one(name, seed, steps, root, passes=None):
+def rmse_ratio(bag, vehicle, true, tuned):
+    """Return the RMSE of the tuned file's filter over that of the true covariances."""
+    ev = evaluate_bag(bag, vehicle, {'truekf': true}, compare={'tuned': tuned},
+                      include_live=False, include_design=False)
+    return ev, ev.variants['tuned'].summary['error_rms'] / \
+        ev.variants['truekf'].summary['error_rms']
+
+
+def one(name, seed, steps, root, passes=None, fresh=0):
     """Return the figures of one system and seed."""
     sysm, vehicle, kw, Qc, R = system(name, root)
     bag = root / f'{name}_{seed}'
@@ -119,9 +130,13 @@ def one(name, seed, steps, root, passes=None):
     r = [v / t for (k, _, v, s), t in zip([e for e in entries if e[0] == 'R'], R)]
     true = ['observer.type:=kalman', f'observer.Qd:={_floats(np.diag(Qc))}',
             f'observer.Rd:={_floats(np.diag(R))}', f'observer.Bd:={_floats(sysm.Gw)}']
-    ev = evaluate_bag(bag, vehicle, {'truekf': true}, compare={'tuned': res.vehicle_file},
-                      include_live=False, include_design=False)
-    rmse = {n: ev.variants[n].summary['error_rms'] for n in ('truekf', 'tuned')}
+    ev, ratio = rmse_ratio(bag, vehicle, true, res.vehicle_file)
+    others = []
+    for j in range(1, fresh + 1):
+        other = root / f'{name}_{seed}_fresh_{j}'
+        if not other.exists():
+            ib.write(other, sysm, ib.simulate(sysm, steps, 1000 * seed + j))
+        others.append(rmse_ratio(other, vehicle, true, res.vehicle_file)[1])
     written = np.diag(ident.file_Q)                 # the tuned file's Qd
     expected = steady_rms(sysm, written, np.diag(ident.result.R), Qc, R) / \
         steady_rms(sysm, Qc, R, Qc, R)
@@ -130,7 +145,7 @@ def one(name, seed, steps, root, passes=None):
             'Rd_ratio': r,
             'Qd': [{'value': v, 'std': s, 'true': t, 'inside': abs(v - t) <= 2 * s}
                    for v, s, t in q],
-            'rmse_ratio': rmse['tuned'] / rmse['truekf'],
+            'rmse_ratio': ratio, 'fresh_ratios': others,
             'expected_rmse_ratio': expected,
             'states_ratio': {st: ev.variants['tuned'].states[st]['rmse'] /
                              ev.variants['truekf'].states[st]['rmse']
@@ -148,6 +163,8 @@ def main(argv=None):
     ap.add_argument('--steps', type=int, default=10_000)
     ap.add_argument('--systems', default='chain,submarine,submarine_input')
     ap.add_argument('--passes', type=int, help='observer-tune --passes (default its own)')
+    ap.add_argument('--fresh', type=int, default=0, metavar='K',
+                    help="each seed's tuned filter also on K more runs of the writer")
     ap.add_argument('--out', help='keep the bags here (default: a temporary folder)')
     ap.add_argument('--json', help='write every figure to this file')
     args = ap.parse_args(argv)
@@ -155,7 +172,7 @@ def main(argv=None):
     root.mkdir(parents=True, exist_ok=True)
     figures = {}
     for name in args.systems.split(','):
-        rows = [one(name, seed, args.steps, root, args.passes)
+        rows = [one(name, seed, args.steps, root, args.passes, args.fresh)
                 for seed in range(args.first_seed, args.first_seed + args.seeds)]
         figures[name] = rows
         rd = [x for row in rows for x in row['Rd_ratio']]
@@ -172,6 +189,12 @@ def main(argv=None):
         expected = [row['expected_rmse_ratio'] for row in rows]
         print(f'  steady-state RMS error tuned / true covariances (Lyapunov, nominal step): '
               f'{min(expected):.4f} .. {max(expected):.4f}')
+        if args.fresh:
+            means = [float(np.mean(row['fresh_ratios'])) for row in rows]
+            every = [x for row in rows for x in row['fresh_ratios']]
+            print(f'  each tuned filter on {args.fresh} more runs: mean ratio '
+                  f'{min(means):.4f} .. {max(means):.4f} over the seeds (one run '
+                  f'{min(every):.4f} .. {max(every):.4f})')
         print(f'  true-covariance filter WARN: {sum(warn)} of {len(warn)} sensor verdicts '
               f'(stated false-alarm probability {np.mean(level):.3g} each)')
         print(f'  identification seconds: median {np.median([r["seconds"] for r in rows]):.1f}')
