@@ -11,7 +11,7 @@ scipy.signal). ``from observer_ros.core.X import name`` imports X alone.
 
 """
 
-import importlib
+from ._lazy import exports
 
 # the submodule that defines each exported name, in the order of __all__
 _EXPORTS = {
@@ -57,26 +57,4 @@ _EXPORTS = {
                    'OTHER_MARGIN'),
 }
 
-_SOURCE = {name: module for module, names in _EXPORTS.items() for name in names}
-
-__all__ = [name for names in _EXPORTS.values() for name in names]
-
-
-def __getattr__(name):
-    """Import the submodule that defines ``name`` (or is ``name``) on first access."""
-    module = _SOURCE.get(name)
-    if module is not None:
-        value = getattr(importlib.import_module(f'{__name__}.{module}'), name)
-        globals()[name] = value
-        return value
-    if not name.startswith('_'):
-        try:
-            return importlib.import_module(f'{__name__}.{name}')
-        except ModuleNotFoundError as err:
-            if err.name != f'{__name__}.{name}':
-                raise
-    raise AttributeError(f'module {__name__!r} has no attribute {name!r}')
-
-
-def __dir__():
-    return sorted(set(globals()) | set(__all__))
+__all__, __getattr__, __dir__ = exports(globals(), _EXPORTS)

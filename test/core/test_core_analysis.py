@@ -328,7 +328,8 @@ def test_core_package_imports_a_submodule_when_one_of_its_names_is_asked_for():
     import sys
 
     code = ('import sys, observer_ros.core as core; '
-            'assert not [m for m in sys.modules if m.startswith("observer_ros.core.")]; '
+            'loaded = [m for m in sys.modules if m.startswith("observer_ros.core.")]; '
+            'assert loaded == ["observer_ros.core._lazy"], loaded; '
             'assert "scipy" not in sys.modules; '
             'from observer_ros.core import Plant; '
             'assert "observer_ros.core.model" in sys.modules; '
@@ -337,4 +338,12 @@ def test_core_package_imports_a_submodule_when_one_of_its_names_is_asked_for():
             'from observer_ros.core import *; '
             'assert callable(design_vehicle) and HISTORY_LENGTH == core.spec.HISTORY_LENGTH; '
             'assert not hasattr(core, "no_such_name")')
+    subprocess.run([sys.executable, '-c', code], check=True)
+    # the admission (read by the vehicle's schema) without the observers and their designs
+    code = ('import sys, observer_ros.core.estimators.admission; '
+            'assert "observer_ros.core.estimators.full_order" not in sys.modules; '
+            'assert "observer_ros.core.design" not in sys.modules; '
+            'from observer_ros.core.estimators import History, admission, placement; '
+            'import observer_ros.core as core; '
+            'assert core.History is History and "observer_ros.core.design" in sys.modules')
     subprocess.run([sys.executable, '-c', code], check=True)

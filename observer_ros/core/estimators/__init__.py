@@ -53,19 +53,20 @@ Modules
 
 """
 
-from .base import Estimator, OpenLoopEstimator, TimeOrderError
-from .factory import make_estimator
-from .full_order import FullOrderEstimator
-from .history import CHECKPOINT_EVERY, DENSE_DEPTH, DENSE_FOR, History, HISTORY_LENGTH, \
-    HISTORY_MAX_MESSAGES
-from .kalman import KalmanEstimator
-from .reduced_order import ReducedOrderEstimator
-from .steps import CACHE_SIZE, DT_DIGITS, GAIN_CACHE_SIZE, GAIN_DIGITS, \
-    process_noise_covariance, StepCache
+from .._lazy import exports
 
-__all__ = ['DT_DIGITS', 'GAIN_DIGITS', 'CACHE_SIZE', 'GAIN_CACHE_SIZE', 'TimeOrderError',
-           'StepCache', 'Estimator', 'FullOrderEstimator',
-           'ReducedOrderEstimator', 'OpenLoopEstimator', 'KalmanEstimator',
-           'make_estimator', 'process_noise_covariance', 'History', 'HISTORY_LENGTH',
-           'HISTORY_MAX_MESSAGES', 'CHECKPOINT_EVERY', 'DENSE_DEPTH',
-           'DENSE_FOR']
+# the submodule that defines each exported name, imported when one of its names is first
+# asked for: the admission and the history are used without the observers' designs
+_EXPORTS = {
+    'steps': ('DT_DIGITS', 'GAIN_DIGITS', 'CACHE_SIZE', 'GAIN_CACHE_SIZE', 'StepCache',
+              'process_noise_covariance'),
+    'base': ('TimeOrderError', 'Estimator', 'OpenLoopEstimator'),
+    'full_order': ('FullOrderEstimator',),
+    'reduced_order': ('ReducedOrderEstimator',),
+    'kalman': ('KalmanEstimator',),
+    'factory': ('make_estimator',),
+    'history': ('History', 'HISTORY_LENGTH', 'HISTORY_MAX_MESSAGES', 'CHECKPOINT_EVERY',
+                'DENSE_DEPTH', 'DENSE_FOR'),
+}
+
+__all__, __getattr__, __dir__ = exports(globals(), _EXPORTS)
