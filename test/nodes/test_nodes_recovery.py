@@ -122,10 +122,11 @@ def test_simulator_killed_and_restarted_converges_again(loop_of, vehicle):
 
 def paused_observer_run(lp, pause=3.0):
     """
-    SIGSTOP the cart's observer for ``pause`` s (wall); return the true states meanwhile.
+    SIGSTOP the cart's observer for ``pause`` s; return the true states meanwhile.
 
-    Returns ``(during, t_stop, t_cont)``: the true states stamped between the plant's
-    time at SIGSTOP and at SIGCONT, and those two times.
+    ``pause`` s of wall time and of the plant's (a simulator on a busy host runs slower
+    than the wall clock). Returns ``(during, t_stop, t_cont)``: the true states stamped
+    between the plant's time at SIGSTOP and at SIGCONT, and those two times.
     """
     lp.wait_converged(0, 6.0)
     obs = lp.procs['observer_node'].popen
@@ -133,7 +134,8 @@ def paused_observer_run(lp, pause=3.0):
     obs.send_signal(signal.SIGSTOP)
     try:
         paused = time.monotonic()
-        lp.wait(lambda: time.monotonic() - paused > pause, f'{pause} s of pause', 10.0 * pause)
+        lp.wait(lambda: time.monotonic() - paused > pause and lp.true[-1][0] - t_stop > pause,
+                f'{pause} s of pause', 10.0 * pause)
         t_cont = lp.true[-1][0]
     finally:
         obs.send_signal(signal.SIGCONT)
@@ -145,7 +147,7 @@ def test_paused_observer_the_standby_holds_the_cart(loop_of):
     """The observer stopped 3 s: the compensator's standby observer closes the loop."""
     lp = loop_of('cart_pendulum')
     during, t_stop, t_cont = paused_observer_run(lp)
-    assert t_cont - t_stop > 2.0 and len(during) > 150, (t_stop, t_cont, len(during))
+    assert t_cont - t_stop > 3.0 and len(during) > 150, (t_stop, t_cont, len(during))
     theta = max(abs(x[0]) for x in during)
     off = max(abs(x[1] - lp.x_d[1]) for x in during)
     print(f'observer paused {t_cont - t_stop:.2f} s of plant time: max |theta| {theta:.3g} rad, '
@@ -162,18 +164,21 @@ def test_paused_observer_the_standby_holds_the_cart(loop_of):
     lp.wait_converged(since, t_cont + 1.0)
 
 
-@pytest.mark.xfail(strict=False, reason='not met in every run on a loaded host: 3 of 5 at 1-min '
-                   'load 23-31; under two CPU hogs (load 21-29) the realtime loop itself did not '
-                   'hold in 6 of 6, the simulator at about 40 % of real time (2026-11-27)')
 @pytest.mark.realtime
 def test_a_second_observer_with_the_same_name_does_not_move_the_cart(loop_of):
     """Two observers on state/estimate: the compensator follows one stream and says so."""
     lp = loop_of('cart_pendulum')
     lp.wait_converged(0, 6.0)
     since = len(lp.true)
-    t_start = lp.true[-1][0]
     second = Proc('observer_node', lp.file, *lp.params, log_dir=lp.tmp)
     lp.procs['observer_node_2'] = second
+    # its start takes seconds of CPU on a busy host: the 10 s count from its match
+
+    def both():
+        return any(node == 'compensator' and '/state/estimate (2 publishers)' in message
+                   for node, _, message in lp.levels)
+    lp.wait(both, 'the compensator reporting two publishers of state/estimate')
+    t_start = lp.true[-1][0]
     lp.wait(lambda: lp.true[-1][0] > t_start + 10.0, '10 s with two observers')
     off = max(abs(x[1] - lp.x_d[1]) for _, x in lp.true[since:])
     theta = max(abs(x[0]) for _, x in lp.true[since:])
@@ -181,8 +186,6 @@ def test_a_second_observer_with_the_same_name_does_not_move_the_cart(loop_of):
           f'{lp.counter("compensator", "other_stream_estimates")} estimates of the other '
           'stream ignored')
     assert off < 0.2 and theta < 0.3, (off, theta)
-    assert any(node == 'compensator' and '/state/estimate (2 publishers)' in message
-               for node, _, message in lp.levels), lp.levels[-12:]
     for proc in (lp.procs['observer_node'], second):
         assert 'truth value of an array' not in proc.output()
 
