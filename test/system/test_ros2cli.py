@@ -83,9 +83,22 @@ def ros2env(tmp_path_factory):
 
 
 def _ros2(env, command, timeout=WAIT):
-    """Run one ros2 command line (as typed in the README); return the CompletedProcess."""
-    return subprocess.run(['bash', '-c', command], env=env, capture_output=True, text=True,
-                          timeout=timeout, cwd=env['OBSERVER_ROS_WS'])
+    """
+    Run one ros2 command line (as typed in the README); return the CompletedProcess.
+
+    On a timeout the command's whole process group is killed, not bash alone: a `ros2
+    topic echo` left behind spun on for the rest of the suite.
+    """
+    proc = subprocess.Popen(['bash', '-c', command], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            cwd=env['OBSERVER_ROS_WS'])
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        raise
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
 
 
 class Launch:
