@@ -94,7 +94,7 @@ def chunk_crcs_of(path):
     return _chunks(path)[0]
 
 
-def test_crc_writer_compressed_chunks_open_with_rosbags(tmp_path, run):
+def test_crc_writer_compressed_chunks_open_with_rosbags(tmp_path):
     path = tmp_path / 'zstd'
     writer = CrcWriter(path, version=9, storage_plugin=StoragePlugin.MCAP)
     writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
