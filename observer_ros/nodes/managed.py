@@ -66,6 +66,7 @@ class ManagedVehicleNode(LifecycleNodeMixin, VehicleNode):
         VehicleNode.__init__(self, node_name, tuple(own_parameters) + ('autostart',),
                              load=False)
         LifecycleNodeMixin.__init__(self)
+        self._guard_change_state()
         self.active = False
         self.transition_error = None        # why the last transition failed
         self._made = {}                     # transition -> what it made
@@ -132,6 +133,35 @@ class ManagedVehicleNode(LifecycleNodeMixin, VehicleNode):
         self._undo('configure')
         self.vehicle = None
         return SUCCESS
+
+    def _guard_change_state(self):
+        """
+        Refuse a ChangeState request the current state has no transition for.
+
+        rclpy's handler raises on a transition id that is not valid from the current state
+        (``Transition is not registered``; a label is checked), and the exception ends the
+        process: such a request is answered ``success: false``, logged and counted
+        (``refused_transitions``), and the node goes on in its state.
+        """
+        service = getattr(self, '_service_change_state', None)
+        if service is None:
+            return
+        handle = service.callback
+
+        def change_state(request, response):
+            transition = request.transition
+            valid = {t[0] for t in self._state_machine.available_transitions}
+            if not transition.label and transition.id not in valid:
+                state = self._state_machine.current_state[1]
+                self.count('refused_transitions')
+                self.get_logger().warning(
+                    f'lifecycle transition {transition.id} refused: not available from '
+                    f'the state {state!r}')
+                response.success = False
+                return response
+            return handle(request, response)
+
+        service.callback = change_state
 
     def _transition(self, name, work):
         """Run a transition; a failure is logged with its reason (rclpy would hide it)."""

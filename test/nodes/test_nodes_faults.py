@@ -304,3 +304,30 @@ def test_observer_follows_remaps_and_overrides(tmp_path):
         assert np.all(np.isfinite(run.listener.estimate_at(50.0)))
     out = run.proc.output()
     assert '-2.2, -2.1, -2' in out or '[-2.2' in out, out
+
+
+@pytest.mark.ros
+def test_a_transition_the_state_has_not_is_refused_and_the_node_goes_on(observer_setup):
+    """A ChangeState by id, configure while active: refused, counted; the node goes on."""
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState, GetState
+    proc, probe, listener, pub, cmd = observer_setup
+    change = probe.node.create_client(ChangeState, '/observer/change_state')
+    get = probe.node.create_client(GetState, '/observer/get_state')
+    probe.spin_until(lambda: change.service_is_ready() and get.service_is_ready(), WAIT,
+                     '/observer/change_state and get_state')
+    for transition in (Transition(id=Transition.TRANSITION_CONFIGURE),
+                       Transition(id=Transition.TRANSITION_CLEANUP), Transition(id=99)):
+        future = change.call_async(ChangeState.Request(transition=transition))
+        probe.spin_until(future.done, WAIT, f'the answer to transition {transition.id}')
+        assert future.result().success is False, transition
+    future = get.call_async(GetState.Request())
+    probe.spin_until(future.done, WAIT, 'the state')
+    assert future.result().current_state.label == 'active'
+    listener.wait_counter('observer', 'refused_transitions', 3)
+    seen = len(listener.estimates)
+    for k in range(5):
+        pub.publish(imu_msg(1.0 + 0.05 * k, 0.0))
+    probe.spin_until(lambda: len(listener.estimates) > seen, WAIT, 'estimates after them')
+    assert proc.alive(), proc.output()
+    assert 'refused: not available from the state' in proc.output()
