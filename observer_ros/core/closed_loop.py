@@ -15,6 +15,7 @@ from ._lazy import control
 from .design import pole_placement_error, ReducedOrderDesign
 from .errors import DesignError, DimensionError
 from .model import as_matrix, as_vector
+from .verify import match_eigenvalues
 
 __all__ = ['closed_loop_matrix', 'closed_loop_matrices', 'error_dynamics_matrix',
            'reduced_closed_loop_matrix', 'reduced_closed_loop_matrices',
@@ -326,13 +327,8 @@ def _spectrum_compare(M, expected, tol, expected_bounds):
     eb = np.zeros(want.size) if expected_bounds is None else \
         np.asarray(expected_bounds, dtype=float).reshape(-1)
     scale = np.maximum(1.0, np.abs(want))
-    cost = np.abs(lam[:, None] - want[None, :]) / scale[None, :]
-    from scipy.optimize import linear_sum_assignment    # scipy.optimize: when first used
-    rows, cols = linear_sum_assignment(cost)
-    matched = np.empty_like(want)
-    matched[cols] = lam[rows]
-    allowed = np.empty(want.size)
-    allowed[cols] = bound[rows]
+    order = match_eigenvalues(lam, want)
+    matched, allowed = lam[order], bound[order]
     allowed = np.maximum(tol * scale, allowed + eb)
     off = np.abs(matched - want)
     ok = bool(np.all(off <= allowed))

@@ -33,6 +33,7 @@ from ._lazy import control
 from .analysis import format_complex, is_controllable
 from .errors import DesignError, DimensionError, ObserverDesignWarning
 from .model import as_matrix
+from .verify import match_eigenvalues
 
 __all__ = ['pole_placement_error', 'place_gain', 'eigenvector_condition',
            'PLACEMENT_WARN_TOL', 'ACKER_DIGITS_LOST', 'ROBUST_MAXITER']
@@ -100,11 +101,7 @@ def pole_placement_error(M, poles):
     got = np.linalg.eigvals(M)
     if not np.all(np.isfinite(got)):
         return float('inf')
-    cost = np.abs(got[:, None] - want[None, :]) / np.maximum(1.0, np.abs(want))[None, :]
-    from scipy.optimize import linear_sum_assignment    # scipy.optimize: when first used
-    rows, cols = linear_sum_assignment(cost)
-    matched = np.empty_like(want)
-    matched[cols] = got[rows]
+    matched = got[match_eigenvalues(got, want)]
     err = 0.0
     for g in _pole_clusters(want):
         p0 = want[g[0]]

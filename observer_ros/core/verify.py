@@ -36,7 +36,7 @@ import scipy.linalg
 
 from .errors import DesignVerificationError
 
-__all__ = ['EIG_BOUND_FACTOR', 'PLACEMENT_BOUND_FACTOR', 'eigenvalue_bounds',
+__all__ = ['EIG_BOUND_FACTOR', 'match_eigenvalues', 'PLACEMENT_BOUND_FACTOR', 'eigenvalue_bounds',
            'stability_status', 'unstable_eigenvalues', 'describe_status', 'PlacementCheck',
            'placement_bound', 'verify_placement', 'verify_stable']
 
@@ -286,7 +286,13 @@ def placement_bound(M, perturbation):
     return lam, np.full(n, bound)
 
 
-def _match(got, want):
+def match_eigenvalues(got, want):
+    """
+    Return the order of ``got`` that pairs it with ``want`` (``got[order]`` ~ ``want``).
+
+    The assignment of least total relative distance, ``|got - want| / max(1, |want|)``
+    (scipy's ``linear_sum_assignment``).
+    """
     cost = np.abs(got[:, None] - want[None, :]) / np.maximum(1.0, np.abs(want))[None, :]
     from scipy.optimize import linear_sum_assignment    # scipy.optimize: when first used
     rows, cols = linear_sum_assignment(cost)
@@ -347,7 +353,7 @@ def verify_placement(M, requested, field, perturbation, discrete=False):
             f'{field}: {want.size} poles requested for a {lam.size}-state closed loop')
     if not want.size:
         return PlacementCheck(field, want, lam, np.zeros(0), np.zeros(0), None)
-    order = _match(lam, want)
+    order = match_eigenvalues(lam, want)
     got = lam[order]
     bound = bound[order]
     err = np.abs(got - want)
