@@ -17,6 +17,7 @@ with a status other than 0 (a file it cannot use, a crash) stops the launch with
 """
 
 import threading
+import time
 
 from launch.action import Action
 from launch.actions import EmitEvent, RegisterEventHandler
@@ -33,6 +34,9 @@ __all__ = ['BringUp', 'NodesActive', 'exit_handlers', 'node_path']
 # s: how often a wait looks whether the launch is shutting down; how often, with
 # autostart:=false, the nodes' states are asked
 POLL = 0.5
+# s: a state asked for and not answered by then is asked again (an answer lost)
+ANSWER_WITHIN = 10.0
+NO_ANSWER = object()
 
 
 def node_path(namespace, name):
@@ -105,9 +109,13 @@ class BringUp(Action):
                               f'for `ros2 lifecycle set NODE configure`, then activate')
             for name in self.nodes:
                 while True:
-                    response = self._call(context, clients[name][1], GetState.Request())
+                    # a lost answer (a busy host: 'failed to send response') is asked again
+                    response = self._call(context, clients[name][1], GetState.Request(),
+                                          answer_within=ANSWER_WITHIN)
                     if response is None:
                         return
+                    if response is NO_ANSWER:
+                        continue
                     if response.current_state.id == State.PRIMARY_STATE_ACTIVE:
                         break
                     if self._wait(context, POLL):
@@ -121,8 +129,12 @@ class BringUp(Action):
         event.wait(seconds)
         return context.is_shutdown
 
-    def _call(self, context, client, request):
-        """Call a service once it is up; None when the launch shuts down meanwhile."""
+    def _call(self, context, client, request, answer_within=None):
+        """
+        Call a service once it is up; None when the launch shuts down meanwhile.
+
+        ``answer_within`` s: NO_ANSWER when no answer came by then (else it is waited for).
+        """
         try:
             while not client.wait_for_service(timeout_sec=POLL):
                 if context.is_shutdown:
@@ -130,10 +142,14 @@ class BringUp(Action):
             done = threading.Event()
             future = client.call_async(request)
             future.add_done_callback(lambda _: done.set())
+            asked = time.monotonic()
             while not done.wait(POLL):
                 if context.is_shutdown:
                     future.cancel()
                     return None
+                if answer_within is not None and time.monotonic() - asked > answer_within:
+                    future.cancel()
+                    return NO_ANSWER
             return future.result()
         except Exception:   # noqa: BLE001 - the launch's node goes away as it shuts down
             if context.is_shutdown:
