@@ -7,12 +7,23 @@ tenth of the time and the load of the machine moves the figures by more than a c
 the callback does. Here each version (a directory holding an ``observer_ros`` package:
 a ``git archive`` of a commit) runs in its own process: it builds the ``ObserverNode`` of
 ``config/submarine.yaml`` in realtime mode (not spun: no timers, no subscribers) and calls
-its ``_on_measurement`` with Imu messages stamped 4 ms apart (250 Hz, the P1 rate) with
-a few microseconds of jitter, in the past of the clock. After a warm-up of 500 messages
-(the first gains and 2 s of the envelope's learning), ``--reps`` blocks of ``--count``
-messages are timed with ``time.process_time``. The versions are alternated, ``--rounds``
-times. Printed per version: the smallest block (the least disturbed by other processes)
-and the median, in microseconds of CPU per message.
+its ``_on_measurement`` with Imu messages stamped 4 ms apart (250 Hz, the P1 rate), in
+the past of the clock. By default the stamps are offset by ``(i * 7919 % 1000)`` us, which
+makes only two distinct steps (4.919 and 3.919 ms), each met again at once: the step
+matrices and the gains come from the caches. ``--jitter-us J`` offsets each stamp by a
+seeded uniform 0..J us instead, as the wall-clock stamps of P1's driver jitter (1st..99th
+percentile of its steps 3.6-4.4 ms: ``--jitter-us 400``): nearly every step is new, and
+costs its own matrix exponential and interpolated gain, as in the node. After a warm-up
+of 500 messages (the first gains and 2 s of the envelope's learning), ``--reps`` blocks
+of ``--count`` messages are timed with ``time.process_time``. The versions are
+alternated, ``--rounds`` times. Printed per version: the smallest block (the least
+disturbed by other processes) and the median, in microseconds of CPU per message.
+
+Back to back, the callback runs with its code and data in the CPU's caches. The node
+runs it once per message, and between two messages (4 ms at 250 Hz) the middleware's
+threads and the other processes of the host run: ``--gap S`` sleeps S seconds before
+each message and times each call alone (``time.thread_time``), which is what the node
+pays per message (``--gap 0.004``: P1's period).
 
 With ``--interleave`` the versions' processes run side by side, one block at a time in
 turn (the others wait on a pipe, idle), the order rotated every block: each version's
@@ -31,6 +42,12 @@ estimate (P2's closed loop: stamped one step back, a rewind of the history each)
 ``--commands inorder`` by the command answering this one; the figures are then per pair.
 ``--lag N`` makes the late command answer the estimate N messages back (P2's loop on a
 loaded host: several steps late).
+
+With ``--relay`` (and ``--wire``) each block is followed (or, every other block, preceded)
+by the same messages through the bare relay of P1 (``relay_node.py``: each Imu taken as
+rclpy's take makes it, then its callback publishes the JointState), in the same process,
+under the same ``--gap``: printed as ``NAME:relay``, and the callback / relay per block,
+the in-process counterpart of P1's CPU per message.
 
 Usage: ``python benchmarks/p1_callback.py NAME=DIR [NAME=DIR ...] [--interleave]
 [--commands late]``.
@@ -64,8 +81,14 @@ lag = int(os.environ.get('P1_LAG', '1'))
 if commands != 'none':
     from sensor_msgs.msg import JointState
     cmd = JointState(name=list(node.vehicle.plant.input_names), position=[0.0])
+jitter_ns = int(float(os.environ.get('P1_JITTER_US', '0')) * 1000)
+gap = float(os.environ.get('P1_GAP', '0'))
+if jitter_ns:
+    import random
+    rnd = random.Random(29)
+    offsets = [rnd.randrange(jitter_ns + 1) for _ in range(500 + count * reps + 2)]
 def stamp(i):
-    ns = t0 + i * 4_000_000 + (i * 7919 % 1000) * 1000
+    ns = t0 + i * 4_000_000 + (offsets[i] if jitter_ns else (i * 7919 % 1000) * 1000)
     return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 wire = os.environ.get('P1_WIRE') == '1'
 if wire:    # as the subscriptions take them: bytes (raw), or the objects rclpy makes
@@ -92,18 +115,43 @@ def one(item):
     node._on_measurement(sensor, m)
     if c is not None:
         node._on_command(c)
+relay = None
+if os.environ.get('P1_RELAY') == '1':     # the bare relay's work on the same bytes
+    from relay_node import Relay
+    from sensor_msgs.msg import Imu
+    from rclpy.serialization import deserialize_message
+    relay = Relay()
+    def relay_one(item):
+        relay._on_imu(deserialize_message(item[0], Imu))   # as rclpy's take, then its callback
 for i in range(500):
     one(prepare(i))
+    if relay is not None:
+        relay_one(prepare(i))
 interleave = len(sys.argv) > 5
+def timed(items, fn):
+    # the CPU per message (us) of fn over items: back to back, or each after the gap
+    if gap:     # each call alone, after the wait a node has between two messages
+        spent = 0.0
+        for item in items:
+            time.sleep(gap)
+            c0 = time.thread_time()
+            fn(item)
+            spent += time.thread_time() - c0
+        return spent / len(items) * 1e6
+    c0 = time.process_time()
+    for item in items:
+        fn(item)
+    return (time.process_time() - c0) / len(items) * 1e6
 for rep in range(reps):
     items = [prepare(i) for i in range(500 + rep * count, 500 + (rep + 1) * count)]
     if interleave:              # wait for our turn
         print('ready', flush=True)
         sys.stdin.readline()
-    c0 = time.process_time()
-    for item in items:
-        one(item)
-    print((time.process_time() - c0) / count * 1e6, flush=True)
+    if relay is not None and rep % 2:   # the relay first every other block
+        print('relay', timed(items, relay_one), flush=True)
+    print(timed(items, one), flush=True)
+    if relay is not None and not rep % 2:
+        print('relay', timed(items, relay_one), flush=True)
 node.destroy_node()
 rclpy.try_shutdown()
 """
@@ -123,7 +171,18 @@ def _blocks(directory, count, reps, commands, driver=DRIVER):
     env, argv = driver_command(directory, count, reps, commands, driver)
     out = subprocess.run(argv, env=env, cwd=str(directory),
                          capture_output=True, text=True, check=True).stdout
-    return [float(line) for line in out.split()]
+    return [float(line) for line in out.splitlines() if not line.startswith('relay')]
+
+
+def _relay_blocks(directory, count, reps, commands, driver=DRIVER):
+    """Run the driver with the bare relay beside the callback; return both blocks (us)."""
+    env, argv = driver_command(directory, count, reps, commands, driver)
+    env['P1_RELAY'] = '1'
+    out = subprocess.run(argv, env=env, cwd=str(directory),
+                         capture_output=True, text=True, check=True).stdout
+    lines = out.splitlines()
+    return ([float(line) for line in lines if not line.startswith('relay')],
+            [float(line.split()[1]) for line in lines if line.startswith('relay')])
 
 
 def _interleaved(versions, count, reps, commands, driver=DRIVER):
@@ -210,17 +269,33 @@ def main(argv=None, driver=DRIVER, description=None):
                         help='give the messages as the subscriptions take them: bytes to a '
                              'version with raw subscriptions, objects made from the bytes '
                              '(timed) to an older one')
+    parser.add_argument('--jitter-us', type=float, default=0.0, metavar='J',
+                        help='offset each stamp by a seeded uniform 0..J us (default: two '
+                        "distinct steps; 400: the jitter of P1's wall-clock stamps)")
+    parser.add_argument('--gap', type=float, default=0.0, metavar='S',
+                        help='sleep S seconds before each message and time each call alone '
+                        '(0.004: as the node runs it at 250 Hz; default: back to back)')
+    parser.add_argument('--relay', action='store_true',
+                        help="with --wire: also time benchmarks/relay_node.py's work on the "
+                        'same bytes (take as an Imu object, its callback) in the same '
+                        'process, block by block beside the callback; report callback / relay')
     parser.add_argument('--lag', type=int, default=1,
                         help='with --commands late: the command answers the estimate this '
                         'many messages back (default 1)')
     args, versions = parse_versions(parser, argv)
     if versions is None:
         return 2
+    if args.relay and (not args.wire or args.interleave or args.commands != 'none'):
+        print('error: --relay needs --wire, without --interleave or --commands',
+              file=sys.stderr)
+        return 2
     if args.lag < 1:
         print(f'error: --lag must be at least 1; got {args.lag}', file=sys.stderr)
         return 2
     os.environ['P1_LAG'] = str(args.lag)         # read by the drivers
     os.environ['P1_WIRE'] = '1' if args.wire else '0'
+    os.environ['P1_JITTER_US'] = repr(args.jitter_us)
+    os.environ['P1_GAP'] = repr(args.gap)
     print(f'load average at start: {os.getloadavg()[0]:.2f}')
     blocks = {name: [] for name, _ in versions}
     for r in range(args.rounds):
@@ -231,13 +306,23 @@ def main(argv=None, driver=DRIVER, description=None):
                 _print_round(r, name, got)
             continue
         for name, directory in (versions if r % 2 == 0 else versions[::-1]):
-            got = _blocks(directory, args.count, args.reps, args.commands, driver)
+            if args.relay:
+                got, relay = _relay_blocks(directory, args.count, args.reps, args.commands,
+                                           driver)
+                blocks.setdefault(f'{name}:relay', []).extend(relay)
+                _print_round(r, f'{name}:relay', relay)
+            else:
+                got = _blocks(directory, args.count, args.reps, args.commands, driver)
             blocks[name] += got
             _print_round(r, name, got)
     first = versions[0][0]
     for name, got in blocks.items():
         print(f'CALLBACK {name}: min {min(got):.1f} us, median {statistics.median(got):.1f} us '
               f'of CPU per message ({len(got)} blocks of {args.count})')
+        if args.relay and not name.endswith(':relay'):
+            ratios = [a / b for a, b in zip(got, blocks[f'{name}:relay'])]
+            print(f'  {name} / relay, block by block: median {statistics.median(ratios):.3f}'
+                  f' [{min(ratios):.3f}..{max(ratios):.3f}]')
         if args.interleave and name != first:
             ratios = [a / b for a, b in zip(got, blocks[first])]
             print(f'  {name} / {first}, block by block: median {statistics.median(ratios):.3f}'
