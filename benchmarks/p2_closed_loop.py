@@ -77,8 +77,8 @@ import time
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import (common_parser, log, percentile, ratio_line, report,  # noqa: E402
-                     ros_env, summary)
+from _common import (common_parser, FLOOD_FALLBACK, log, percentile,  # noqa: E402
+                     ratio_line, report, ros_env, summary)
 from _procs import node_command, start, stop_all  # noqa: E402
 
 NS = '/p2'
@@ -112,9 +112,6 @@ SWEEP_STEPS = 10000
 # the simulator's first step) are start-up, not the loop's rate
 SWEEP_WARMUP = 1.0
 SWEEP_RESOLUTION = 1.06     # the bisection ends once missed / held is at most this
-# what a node logs when its flood watch left the events executor (its CPU per message then
-# rises): said beside the run, whose figures are not those of the nodes' usual executor
-FLOOD_FALLBACK = 'going on with the wait-set executor'
 
 
 def _command(parts, params, rt_priority=None, pythonpath=None):
