@@ -34,14 +34,10 @@ Every estimate and every command passes gates first:
 - an estimate outside the vehicle's envelope (:class:`~.health.Envelope`: 100 times what
   the file and the first seconds make plausible) is refused the first time: the safe
   command instead, ERROR ``implausible``; ``ENVELOPE_PERSIST`` in a row are ``diverging``;
-- with two publishers on ``state/estimate`` (known from the subscription's matched
-  event and the graph), or with a warm standby whatever the publishers known (a second
-  publisher's first estimates can come before its match), an estimate more than
-  ``CONSISTENCY_TOL`` of a state's scale away
-  from the reference (the standby's estimate at the same stamp, else the model's
-  prediction from the last estimate followed) belongs to another stream: ignored,
-  counted (``other_stream_estimates``), and said on /diagnostics; an implausible one
-  is then ignored too (the stream followed answers);
+- with two publishers or a warm standby, an estimate that fits neither the model's
+  prediction from the last one followed nor the standby's is another stream's: ignored
+  (``other_stream_estimates``, said on /diagnostics); a standby that disagrees with the
+  stream followed takes no hand-over (:mod:`.estimate_stream` says how);
 - a command must be finite, inside ``controller.u_min``/``u_max``, and without limits
   inside the command envelope (100 times ``|K|`` applied to the file's state scale, the
   bound ``observer-design`` prints), or the safe command is sent instead; the safe
@@ -65,6 +61,7 @@ from .clock_jump import CLOCK_JUMP, CLOCK_JUMP_AGREEMENT, ClockJump, FAR_BACK, \
     far_back_text, IN_BASE
 from .control_law import ControlLaw
 from .delay_compensation import DelayCompensation
+from .estimate_stream import CONSISTENCY_TOL, EstimateStream, within
 from .health import divergence_envelopes, ENVELOPE_PERSIST, SettleCheck, settling_time
 from .loop_command import Command, command_refusal
 from .loop_status import ERROR, OK, status_message, WARN
@@ -78,9 +75,6 @@ __all__ = ['Command', 'LoopSupervisor', 'OK', 'WARN', 'ERROR', 'CONSISTENCY_TOL'
 
 # After an outage, wait at most this many observer settling times for it to settle again.
 RESYNC_SETTLINGS = 10.0
-# An estimate this far (in units of each state's scale) from the reference belongs to
-# another stream; the observer's must come this close to the standby's to be followed.
-CONSISTENCY_TOL = 0.1
 # Estimates in a row that agree with the standby's (within RESYNC_TOL of each state's
 # scale: the command does not jump) before the loop follows them again.
 RESYNC_AGREE = 10
@@ -154,13 +148,12 @@ class LoopSupervisor:
         self._refusals = 0              # envelope refusals in a row
         self._problem = None            # the last refusal (a report), until one passes
         self._refused_command = None    # why the last command was not sent (per report)
-        self._other = 0                 # estimates of another stream since the report
         self._too_late = 0              # estimates too late to predict, since the report
         self._max_steps = 0             # steps predicted (delay compensation), since then
         self._agree = 0                 # resync: estimates in a row that agree
         self._recover_since = None      # recover: stamp since when closed again
         self._standby_wall = None       # wall time of the standby's last command
-        self._said_other = False        # another stream reported in the log
+        self.stream = EstimateStream(self._count, self._log)    # the writer followed
         self.publishers = 1             # known publishers of the estimate topic
         self.safe_mode = None           # how the last safe command was decided
         self.plant_time = None          # realtime: the newest sensor stamp
@@ -265,7 +258,7 @@ class LoopSupervisor:
             # unchanged; an older one, or one from another publisher, none
             self._count('repeated_estimates')
             if self.publishers > 1:
-                self._other += 1
+                self.stream.other += 1
             elif t == self._answered and self._answer is not None:
                 return self._answer
             return None
@@ -281,14 +274,9 @@ class LoopSupervisor:
         if problem is not None:
             return self._refuse(t, problem, now)
         if not self._consistent(t, x_list):
-            self._count('other_stream_estimates')
-            if not self._other and not self._said_other:
-                self._log(ERROR, 'state/estimate: an estimate that does not follow the stream '
-                          "followed (the standby observer's estimate, or the model from the "
-                          'last one): ignored, and the others like it')
-                self._said_other = True
-            self._other += 1
-            return None
+            return self.stream.ignore('state/estimate: an estimate that does not follow the '
+                                      "stream followed (the standby observer's estimate, or "
+                                      'the model from the last one): ignored')
         self._last_wall, self._last_stamp = now, t
         mode = self.mode
         if mode != 'closed' and mode != 'recover':
@@ -347,7 +335,8 @@ class LoopSupervisor:
         if x is None or t < self.plant_time:
             return None
         if standby.warm and self.mode in ('closed', 'recover', 'waiting') and \
-                self._last_stamp is not None and t - self._last_stamp > self.lag_limit:
+                self.stream.standby_agrees and self._last_stamp is not None and \
+                t - self._last_stamp > self.lag_limit:
             self._go_stale(f"no estimate within {self.lag_limit:g} s of the plant's time")
         if self.mode not in ('stale', 'resync'):
             return None
@@ -488,27 +477,30 @@ class LoopSupervisor:
 
     def _consistent(self, t, x_list):
         """
-        Whether an estimate belongs to the stream followed (see the module's notes).
+        Whether an estimate belongs to the stream followed (:mod:`.estimate_stream`).
 
-        With a warm standby it is the reference whatever the publishers known: a second
-        publisher's first estimates can come before its match is known.
+        With a warm standby whatever the publishers known: a second publisher's first
+        estimates can come before its match is known.
         """
         warm = self.standby is not None and self.standby.warm
         if self.publishers <= 1 and not warm:
             return True
         ref = self.standby.at(t) if warm else None
-        if ref is None and self._followed is not None:
+        if ref is not None and within(x_list, ref, self._scale, CONSISTENCY_TOL):
+            self.stream.standby_agrees = True
+            return True
+        predicted = None
+        if self._followed is not None:
             t0, x0 = self._followed
             steps = int(round((t - t0) / self.dt))
             if 0 < steps <= CONSISTENCY_STEPS:
-                ref = self.safe.predict_from(x0, steps)
-        if ref is None:
-            return True
-        return self._within(x_list, ref, CONSISTENCY_TOL)
-
-    def _within(self, x_list, ref, tol):
-        """Whether an estimate is within tol of each state's scale of the reference ref."""
-        return bool(np.max(np.abs(np.asarray(x_list) - ref) / self._scale) <= tol)
+                predicted = self.safe.predict_from(x0, steps)
+        if predicted is None:
+            return ref is None
+        fits = within(x_list, predicted, self._scale, CONSISTENCY_TOL)
+        if fits and ref is not None:
+            self.stream.standby_disagrees()
+        return fits
 
     def _back(self, t, x_list, now):
         """Estimates after an outage: resync; return a command, None, or False (close)."""
@@ -524,7 +516,7 @@ class LoopSupervisor:
             if self.mode == 'stale':
                 self.mode, self._agree = 'resync', 0
             ref = self.standby.at(t) if self.standby.warm else None
-            agree = ref is not None and self._within(x_list, ref, RESYNC_TOL)
+            agree = ref is not None and within(x_list, ref, self._scale, RESYNC_TOL)
             self._agree = self._agree + 1 if agree else 0
             if self._agree < RESYNC_AGREE:
                 self._count('resync_estimates')
@@ -687,9 +679,7 @@ class LoopSupervisor:
             values['plant_time'] = f'{self.plant_time:.6f}'
         self._max_steps = 0
         too_late, self._too_late = self._too_late, 0
-        other, self._other = self._other, 0
-        if not other:
-            self._said_other = False
+        other = self.stream.report()
         refused, self._refused_command = self._refused_command, None
         level, message = status_message(
             self.mode, duplicates=duplicates, other=other, refused=refused,
