@@ -36,7 +36,7 @@ ROOT = Path(__file__).resolve().parents[2]
 VEHICLE = ROOT / 'config' / 'submarine.yaml'
 DASK = Path(sys.executable).parent / 'dask'
 BATCH = Path(sys.executable).parent / 'observer-eval-batch'
-BAGS = 8                     # copies (links) of the bag: 8 bags x 2 variants = 16 jobs
+BAGS = 4                     # copies (links) of the bag: 4 bags x 2 variants = 8 jobs
 LOST_TIMEOUT = 15.0
 WAIT = 900.0                 # s: a whole run on a loaded 2-core host
 
