@@ -14,6 +14,9 @@ import pytest
 import yaml
 
 CONFIG = Path(__file__).resolve().parents[2] / 'config'
+# README.md's robust design command (its README-commands test leaves it to this file)
+README_ROBUST = ('observer-design config/cart_pendulum_two_encoders.yaml --robust --controller '
+                 '--settling-time 6 --out cart_pendulum_robust.yaml')
 
 
 def figures(path):
@@ -25,9 +28,12 @@ def figures(path):
 
 
 def test_two_encoder_cart_robust_file(tmp_path, capsys):
+    readme = (CONFIG.parent / 'README.md').read_text()
+    assert README_ROBUST in ' '.join(readme.replace('\\\n', ' ').split())
     out = tmp_path / 'robust.yaml'
-    rc = design_main([str(CONFIG / 'cart_pendulum_two_encoders.yaml'), '--robust',
-                      '--controller', '--settling-time', '6', '--out', str(out)])
+    words = README_ROBUST.split()
+    assert words[:2] == ['observer-design', 'config/cart_pendulum_two_encoders.yaml']
+    rc = design_main([str(CONFIG / 'cart_pendulum_two_encoders.yaml'), *words[2:-1], str(out)])
     text = capsys.readouterr().out
     assert rc == 0 and f'written: {out}' in text
     _, seed = figures(CONFIG / 'cart_pendulum.yaml')
