@@ -1,6 +1,7 @@
 # The package as a ROS 2 user meets it: colcon build, then the real `ros2` client.
 """The README's real-install commands, run with the real ros2 client and ros2 launch."""
 
+import fcntl
 import os
 from pathlib import Path
 import random
@@ -63,14 +64,40 @@ def _client_setup():
     pytest.skip('no ros2 client: ../shared/ros2cli is absent and no system ros2 is on PATH')
 
 
+def _built_workspace(tmp_path_factory, setup):
+    """
+    Return a colcon workspace with the package built as the README says.
+
+    One per test run: in pytest-xdist's workers, the first to get here builds it (the
+    others wait on a lock file) in the run's shared temporary folder, and every worker
+    uses it; each runs its own commands in it (no two write the same file).
+    """
+    if os.environ.get('PYTEST_XDIST_WORKER'):
+        ws = tmp_path_factory.getbasetemp().parent / 'ros2cli_ws'
+    else:
+        ws = tmp_path_factory.mktemp('ws')
+    built = ws / '.built'
+    with open(f'{ws}.lock', 'w') as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not built.exists():
+            shutil.rmtree(ws, ignore_errors=True)
+            (ws / 'src').mkdir(parents=True)
+            (ws / 'src' / 'observer_ros').symlink_to(REPO)
+            result = subprocess.run(
+                ['bash', '-c', f'{setup} && cd {shlex.quote(str(ws))} && {BUILD}'],
+                env=dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID)), capture_output=True,
+                timeout=600)
+            assert result.returncode == 0, result.stderr.decode()[-3000:]
+            built.touch()
+    return ws
+
+
 @pytest.fixture(scope='module')
 def ros2env(tmp_path_factory):
     """Build the package as the README says, in a workspace; return that shell's env."""
-    ws = tmp_path_factory.mktemp('ws')
-    (ws / 'src').mkdir()
-    (ws / 'src' / 'observer_ros').symlink_to(REPO)
-    script = (f'{_client_setup()} && cd {shlex.quote(str(ws))} && {BUILD} >&2 && '
-              'source install/setup.bash && env -0')
+    setup = _client_setup()
+    ws = _built_workspace(tmp_path_factory, setup)
+    script = f'{setup} && cd {shlex.quote(str(ws))} && source install/setup.bash && env -0'
     env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONUNBUFFERED='1')
     result = subprocess.run(['bash', '-c', script], env=env, capture_output=True,
                             timeout=600)
