@@ -239,6 +239,7 @@ class _Search:
             vehicle.observer, Rd=self.Rd_sample)))
         self.q0 = 1e-6 * float(np.trace(self.Rd)) / plant.p
         self.evaluations = 0
+        self._kalman = {}
 
     def cost(self, K, L, poles):
         """Ms, or a penalty above any Ms for poles that break the bounds."""
@@ -276,7 +277,18 @@ class _Search:
         return 1.0 + max(0.0, math.log10(c / CONDITION_CAP))
 
     def kalman(self, q):
-        """Return the Kalman gain of ``Qd = q0 I + q B B^T`` (python-control's lqe form)."""
+        """
+        Return the Kalman gain of ``Qd = q0 I + q B B^T`` (python-control's lqe form).
+
+        Solved once per q: every controller of the search pairs with the same filters.
+
+        """
+        q = float(q)
+        if q not in self._kalman:
+            self._kalman[q] = self._solve_kalman(q)
+        return self._kalman[q]
+
+    def _solve_kalman(self, q):
         plant = self.plant
         A, C, R = plant.A, plant.C, self.Rd
         Qd = self.q0 * np.eye(plant.n) + q * plant.B @ plant.B.T
@@ -313,7 +325,8 @@ def _factors(x):
     phi = np.array([1.0])
     for logw, zeta in x.reshape(-1, 2):
         w = math.exp(min(logw, 50.0))
-        phi = np.polymul(phi, [1.0, 2.0 * zeta * w, w * w])
+        # np.polymul without its poly1d conversions: the same product, at a fraction of the cost
+        phi = np.convolve(phi, [1.0, 2.0 * zeta * w, w * w])
     return phi
 
 
@@ -522,6 +535,14 @@ def _refine(search, cand, controller):
         return None if res is None else (K, pc, res[0], res[1], ('kalman', math.exp(x[nc])))
 
     def f(x):
+        if kind == 'poles':
+            # the poles are known before any gain is placed: those that break the bounds
+            # cost their penalty without the placements (most of an evaluation's time)
+            pc = _poles(x[:nc], ckinds) if controller else cpoles
+            penalty = search.penalty(np.concatenate([pc, _poles(x[nc:], okinds)]))
+            if penalty:
+                search.evaluations += 1
+                return penalty
         got = unpack(x)
         if got is None:
             return 1e12
