@@ -36,7 +36,13 @@ def _refuse(what):
 # a make check run, 5 to 48 s), longest first. They run first, so that in pytest-xdist's
 # workers no long test is left to start when the others are done (alphabetically the
 # linters and the robust design's searches came last).
+# Before them (make test only), the modules of the longest tests that start processes
+# (single tests of 47 to 228 s in a run of make test's first stage at 1-minute load 12-17):
+# one started last would hold its worker after the others are done. (xdist hands each
+# worker two tests in a row at first: the two longest are not next to each other.)
 LONGEST_FIRST = (
+    'system/test_benchmarks_smoke.py', 'system/test_readme_commands.py',
+    'evaluation/test_bag_batch_multihost.py', 'evaluation/test_bag_batch_workers.py',
     'tools/test_tools_robust.py', 'test_flake8.py', 'tuning/test_bag_tune_irregular.py',
     'replay/test_bag_spill.py', 'tuning/test_bag_tune_search.py',
     'replay/test_bag_replay_blocks.py', 'evaluation/test_bag_eval.py',
