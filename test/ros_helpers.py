@@ -187,6 +187,7 @@ class Listener:
     def __init__(self, probe):
         self.probe = probe
         self.estimates, self.commands, self.diagnostics = [], [], []
+        self.heard_at = {}          # status name -> (monotonic s of its last report, count)
         node = probe.node
         self.subs = {
             'state/estimate': node.create_subscription(
@@ -194,7 +195,13 @@ class Listener:
             'control/u': node.create_subscription(
                 JointState, 'control/u', self.commands.append, STATE_QOS),
             '/diagnostics': node.create_subscription(
-                DiagnosticArray, '/diagnostics', self.diagnostics.append, 50)}
+                DiagnosticArray, '/diagnostics', self._on_diagnostics, 50)}
+
+    def _on_diagnostics(self, msg):
+        self.diagnostics.append(msg)
+        now = time.monotonic()
+        for status in msg.status:
+            self.heard_at[status.name] = (now, self.heard_at.get(status.name, (0, 0))[1] + 1)
 
     def wait_alive(self, node_name, timeout=WAIT):
         """Wait for a diagnostics message from the node under test (it is up and matched)."""
@@ -266,9 +273,13 @@ class NodesUnderTest:
 
     def report(self):
         """Return what the listener heard, and each node's state and last log lines."""
-        heard = sorted({s.name for a in self.listener.diagnostics for s in a.status})
+        now = time.monotonic()
+        heard = [f'{name} ({count}, the last {now - at:.1f} s ago: '
+                 f'{self.listener.latest_status(name).message!r})'
+                 for name, (at, count) in sorted(self.listener.heard_at.items())]
         lines = [f'the probe heard {len(self.listener.estimates)} estimates, '
-                 f'{len(self.listener.commands)} commands, diagnostics from {heard}']
+                 f'{len(self.listener.commands)} commands, diagnostics from '
+                 f'{", ".join(heard) or "nobody"}']
         for proc in self.procs:
             state = 'running' if proc.alive() else f'exited {proc.popen.returncode}'
             log = '\n'.join(proc.output().splitlines()[-40:])
