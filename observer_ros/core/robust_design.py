@@ -57,7 +57,6 @@ from .design_review import review_design
 from .errors import ObserverError
 from .health import POLE_FASTEST
 from .limits import best_disk_margin, fundamental_limit
-from .pole_placement import eigenvector_condition
 from .vehicle_design import design_vehicle, measurement_intensity
 
 __all__ = ['RobustResult', 'robust_design', 'settling_of', 'loop_figures', 'ROBUST_TARGET']
@@ -271,7 +270,8 @@ class _Search:
         """1, or more for a closed loop whose poles are too sensitive (log10 above the limit)."""
         A, B, C = self.plant.A, self.plant.B, self.plant.C
         M = np.block([[A, -B @ K], [L @ C, A - L @ C - B @ K]])
-        c = max(pole_sensitivity(M).max_condition, eigenvector_condition(M))
+        sensitivity = pole_sensitivity(M)       # with cond(V) of M as formed
+        c = max(sensitivity.max_condition, sensitivity.eigenvector_condition)
         if not np.isfinite(c):
             return 1e6
         return 1.0 + max(0.0, math.log10(c / CONDITION_CAP))
