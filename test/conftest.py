@@ -33,7 +33,7 @@ def _refuse(what):
 
 
 # The modules holding the longest tests that start no process (CPU seconds per module in
-# a make check run, 5 to 48 s), longest first. They run first, so that in pytest-xdist's
+# a make check run, 3 to 40 s), longest first. They run first, so that in pytest-xdist's
 # workers no long test is left to start when the others are done (alphabetically the
 # linters and the robust design's searches came last).
 # Before them (make test only), the modules of the longest tests that start processes
@@ -44,11 +44,12 @@ LONGEST_FIRST = (
     'system/test_benchmarks_smoke.py', 'system/test_readme_commands.py',
     'evaluation/test_bag_batch_multihost.py', 'evaluation/test_bag_batch_workers.py',
     'tools/test_tools_robust.py', 'test_flake8.py', 'tuning/test_bag_tune_irregular.py',
-    'replay/test_bag_spill.py', 'tuning/test_bag_tune_search.py',
-    'replay/test_bag_replay_blocks.py', 'evaluation/test_bag_eval.py',
-    'tuning/test_bag_tune.py', 'bag/test_bag_integrity.py',
-    'core/test_core_loop_supervisor.py', 'core/test_core_verify.py', 'test_pep257.py',
-    'core/test_core_margins.py', 'core/test_core_whiteness.py')
+    'replay/test_bag_replay_blocks.py', 'tuning/test_bag_tune_search.py',
+    'evaluation/test_bag_eval.py', 'core/test_core_verify.py',
+    'core/test_core_loop_supervisor.py', 'replay/test_bag_spill.py', 'tuning/test_bag_tune.py',
+    'bag/test_bag_integrity.py', 'core/test_core_estimators.py', 'nodes/test_wire.py',
+    'vehicle/test_vehicle.py', 'core/test_core_whiteness.py', 'test_pep257.py',
+    'core/test_core_margins.py')
 
 
 @pytest.hookimpl(tryfirst=True)
