@@ -17,7 +17,7 @@ from observer_ros.core import plant_clock
 from observer_ros.core.estimators import History, make_estimator
 from observer_ros.core.health import ENVELOPE_FACTOR, ENVELOPE_PERSIST
 from observer_ros.core.loop_command import command_refusal
-from observer_ros.core.loop_supervisor import ERROR, LoopSupervisor, OK, RESYNC_AGREE
+from observer_ros.core.loop_supervisor import ERROR, LoopSupervisor, OK, RESYNC_AGREE, WARN
 from observer_ros.core.model import zoh_matrices
 from observer_ros.core.standby import unstable_plant
 from observer_ros.core.vehicle_design import design_vehicle
@@ -763,3 +763,54 @@ def test_an_observer_restarted_by_a_clock_jump_resyncs_with_a_warm_standby():
     assert counts['estimate_clock_jumps'] == 1 and sup.mode == 'resync'
     assert command is None                          # the standby answers the measurements
     assert counts['other_stream_estimates'] == others + 1     # its transient: not followed
+
+
+def _corrupted_standby(u):
+    """Run the cart loop with one command the plant never got, known to the standby alone."""
+    loop = CartLoop(jitter=0.002)
+    loop.observer()
+    loop.run(8.0)
+    # between two sample times: no command the compensator sends replaces it
+    loop.sup.standby.command(8.0555, [u])
+    loop.run(12.0)
+    return loop
+
+
+@pytest.mark.parametrize('u', [5.0, 50.0])
+def test_a_standby_that_disagrees_with_the_stream_followed_does_not_take_the_loop(u):
+    """
+    The standby wrong, the observer right: the loop stays closed on the observer.
+
+    With the standby as the only reference, the observer's estimates were taken for
+    another stream's and ignored, the standby closed the loop, and the cart left x_d by
+    0.46 m (5 N) to 3.6 m (50 N).
+    """
+    loop = _corrupted_standby(u)
+    theta, off = loop.worst(8.0)
+    assert off < 0.02 and theta < 0.01, (theta, off)
+    assert loop.counts.get('standby_disagreements', 0) >= 10
+    assert 'other_stream_estimates' not in loop.counts
+    assert 'standby_commands' not in loop.counts
+    assert any(level == WARN and text.startswith('standby observer: more than 0.1')
+               for level, text in loop.logs), loop.logs
+
+
+def test_a_second_observer_is_ignored_then_followed_if_the_first_stops():
+    loop = CartLoop(jitter=0.002)
+    loop.observer(pause=(9.5, 99.0))    # the first falls silent for good at 9.5 s
+    loop.observer(start=8.0)            # unconverged: x_hat(0) = 0 with the cart at 1 m
+    loop.run(9.5)
+    theta, off = loop.worst(8.0)
+    assert off < 0.02, off
+    # ignored while it converges (those after the first's at a stamp: repeats)
+    assert loop.counts['other_stream_estimates'] >= 5
+    # silent: the second one's estimates, converged, continue the stream followed (the
+    # model's prediction from the last estimate followed) and agree with the standby:
+    # followed; none ignored from then on
+    loop.run(11.0)
+    n = loop.counts['other_stream_estimates']
+    loop.run(13.0)
+    theta, off = loop.worst(8.0)
+    assert off < 0.05 and theta < 0.05, (theta, off)
+    assert loop.sup.mode == 'closed'
+    assert loop.counts['other_stream_estimates'] == n
