@@ -20,7 +20,12 @@ start). Measurement noise comes from ``simulator.seed``. Two modes:
   command that arrives after its step is applied from the step it arrives at and counted
   (``commands_applied_late``; /diagnostics gives ``applied_late_ms_max``): there the
   plant held the previous command longer than its stamp says, which the observer cannot
-  know. Steps without a fresh command are counted (``late_commands``).
+  know. Steps without a fresh command are counted (``late_commands``). The run starts
+  when a command answers step 0 (sent again until one does). A plant that can be held
+  open loop runs open loop after ``READY_WAIT`` x ``simulator.command_timeout`` without
+  one; an unstable one (the cart) waits for it, with a WARN naming the command topic
+  every such period (``open_loop_start_refused``): its open loop would fall before a
+  late compensator's first command.
 
 Simulated time starts at ``start_time`` (1.0 s: ROS reads a zero stamp as unset). The end
 of the run (``simulator.duration``) is published, latched, on ``simulator/run_complete``
@@ -61,6 +66,7 @@ from .runner import run_node
 from ..core.clock_jump import far_back_text
 from ..core.model import zoh_matrices
 from ..core.simulate import process_noise_factor
+from ..core.standby import unstable_plant
 from ..sensors import fill_measurement
 
 __all__ = ['PlantSimulatorNode', 'main']
@@ -478,7 +484,8 @@ class PlantSimulatorNode(VehicleNode):
 
         Step 0's measurements go out every resend period once the command publisher and
         ``wait_for_subscribers`` sensor readers are matched, until a command stamped t_0
-        comes back (or READY_WAIT x command_timeout passed: then open loop). A simulator
+        comes back (or READY_WAIT x command_timeout passed: then open loop, unless the
+        plant is unstable: then a WARN every such period, and it waits). A simulator
         restarted under a running observer and compensator must not step before their
         commands reach it (a matched reader is not enough: the compensator's writer may not
         have matched it yet): the observer would correct with commands the plant never
@@ -494,10 +501,17 @@ class PlantSimulatorNode(VehicleNode):
         if self._newest_command() >= self.t - 0.25 * self.dt:
             return True
         waited = now - self._ready_since
-        if waited > READY_WAIT * self.vehicle.simulator.command_timeout:
+        wait = READY_WAIT * self.vehicle.simulator.command_timeout
+        if waited > wait and not unstable_plant(self.vehicle.plant):
             self.get_logger().warning(f'no command answered step 0 after {waited:.1f} s; '
                                       'running open loop')
             return True
+        if waited > wait * (1 + self._counters.get('open_loop_start_refused', 0)):
+            self.count('open_loop_start_refused')
+            self.get_logger().warning(
+                f'no command answered step 0 after {waited:.1f} s: waiting for '
+                f'{self.resolve_topic_name(TOPICS["command"])} (an unstable plant does not '
+                'run open loop)')
         need = int(self.param('wait_for_subscribers'))
         matched = self._cmd_sub.get_publisher_count() >= 1 and all(
             pub.get_subscription_count() >= need for _, pub, _ in self._sensor_pubs)
@@ -515,6 +529,10 @@ class PlantSimulatorNode(VehicleNode):
         message = 'running' if self._started or not self._lockstep else 'waiting for peers'
         if self._counters.get('command_timeouts'):
             level, message = DiagnosticStatus.WARN, 'commands came late (waited for)'
+        if not self._started and self._counters.get('open_loop_start_refused'):
+            level = DiagnosticStatus.WARN
+            message = (f'waiting for {self.resolve_topic_name(TOPICS["command"])}: no command '
+                       'answered step 0 (an unstable plant does not run open loop)')
         values = {'t': f'{self.t:.6f}', 'step': self.k}
         if self._loop_us:
             # realtime: the loop measurement -> command since the last report (benchmarks P2)

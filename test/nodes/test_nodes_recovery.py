@@ -16,7 +16,7 @@ import pytest
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from ros_helpers import compensator_under_test, CONFIG, ESTIMATES, imu_msg, Probe, Proc, WAIT
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import Imu, JointState
 
 pytestmark = pytest.mark.ros      # processes or DDS participants
 
@@ -219,6 +219,39 @@ def test_a_second_observer_with_the_same_name_does_not_move_the_cart(loop_of):
     assert off < 0.2 and theta < 0.3, (off, theta, str(lp.tmp))
     for proc in (lp.procs['observer_node'], second):
         assert 'truth value of an array' not in proc.output()
+
+
+@pytest.mark.realtime
+@pytest.mark.parametrize('vehicle, sensor', [('cart_pendulum', ('joint_states', JointState)),
+                                             ('submarine', ('imu/data', Imu))])
+def test_a_realtime_simulator_unanswered_runs_open_loop_only_if_its_plant_is_stable(
+        tmp_path, vehicle, sensor):
+    """No command answers step 0: the cart waits and says for what, the submarine runs on."""
+    # the wait: READY_WAIT (10) x command_timeout
+    proc = Proc('plant_simulator', CONFIG / f'{vehicle}.yaml', *REALTIME,
+                'simulator.command_timeout:=0.1', log_dir=tmp_path)
+    probe = Probe('start_probe')
+    stamps = []
+    try:
+        node = probe.node
+        node.create_publisher(JointState, 'control/u', STATE_QOS)     # matched, silent
+        node.create_subscription(sensor[1], sensor[0], lambda msg: None, SENSOR_QOS)
+        node.create_subscription(JointState, 'state/true',
+                                 lambda msg: stamps.append(stamp_to_sec(msg.header.stamp)),
+                                 STATE_QOS)
+        probe.spin_until(lambda: stamps, WAIT, 'step 0')
+        if vehicle == 'submarine':
+            probe.spin_until(lambda: stamps[-1] > 1.5, WAIT, 'the open loop')
+            assert 'no command answered step 0 after' in proc.output()
+            return
+        probe.spin_until(lambda: proc.output().count('waiting for /control/u') >= 2, WAIT,
+                         'the simulator saying twice what it waits for')
+        assert set(stamps) == {1.0}, sorted(set(stamps))[:5]
+        assert 'running open loop' not in proc.output()
+        assert 'an unstable plant does not run open loop' in proc.output()
+    finally:
+        proc.stop()
+        probe.close()
 
 
 def test_compensator_predicts_a_late_estimate_to_when_its_command_applies(tmp_path):
