@@ -3,9 +3,11 @@
 
 import contextlib
 import ctypes
+import fcntl
 import os
 from pathlib import Path
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -374,6 +376,29 @@ def compensator_under_test(tmp_path, publish=(ESTIMATES,), **options):
     return nodes_under_test(tmp_path, 'compensator', publish=publish,
                             listen=('control/u', '/diagnostics'), alive=('compensator',),
                             **options)
+
+
+def made_once(tmp_path_factory, name, make):
+    """
+    Return the folder ``name``, made by ``make(folder)`` once per test run; read it only.
+
+    In pytest-xdist's workers the first to ask makes it in the run's shared temporary
+    folder while the others wait on a lock file beside it; then every worker uses it. In
+    one process it is made in the session's temporary folder.
+    """
+    if os.environ.get('PYTEST_XDIST_WORKER'):
+        folder = tmp_path_factory.getbasetemp().parent / name
+    else:
+        folder = tmp_path_factory.getbasetemp() / name
+    done = folder.with_name(f'{name}.done')
+    with open(folder.with_name(f'{name}.lock'), 'w') as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not done.exists():
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir(parents=True)
+            make(folder)
+            done.touch()
+    return folder
 
 
 def python():

@@ -29,6 +29,7 @@ import time
 
 from observer_ros.tools.run_closed_loop import stop_process
 import pytest
+from ros_helpers import made_once
 
 pytestmark = pytest.mark.ros      # processes or DDS participants
 
@@ -44,14 +45,15 @@ WAIT = 900.0                 # s: a whole run on a loaded 2-core host
 @pytest.fixture(scope='module')
 def bags(tmp_path_factory):
     """Return a folder of BAGS links to one 30 000-message Imu bag (P3's generator)."""
-    sys.path.insert(0, str(ROOT / 'benchmarks'))
-    import p3_replay
-    data = tmp_path_factory.mktemp('p3')
-    bag = p3_replay.generate(30_000, data=data, log=lambda *a: None)
-    folder = tmp_path_factory.mktemp('bags')
-    for i in range(BAGS):
-        (folder / f'b{i}').symlink_to(bag, target_is_directory=True)
-    return folder
+    def generate(folder):
+        sys.path.insert(0, str(ROOT / 'benchmarks'))
+        import p3_replay
+        (folder / 'p3').mkdir()
+        bag = p3_replay.generate(30_000, data=folder / 'p3', log=lambda *a: None)
+        (folder / 'bags').mkdir()
+        for i in range(BAGS):
+            (folder / 'bags' / f'b{i}').symlink_to(bag, target_is_directory=True)
+    return made_once(tmp_path_factory, 'batch_workers_bags', generate) / 'bags'
 
 
 class Cluster:

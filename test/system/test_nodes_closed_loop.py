@@ -11,7 +11,7 @@ from observer_ros.nodes.recorder import recorded_topics
 from observer_ros.tools.run_closed_loop import run_closed_loop
 from observer_ros.vehicle import load_vehicle
 import pytest
-from ros_helpers import CONFIG, domain_env
+from ros_helpers import CONFIG, domain_env, made_once
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
 
@@ -47,9 +47,10 @@ def _at_common_stamps(ta, xa, tb, xb):
 
 @pytest.fixture(scope='module')
 def submarine_bag(tmp_path_factory):
-    """Record a noise-free submarine run, 20 s simulated (400 lock-step exchanges)."""
-    tmp = tmp_path_factory.mktemp('sub')
-    return _run(tmp, 'submarine.yaml', NOISE_OFF, 'simulator.duration:=20.0')
+    """Record a noise-free submarine run, 20 s simulated (400 lock-step exchanges), once."""
+    def record(folder):
+        _run(folder, 'submarine.yaml', NOISE_OFF, 'simulator.duration:=20.0')
+    return made_once(tmp_path_factory, 'closed_loop_submarine', record) / 'bag'
 
 
 def test_estimate_converges_at_the_designed_rate(submarine_bag):

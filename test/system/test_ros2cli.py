@@ -1,7 +1,6 @@
 # The package as a ROS 2 user meets it: colcon build, then the real `ros2` client.
 """The README's real-install commands, run with the real ros2 client and ros2 launch."""
 
-import fcntl
 import os
 from pathlib import Path
 import random
@@ -14,7 +13,7 @@ import sys
 import time
 
 import pytest
-from ros_helpers import DOMAIN_ID, REPO, RUN_SEED
+from ros_helpers import DOMAIN_ID, made_once, REPO, RUN_SEED
 import yaml
 
 README = (REPO / 'README.md').read_text()
@@ -68,28 +67,18 @@ def _built_workspace(tmp_path_factory, setup):
     """
     Return a colcon workspace with the package built as the README says.
 
-    One per test run: in pytest-xdist's workers, the first to get here builds it (the
-    others wait on a lock file) in the run's shared temporary folder, and every worker
-    uses it; each runs its own commands in it (no two write the same file).
+    One per test run (ros_helpers.made_once): every xdist worker runs its own commands in
+    it, and no two write the same file.
     """
-    if os.environ.get('PYTEST_XDIST_WORKER'):
-        ws = tmp_path_factory.getbasetemp().parent / 'ros2cli_ws'
-    else:
-        ws = tmp_path_factory.mktemp('ws')
-    built = ws / '.built'
-    with open(f'{ws}.lock', 'w') as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        if not built.exists():
-            shutil.rmtree(ws, ignore_errors=True)
-            (ws / 'src').mkdir(parents=True)
-            (ws / 'src' / 'observer_ros').symlink_to(REPO)
-            result = subprocess.run(
-                ['bash', '-c', f'{setup} && cd {shlex.quote(str(ws))} && {BUILD}'],
-                env=dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID)), capture_output=True,
-                timeout=600)
-            assert result.returncode == 0, result.stderr.decode()[-3000:]
-            built.touch()
-    return ws
+    def build(ws):
+        (ws / 'src').mkdir()
+        (ws / 'src' / 'observer_ros').symlink_to(REPO)
+        result = subprocess.run(
+            ['bash', '-c', f'{setup} && cd {shlex.quote(str(ws))} && {BUILD}'],
+            env=dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID)), capture_output=True,
+            timeout=600)
+        assert result.returncode == 0, result.stderr.decode()[-3000:]
+    return made_once(tmp_path_factory, 'ros2cli_ws', build)
 
 
 @pytest.fixture(scope='module')
