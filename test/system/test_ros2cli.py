@@ -151,6 +151,11 @@ def _stop_group(proc):
             proc.wait()
 
 
+# s: one try of a query that _ros2_until repeats (a client whose answer is lost, e.g. a
+# `ros2 param set` on a loaded host, waits for good)
+TRY = 60.0
+
+
 def _ros2_until(env, command, done):
     """
     Run a ros2 command line until done(result) holds; return the last CompletedProcess.
@@ -159,12 +164,20 @@ def _ros2_until(env, command, done):
     daemon lists a node before its endpoints (CI once saw ``ros2 node info`` print empty
     sections for a node ``ros2 node list`` already showed), and ``ros2 param`` gives up
     after its own 5 s wait for a node's parameter services. Every such query waits for
-    what it is about, with the one deadline; the caller asserts on what came last.
+    what it is about, with the one deadline; the caller asserts on what came last. A try
+    that has not ended after TRY s is stopped and made again, as a user would (every
+    command repeated this way sets or reads the same values again).
     """
     deadline = time.monotonic() + WAIT
     while True:
-        result = _ros2(env, command)
-        if done(result) or time.monotonic() > deadline:
+        try:
+            left = max(deadline - time.monotonic(), 1.0)
+            result = _ros2(env, command, timeout=min(TRY, left))
+            finished = done(result)
+        except subprocess.TimeoutExpired as err:
+            result = subprocess.CompletedProcess(command, None, '', f'{err}')
+            finished = False
+        if finished or time.monotonic() > deadline:
             return result
 
 
