@@ -45,6 +45,18 @@ def test_seed_cart_review_states_margins_growth_and_the_limit():
     assert r.closed_loop_growth[0] > 100 and r.observer_growth[0] > 100
 
 
+
+def test_an_unstable_vehicle_without_command_limits_is_warned():
+    """observer-design names the command bound the compensator falls back on."""
+    needle = 'the plant is unstable and controller.u_min/u_max are not given'
+    cart = load_vehicle(CONFIG / 'cart_pendulum.yaml')
+    assert any(w.startswith(needle) for w in design_vehicle(cart).warnings)
+    limited = replace(cart, controller=replace(cart.controller, u_min=np.array([-20.0]),
+                                               u_max=np.array([20.0])))
+    assert not any(w.startswith(needle) for w in design_vehicle(limited).warnings)
+    submarine = load_vehicle(CONFIG / 'submarine.yaml')
+    assert not any(w.startswith(needle) for w in design_vehicle(submarine).warnings)
+
 def test_shipped_robust_cart_meets_its_margins():
     seed = load_vehicle(CONFIG / 'cart_pendulum.yaml')
     v = load_vehicle(CONFIG / 'cart_pendulum_robust.yaml')
