@@ -45,7 +45,6 @@ def test_seed_cart_review_states_margins_growth_and_the_limit():
     assert r.closed_loop_growth[0] > 100 and r.observer_growth[0] > 100
 
 
-
 def test_an_unstable_vehicle_without_command_limits_is_warned():
     """observer-design names the command bound the compensator falls back on."""
     needle = 'the plant is unstable and controller.u_min/u_max are not given'
@@ -56,6 +55,7 @@ def test_an_unstable_vehicle_without_command_limits_is_warned():
     assert not any(w.startswith(needle) for w in design_vehicle(limited).warnings)
     submarine = load_vehicle(CONFIG / 'submarine.yaml')
     assert not any(w.startswith(needle) for w in design_vehicle(submarine).warnings)
+
 
 def test_shipped_robust_cart_meets_its_margins():
     seed = load_vehicle(CONFIG / 'cart_pendulum.yaml')
