@@ -8,9 +8,10 @@ its values. With two publishers known, or with a warm standby observer (a second
 publisher's first estimates can come before its match), an estimate belongs to the
 stream followed when it is within :data:`CONSISTENCY_TOL` of a state's scale of the
 model's prediction from the last estimate followed, or of the standby's estimate at its
-stamp; one that fits neither is another stream's (a second observer not yet converged):
-ignored and counted. The standby does not veto the stream followed: an estimate that
-continues it while the standby is further away is followed, the disagreement counted
+stamp (a standby beyond the divergence envelope is no reference); one that fits neither
+is another stream's (a second observer not yet converged): ignored and counted. The
+standby does not veto the stream followed: an estimate that continues it while the
+standby is further away is followed, the disagreement counted
 (``standby_disagreements``, a WARN), and while they disagree no lag hands the loop over
 to the standby (a starved compensator's standby can be the one that is wrong); the
 stream followed falling silent still does (``controller.stale_timeout``).

@@ -37,7 +37,8 @@ Every estimate and every command passes gates first:
 - with two publishers or a warm standby, an estimate that fits neither the model's
   prediction from the last one followed nor the standby's is another stream's: ignored
   (``other_stream_estimates``, said on /diagnostics); a standby that disagrees with the
-  stream followed takes no hand-over (:mod:`.estimate_stream` says how);
+  stream followed takes no hand-over (:mod:`.estimate_stream` says how), and a standby
+  beyond the envelope is no reference at all;
 - a command must be finite, inside ``controller.u_min``/``u_max``, and without limits
   inside the command envelope (100 times ``|K|`` applied to the file's state scale, the
   bound ``observer-design`` prints), or the safe command is sent instead; the safe
@@ -332,6 +333,11 @@ class LoopSupervisor:
         if standby is None or y is None:
             return None
         x = standby.measurement(sensor, t, y)
+        if standby.restarted is not None:
+            self._count('standby_restarts')
+            self._log(WARN, f'standby observer: {sensor} {standby.restarted:.2f} s after its '
+                      'estimate, longer than the model can be predicted over; restarted at '
+                      'the measurement (warm again after its settling time)')
         if x is None or t < self.plant_time:
             return None
         if standby.warm and self.mode in ('closed', 'recover', 'waiting') and \
@@ -486,6 +492,8 @@ class LoopSupervisor:
         if self.publishers <= 1 and not warm:
             return True
         ref = self.standby.at(t) if warm else None
+        if ref is not None and not self.x_envelope.inside(ref):
+            ref = None          # a standby beyond the envelope (diverged) is no reference
         if ref is not None and within(x_list, ref, self._scale, CONSISTENCY_TOL):
             self.stream.standby_agrees = True
             return True

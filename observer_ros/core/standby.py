@@ -11,6 +11,14 @@ speaks again, is compared with it before it is followed again. The standby also 
 an estimate stream that does not belong to this loop (a second observer with the same
 name, unconverged) from the one it follows.
 
+Each measurement is judged by the observer node's own :class:`~.estimators.admission.Admission`
+(the same ``max_gap`` from :func:`.health.max_prediction_gap`): a stamp repeated is not
+corrected with twice, and after a gap longer than the unstable model can be predicted
+over (a plant that waited at its step 0 while /clock went on) the standby restarts at the
+measurement, as the observer does, and is not warm until it has run on measurements for
+``warm_after`` again. Far-back stamps and clock jumps are the compensator's to judge
+(:meth:`reset`); no stamp is refused for being ahead of a clock.
+
 No ROS here: the node reads the sensor messages (``sensors.extract_measurement``) and
 passes stamps and values.
 
@@ -22,12 +30,17 @@ import numpy as np
 
 from .errors import ObserverError
 from .estimators import History, make_estimator
+from .estimators.admission import Admission, DUPLICATE, restart_state
+from .health import max_prediction_gap
 from .verify import unstable_eigenvalues
 
 __all__ = ['StandbyObserver', 'unstable_plant']
 
 # How many of the standby's recent estimates are kept by stamp (to compare the observer's).
 RECENT = 64
+# s: the standby's admission never finds a stamp far back (a clock jump): the compensator
+# judges those (``sensor_jumps``) before a measurement reaches the standby, and resets it
+NEVER_FAR_BACK = 1e9
 
 
 def unstable_plant(plant):
@@ -55,9 +68,14 @@ class StandbyObserver:
     Attributes
     ----------
     warm : bool
-        It has run on measurements for ``warm_after`` seconds since its start or reset.
+        It has run on measurements for ``warm_after`` seconds since its start, reset or
+        restart.
     refused : int
         Measurements it could not use (older than its history, not finite, a bad size).
+    counts : dict
+        The admission's counters (``duplicates``, ``long_gap_resets``, ...).
+    restarted : float or None
+        The gap (s) the last measurement restarted the standby after, else None.
 
     """
 
@@ -66,13 +84,20 @@ class StandbyObserver:
         self.warm_after = float(warm_after)
         self._rows = {s.name: tuple(vehicle.plant.output_rows(s.outputs))
                       for s in vehicle.sensors}
+        plant = vehicle.plant
+        self._max_gap = max_prediction_gap(plant.A, vehicle.sample_time, plant.is_discrete)
         self.refused = 0
+        self.counts = {}
+        self.restarted = None
         self.reset()
 
     def reset(self):
         """Start again from the file's initial estimate (a clock that started over)."""
-        est = make_estimator(self._vehicle.plant, self._vehicle.observer)
-        self.history = History(est, self._vehicle.observer.history_length)
+        self._estimator = make_estimator(self._vehicle.plant, self._vehicle.observer)
+        self.history = History(self._estimator, self._vehicle.observer.history_length)
+        self._admission = Admission(self.history, clock_jump_tolerance=NEVER_FAR_BACK,
+                                    future_tolerance=None, max_gap=self._max_gap,
+                                    counts=self.counts)
         self._recent = OrderedDict()
         self._first = None
         self.warm = False
@@ -105,8 +130,23 @@ class StandbyObserver:
         """
         history = self.history
         head = history.t
+        verdict = self._admission.measurement(sensor, t)
+        self.restarted = None
+        if verdict is DUPLICATE:        # answered with the estimate made at that stamp
+            x = self._recent.get(t)
+            return None if x is None else x.copy()
+        if not verdict.use:
+            self.refused += 1
+            return None
+        rows = self._rows[sensor]
+        if verdict.restart:             # a long gap: at the measurement, as the observer
+            self.restarted = t - head
+            history.reset(None, None)
+            history.reset(restart_state(self._estimator, rows, y), None)
+            self._recent.clear()
+            self._first, self.warm, head = None, False, None
         try:
-            x = history.correct(t, y, self._rows[sensor])
+            x = history.correct(t, y, rows)
         except (ObserverError, ValueError):
             self.refused += 1
             return None

@@ -59,10 +59,13 @@ class CartLoop:
     mean wall time early or late at random; times given to the supervisor, lags and
     stalls are wall times, stamps and the trace plant times. ``busy``: (from, to, most)
     when every message, either way, takes up to ``most`` s more (the host's processes
-    short of CPU).
+    short of CPU). ``hold``: s the plant waits at its step 0, its state held, before it
+    steps (a /clock follower whose peers start late: its step 1 is stamped on /clock's
+    time, this much after step 0).
     """
 
-    def __init__(self, seed=0, jitter=0.0, stalls=(), plant_rate=1.0, spread=0.0, busy=()):
+    def __init__(self, seed=0, jitter=0.0, stalls=(), plant_rate=1.0, spread=0.0, busy=(),
+                 hold=0.0):
         self.sup, self.counts, self.logs = supervisor('cart_pendulum',
                                                       'simulator.mode:=realtime')
         v = self.v = self.sup.vehicle
@@ -73,6 +76,7 @@ class CartLoop:
         self.stalls = list(stalls)
         self.plant_rate, self.spread = plant_rate, spread
         self.busy = list(busy)
+        self.hold = float(hold)
         self._walls = [1.0]         # the wall time of each step
         self.ticks = np.random.default_rng(seed + 1)
         self.busy_rng = np.random.default_rng(seed + 2)
@@ -184,7 +188,8 @@ class CartLoop:
         """Step the loop to the (plant) time ``until``."""
         sup = self.sup
         while True:
-            t = stamp_sec(1.0 + len(self.trace) * self.dt)     # a stamp read from the wire
+            k = len(self.trace)
+            t = stamp_sec(1.0 + k * self.dt + (self.hold if k else 0.0))   # read from the wire
             if t > until:
                 return
             w = self.wall(t)
@@ -396,6 +401,67 @@ def test_the_standby_closes_the_loop_while_the_observer_is_paused():
     assert back < 16.0, back
     assert loop.counts['resync_estimates'] >= RESYNC_AGREE - 1
     assert loop.worst(15.0)[1] < 0.05
+
+
+def test_a_plant_that_waited_at_step_0_is_followed_from_its_first_step():
+    """
+    A /clock follower waits 3.66 s at step 0 for its peers, then steps on /clock's time.
+
+    The gap is longer than the cart's model can be predicted over (1.40 s): the observer
+    restarts at the measurement, and so does the standby (its admission is the
+    observer's); it is not warm again before 0.4 s of measurements, so the observer's
+    estimates close the loop, none ignored, and the cart reaches x_d.
+    """
+    loop = CartLoop(hold=3.66)
+    loop.observer()
+    loop.run(13.0)
+    standby = loop.sup.standby
+    assert standby.counts.get('long_gap_resets') == 1, standby.counts
+    assert loop.counts['standby_restarts'] == 1
+    assert any('standby observer: encoder 3.67 s after its estimate' in text
+               for _, text in loop.logs), loop.logs
+    assert 'other_stream_estimates' not in loop.counts, loop.counts
+    assert 'implausible_estimates' not in loop.counts, loop.counts
+    assert {m for t, _, m in loop.trace if t > 4.66} == {'closed'}
+    assert all(c.source == 'observer' for c in loop.commands), \
+        {c.source for c in loop.commands}
+    # as without the wait (x within 0.003 of x_d 8 s after the start), 3.66 s later
+    theta, dx = loop.worst(12.66)
+    assert theta < 0.005 and dx < 0.005, (theta, dx)
+
+
+def test_a_standby_beyond_the_envelope_vetoes_no_estimate():
+    """
+    A diverged standby is no reference for which estimates are the stream followed.
+
+    An estimate 0.6 s after the last one followed (past the model's 50-step check) that
+    the standby, predicted far beyond the envelope, disagrees with is followed, not
+    ignored as another stream's.
+    """
+    loop = CartLoop()
+    loop.observer()
+    loop.run(3.0)
+    sup = loop.sup
+    assert sup.standby.warm
+    t, x = loop.trace[-1][0] + 0.6, loop.trace[-1][1]
+    sup.standby.history.reset(np.array([0.0, 0.0, 0.0, -1.2e6]), sup.standby.history.t)
+    sup.standby._recent.clear()
+    command = sup.estimate(t, x, loop.wall(t) + 0.001)
+    assert command is not None and command.source == 'observer', command
+    assert 'other_stream_estimates' not in loop.counts, loop.counts
+
+
+def test_the_standby_answers_a_repeated_stamp_without_correcting_again():
+    """Step 0 re-sent: the standby's estimate at it is the same, as the observer's."""
+    sup, _, _ = supervisor('cart_pendulum', 'simulator.mode:=realtime')
+    standby = sup.standby
+    y = np.array([0.3])
+    first = standby.measurement('encoder', 1.0, y)
+    for _ in range(3):
+        again = standby.measurement('encoder', 1.0, y)
+        assert np.array_equal(again, first)
+    assert standby.counts['duplicates'] == 3
+    assert np.array_equal(standby.history.x_hat, first)
 
 
 def test_before_the_standby_is_warm_the_loop_stays_on_the_estimates():

@@ -31,8 +31,11 @@ ECHO_STAMP = ('ros2 topic echo --once /state/estimate sensor_msgs/msg/JointState
 LIFECYCLE = ('ros2 lifecycle get /observer', 'ros2 lifecycle set /observer configure',
              'ros2 lifecycle set /observer activate')
 RESET = 'ros2 service call /observer/reset std_srvs/srv/Trigger'
-SET_STATE = ('ros2 topic pub --once -w 1 /observer/set_state sensor_msgs/msg/JointState '
-             '"{name: [theta, w, q], position: [0.1, 0.0, 0.0]}"')
+# -w 1 publishes once the observer's subscription has matched; --keep-alive keeps the
+# reliable publisher up until the observer has matched it too (DDS discovery is not
+# symmetric: after the default 0.1 s the message can be lost on a loaded host)
+SET_STATE = ('ros2 topic pub --once -w 1 --keep-alive 3 /observer/set_state '
+             'sensor_msgs/msg/JointState "{name: [theta, w, q], position: [0.1, 0.0, 0.0]}"')
 ROBOT = ('ros2 launch observer_ros observer.launch.py vehicle:=submarine '
          'remaps:="imu/data:=/robot/imu control/u:=/robot/cmd"')
 RECORD = ('ros2 launch observer_ros closed_loop.launch.py vehicle:=pitch_imu mode:=lockstep '
