@@ -334,10 +334,15 @@ class LoopSupervisor:
             return None
         x = standby.measurement(sensor, t, y)
         if standby.restarted is not None:
+            # the observer restarts at this measurement too (one admission): its new
+            # initial transient is learned by the envelopes as at the start
+            self.x_envelope.reset()
+            self.u_envelope.reset()
             self._count('standby_restarts')
             self._log(WARN, f'standby observer: {sensor} {standby.restarted:.2f} s after its '
                       'estimate, longer than the model can be predicted over; restarted at '
-                      'the measurement (warm again after its settling time)')
+                      'the measurement (warm again after its settling time; envelopes '
+                      'learn again)')
         if x is None or t < self.plant_time:
             return None
         if standby.warm and self.mode in ('closed', 'recover', 'waiting') and \

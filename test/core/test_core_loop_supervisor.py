@@ -430,6 +430,28 @@ def test_a_plant_that_waited_at_step_0_is_followed_from_its_first_step():
     assert theta < 0.005 and dx < 0.005, (theta, dx)
 
 
+def test_the_envelopes_learn_again_after_a_wait_at_step_0():
+    """
+    The first seconds after a long gap are learned as the first seconds of a run.
+
+    The observer restarts at the measurement after the wait, and its new initial
+    transient may reach beyond what step 0 alone made plausible (theta_dot 100 on the
+    cart's file); growing from within the bound, it is learned, not refused.
+    """
+    loop = CartLoop(hold=3.66)
+    loop.observer()
+    loop.run(4.7)
+    sup = loop.sup
+    assert loop.counts['standby_restarts'] == 1
+    t = loop.trace[-1][0]
+    for k, rate in enumerate((50.0, 150.0)):
+        x = [0.0, 0.0, 0.0, rate]
+        t_k = t + 0.01 * (k + 1)
+        command = sup.estimate(t_k, x, loop.wall(t_k) + 0.001)
+        assert command is not None and command.source == 'observer', (rate, command)
+    assert 'implausible_estimates' not in loop.counts, loop.counts
+
+
 def test_a_standby_beyond_the_envelope_vetoes_no_estimate():
     """
     A diverged standby is no reference for which estimates are the stream followed.
