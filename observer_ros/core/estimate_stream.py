@@ -59,6 +59,35 @@ class EstimateStream:
         self._said = False
         self.standby_agrees = True
 
+    def belongs(self, x, ref, predict, scale):
+        """
+        Tell whether an estimate belongs to the stream followed.
+
+        Parameters
+        ----------
+        x : sequence of float
+            The estimate.
+        ref : ndarray or None
+            The standby's estimate at its stamp; None without a usable one (not warm,
+            beyond the envelope).
+        predict : callable
+            ``predict()`` -> the model's prediction at its stamp from the last estimate
+            followed, or None (none yet, or too far back); called only when needed.
+        scale : ndarray
+            Each state's scale.
+
+        """
+        if ref is not None and within(x, ref, scale, CONSISTENCY_TOL):
+            self.standby_agrees = True
+            return True
+        predicted = predict()
+        if predicted is None:
+            return ref is None
+        fits = within(x, predicted, scale, CONSISTENCY_TOL)
+        if fits and ref is not None:
+            self.standby_disagrees()
+        return fits
+
     def ignore(self, text):
         """Ignore an estimate of another stream: counted, said once (ERROR); return None."""
         self._count('other_stream_estimates')

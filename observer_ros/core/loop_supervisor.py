@@ -333,16 +333,13 @@ class LoopSupervisor:
         if standby is None or y is None:
             return None
         x = standby.measurement(sensor, t, y)
-        if standby.restarted is not None:
-            # the observer restarts at this measurement too (one admission): its new
-            # initial transient is learned by the envelopes as at the start
-            self.x_envelope.reset()
+        if standby.restarted is not None:   # so does the observer (one admission)
+            self.x_envelope.reset()         # its new initial transient learned again
             self.u_envelope.reset()
             self._count('standby_restarts')
             self._log(WARN, f'standby observer: {sensor} {standby.restarted:.2f} s after its '
                       'estimate, longer than the model can be predicted over; restarted at '
-                      'the measurement (warm again after its settling time; envelopes '
-                      'learn again)')
+                      'the measurement (warm after its settling time; envelopes learn again)')
         if x is None or t < self.plant_time:
             return None
         if standby.warm and self.mode in ('closed', 'recover', 'waiting') and \
@@ -499,21 +496,15 @@ class LoopSupervisor:
         ref = self.standby.at(t) if warm else None
         if ref is not None and not self.x_envelope.inside(ref):
             ref = None          # a standby beyond the envelope (diverged) is no reference
-        if ref is not None and within(x_list, ref, self._scale, CONSISTENCY_TOL):
-            self.stream.standby_agrees = True
-            return True
-        predicted = None
-        if self._followed is not None:
-            t0, x0 = self._followed
-            steps = int(round((t - t0) / self.dt))
-            if 0 < steps <= CONSISTENCY_STEPS:
-                predicted = self.safe.predict_from(x0, steps)
-        if predicted is None:
-            return ref is None
-        fits = within(x_list, predicted, self._scale, CONSISTENCY_TOL)
-        if fits and ref is not None:
-            self.stream.standby_disagrees()
-        return fits
+        return self.stream.belongs(x_list, ref, lambda: self._predicted(t), self._scale)
+
+    def _predicted(self, t):
+        """Return the model's prediction at t from the last estimate followed, or None."""
+        if self._followed is None:
+            return None
+        t0, x0 = self._followed
+        steps = int(round((t - t0) / self.dt))
+        return self.safe.predict_from(x0, steps) if 0 < steps <= CONSISTENCY_STEPS else None
 
     def _back(self, t, x_list, now):
         """Estimates after an outage: resync; return a command, None, or False (close)."""

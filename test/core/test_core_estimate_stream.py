@@ -39,3 +39,22 @@ def test_within_scales_each_state():
     scale = np.array([1.0, 10.0])
     assert within([0.1, 1.0], np.zeros(2), scale, 0.1)
     assert not within([0.1, 1.01], np.zeros(2), scale, 0.1)
+
+
+def test_an_estimate_belongs_by_the_standby_or_else_by_the_model():
+    scale = np.ones(2)
+    near, far = np.zeros(2), np.full(2, 1.0)
+    x = [0.05, 0.0]
+
+    def never():
+        raise AssertionError('the prediction is not needed when the standby agrees')
+    s, counts, _ = stream()
+    assert s.belongs(x, near, never, scale) and s.standby_agrees
+    # the standby far, the model's prediction near: followed, the disagreement counted
+    assert s.belongs(x, far, lambda: near, scale)
+    assert not s.standby_agrees and counts == {'standby_disagreements': 1}
+    # both far: another stream's; no prediction: the standby decides, or nobody does
+    assert not s.belongs(x, far, lambda: far, scale)
+    assert not s.belongs(x, far, lambda: None, scale)
+    assert s.belongs(x, None, lambda: None, scale)
+    assert not s.belongs(x, None, lambda: far, scale)
