@@ -195,8 +195,14 @@ class StagedOutput:
         self.path = self.out.parent / f'{self._name}.new'
         if self.path.exists():
             _remove_tree(self.path)
-        self.path.mkdir()
-        self._write_stage_marker([])
+        try:
+            self.path.mkdir()
+            self._write_stage_marker([])
+        except BaseException:
+            # Ctrl-C or SIGTERM here: __exit__ does not run for an __enter__ that raised
+            if self.path.exists():
+                _remove_tree(self.path)
+            raise
         return self
 
     def __exit__(self, *exc):

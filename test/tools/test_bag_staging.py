@@ -90,6 +90,19 @@ def test_a_tool_terminated_while_writing_leaves_no_mix_and_no_stage(tmp_path):
     assert _complete(out) and not _stages(out)
 
 
+def test_a_signal_while_the_stage_is_made_leaves_no_stage(tmp_path, monkeypatch):
+    """SIGTERM (or Ctrl-C) between the stage's mkdir and its marker: the stage removed."""
+    out = tmp_path / 'eval'
+
+    def interrupted(self, users):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(StagedOutput, '_write_stage_marker', interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        with StagedOutput(out, False, 'observer-eval'):
+            pass
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_an_evaluation_that_cannot_finish_writing_keeps_the_earlier_output(
         tmp_path, monkeypatch, capsys):
     out = tmp_path / 'eval'
