@@ -47,6 +47,7 @@ simulated time does.
 
 """
 
+import json
 import time
 
 from diagnostic_msgs.msg import DiagnosticStatus
@@ -55,7 +56,7 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.duration import Duration
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Bool
+from std_msgs.msg import Bool, String
 
 from .checks import own_parameter_problem
 from .clock_follower import CLOCK_RESYNC, ClockFollower
@@ -130,9 +131,13 @@ class PlantSimulatorNode(VehicleNode):
         self._cmd_sub = self.watched_subscription(
             JointState, TOPICS['command'], self._on_command, STATE_QOS)
         self._recorder_ready = False
+        self._recorder_heard = None     # (topics recorded, topics in the bag)
+        self._held_for_recorder = False     # lockstep: step 0 answered, not yet in the bag
         if self.param('wait_for_recorder'):
             self._ready_sub = self.watched_subscription(
                 Bool, 'recorder/ready', self._on_recorder_ready, LATCHED_QOS, shed=False)
+            self._heard_sub = self.watched_subscription(
+                String, 'recorder/heard', self._on_recorder_heard, LATCHED_QOS, shed=False)
         # lockstep bookkeeping
         self._due = []                  # sensors still to publish at this step
         self._answers = 0               # commands stamped t_k received so far
@@ -175,6 +180,36 @@ class PlantSimulatorNode(VehicleNode):
 
     def _on_recorder_ready(self, msg):
         self._recorder_ready = bool(msg.data)
+
+    def _on_recorder_heard(self, msg):
+        try:
+            said = json.loads(msg.data)
+            self._recorder_heard = (set(said['recording']), set(said['heard']))
+        except (ValueError, KeyError, TypeError) as err:
+            self.get_logger().warning(f'recorder/heard: {err}; not used',
+                                      throttle_duration_sec=1.0)
+            return
+        if self._held_for_recorder and self._step_in_bag():
+            self._held_for_recorder = False
+            self._waiting_since = None
+            self._publish_next()
+
+    def _step_in_bag(self):
+        """
+        Tell whether the recorder has this step's estimate and command (lockstep, step 0).
+
+        Its readers matched the observer's and the compensator's writers, but those writers
+        may not have matched its readers yet: the first estimates would go unrecorded. Until
+        the bag has a message of each, step 0 is sent again (answered again) and the run
+        waits; without wait_for_recorder, or after step 0, nothing is held.
+        """
+        if not self.param('wait_for_recorder') or self.k != 0:
+            return True
+        if self._recorder_heard is None:
+            return False
+        recording, heard = self._recorder_heard
+        loop = {self.resolve_topic_name(TOPICS[key]) for key in ('estimate', 'command')}
+        return loop & recording <= heard
 
     # -- following /clock ---------------------------------------------------------------------
     def _on_clock(self, msg):
@@ -351,6 +386,11 @@ class PlantSimulatorNode(VehicleNode):
         self.u = u
         self._answers += 1
         if self._answers >= self._published:
+            if not self._step_in_bag():
+                # the watchdog sends the step again: its estimate and command come again
+                self._held_for_recorder = True
+                return
+            self._held_for_recorder = False
             self._waiting_since = None
             self._publish_next()
 
@@ -368,6 +408,11 @@ class PlantSimulatorNode(VehicleNode):
             self.count('resent_measurements')
         if waited > self.vehicle.simulator.command_timeout and not self._timeout_reported:
             self._timeout_reported = True
+            if self._held_for_recorder:
+                self.get_logger().warning(
+                    f'step 0 answered, but the recorder has not recorded its estimate and '
+                    f'command after {waited:.1f} s; sent again until it has')
+                return
             self.count('command_timeouts')
             self.get_logger().error(
                 f'no command for step {self.k} (t={self.t:.3f}) after {waited:.1f} s; '

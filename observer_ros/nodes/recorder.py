@@ -31,6 +31,7 @@ it holds an exclusive lock on ``BAG/.recording.lock`` (its process id inside):
 
 """
 
+import json
 import os
 from pathlib import Path
 import shutil
@@ -46,7 +47,7 @@ from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
                                 QosReliability, QosTime)
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.typesys import get_typestore, Stores
-from std_msgs.msg import Bool
+from std_msgs.msg import Bool, String
 
 from . import signals
 from .common import LATCHED_QOS, SENSOR_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS, VehicleNode
@@ -278,6 +279,12 @@ class RecorderNode(VehicleNode):
         # simulator started with wait_for_recorder loses nothing to DDS matching
         self._ready_pub = self.create_publisher(Bool, 'recorder/ready', LATCHED_QOS)
         self._ready_timer = self.wall_timer(0.05, self._check_ready)
+        # 'recorder/heard' (latched): the topics recorded and those a message of which is in
+        # the bag. A matched reader is not a matched writer (discovery is not symmetric):
+        # a lock-step simulator holds step 0 until the bag has its estimate and command
+        self._heard = set()
+        self._heard_pub = self.create_publisher(String, 'recorder/heard', LATCHED_QOS)
+        self._say_heard()
 
     def _number(self, name, kind):
         """Return a numeric own parameter as ``kind``; refuse another type by name."""
@@ -364,6 +371,13 @@ class RecorderNode(VehicleNode):
         except (OSError, sqlite3.Error) as err:
             self._fail(err)
         self.counts[connection.topic] += 1
+        if connection.topic not in self._heard:
+            self._heard.add(connection.topic)
+            self._say_heard()
+
+    def _say_heard(self):
+        self._heard_pub.publish(String(data=json.dumps(
+            {'recording': sorted(self.counts), 'heard': sorted(self._heard)})))
 
     def _write_early(self, t):
         """Write what came before the first /clock, in the order it came, at time t."""

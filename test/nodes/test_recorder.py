@@ -277,3 +277,27 @@ def test_a_bag_being_recorded_is_refused_by_recovery_and_evaluation(tmp_path, fe
     assert (bag / '.recording.lock').exists()
     report = recover_bag(bag)
     assert report['messages'][TOPIC] >= 20 and not (bag / '.recording.lock').exists()
+
+
+@pytest.mark.ros
+def test_the_recorder_says_which_topics_are_in_the_bag(tmp_path, feeder):
+    """recorder/heard (latched): the topics recorded, and those with a message in the bag."""
+    import json
+    from observer_ros.nodes.common import LATCHED_QOS
+    from std_msgs.msg import String
+    said = []
+    feeder.probe.node.create_subscription(String, 'recorder/heard',
+                                          lambda m: said.append(json.loads(m.data)),
+                                          LATCHED_QOS)
+    rec = _recorder(tmp_path / 'bag', 'mcap', log_dir=tmp_path)
+    try:
+        feeder.wait_recorder()
+        feeder.probe.spin_until(lambda: said, WAIT, 'recorder/heard')
+        assert {TOPIC, '/state/estimate', '/control/u'} <= set(said[-1]['recording'])
+        assert TOPIC not in said[-1]['heard']
+        feeder.publish(1)
+        feeder.probe.spin_until(lambda: TOPIC in said[-1]['heard'], WAIT,
+                                f'{TOPIC} in recorder/heard')
+        assert '/state/estimate' not in said[-1]['heard']
+    finally:
+        assert rec.stop() == 0
