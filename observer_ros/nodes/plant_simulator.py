@@ -203,7 +203,7 @@ class PlantSimulatorNode(VehicleNode):
         the bag has a message of each, step 0 is sent again (answered again) and the run
         waits; without wait_for_recorder, or after step 0, nothing is held.
         """
-        if not self.param('wait_for_recorder') or self.k != 0:
+        if self.k != 0 or not self.param('wait_for_recorder'):
             return True
         if self._recorder_heard is None:
             return False
