@@ -30,7 +30,7 @@ import numpy as np
 
 from .errors import ObserverError
 from .estimators import History, make_estimator
-from .estimators.admission import Admission, DUPLICATE, restart_state
+from .estimators.admission import Admission, DUPLICATE, restart_at
 from .health import max_prediction_gap
 from .verify import unstable_eigenvalues
 
@@ -141,8 +141,7 @@ class StandbyObserver:
         rows = self._rows[sensor]
         if verdict.restart:             # a long gap: at the measurement, as the observer
             self.restarted = t - head
-            history.reset(None, None)
-            history.reset(restart_state(self._estimator, rows, y), None)
+            restart_at(history, self._estimator, rows, y)
             self._recent.clear()
             self._first, self.warm, head = None, False, None
         try:

@@ -80,7 +80,7 @@ class ObserverHealth:
         Start over: predicting across this gap would amplify the error.
 
         The caller restarts the estimator at the measurement
-        (:func:`~observer_ros.core.estimators.admission.restart_state`).
+        (:func:`~observer_ros.core.estimators.admission.restart_at`).
         """
         gap = t - self.history.t
         self.get_logger().warning(

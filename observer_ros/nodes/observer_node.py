@@ -47,7 +47,7 @@ from ..core.errors import ObserverError
 from ..core.estimators import History, make_estimator
 from ..core.estimators.admission import (Admission, AHEAD_COMMAND, BAD_STAMP, check_stamp,
                                          CLOCK_JUMP, DUPLICATE, FAR_BACK, LATE, OUT_OF_ORDER,
-                                         restart_state, STALE_COMMAND)
+                                         restart_at, STALE_COMMAND)
 from ..core.innovation import InnovationMonitor, transient_time
 from ..core.vehicle_design import design_vehicle
 
@@ -250,8 +250,7 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
             else:
                 self._long_gap(sensor, t)
             # start over at the measurement: the initial estimate made to agree with it
-            history.reset(None, None)
-            history.reset(restart_state(self.estimator, rows, y), None)
+            restart_at(history, self.estimator, rows, y)
         estimator = self.estimator
         skipped = estimator.unverified_corrections
         try:

@@ -58,7 +58,7 @@ from ..core.errors import ObserverError
 from ..core.estimators import History, make_estimator
 from ..core.estimators.admission import (Admission, CLOCK_JUMP, CLOCK_JUMP_AGREEMENT,
                                          CLOCK_JUMP_TOLERANCE, DUPLICATE, FAR_BACK,
-                                         FUTURE_TOLERANCE, LATE, restart_state)
+                                         FUTURE_TOLERANCE, LATE, restart_at)
 from ..core.health import max_prediction_gap
 from ..core.innovation import whiten
 from ..timeutil import ns_to_secs
@@ -281,8 +281,7 @@ def replay(recording, vehicle, name='design', overrides=(), exact=False,
                 answered.add(stamps[k][j], est.x_hat)       # the node answers these
             continue
         if verdict.restart:                 # a clock jump, a long gap: at the measurement
-            history.reset(None, None)
-            history.reset(restart_state(est, rows[k], values[k][j]), None)
+            restart_at(history, est, rows[k], values[k][j])
             counts['estimator_resets'] += 1
             if verdict is CLOCK_JUMP:
                 epoch += 1

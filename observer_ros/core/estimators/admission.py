@@ -58,7 +58,8 @@ from ..clock_jump import CLOCK_JUMP as JUMPED, CLOCK_JUMP_AGREEMENT, CLOCK_JUMP_
 from ..errors import ObserverError
 from ...timeutil import ns_to_sec
 
-__all__ = ['Admission', 'Verdict', 'check_stamp', 'stamp_ns', 'malformed_ns', 'restart_state',
+__all__ = ['Admission', 'Verdict', 'check_stamp', 'stamp_ns', 'malformed_ns', 'restart_at',
+           'restart_state',
            'CLOCK_JUMP_TOLERANCE', 'FUTURE_TOLERANCE', 'CLOCK_JUMP_AGREEMENT',
            'FIRST_VALID_NS', 'MALFORMED_NS', 'IN_ORDER', 'LATE', 'LONG_GAP', 'CLOCK_JUMP',
            'FAR_BACK', 'OUT_OF_ORDER', 'DUPLICATE', 'FUTURE', 'BAD_STAMP', 'COMMAND',
@@ -177,6 +178,18 @@ def restart_state(estimator, rows, y):
     x0 = estimator.x_hat
     C = estimator.plant.C[list(rows)]
     return x0 + np.linalg.pinv(C) @ (np.asarray(y, dtype=float) - C @ x0)
+
+
+def restart_at(history, estimator, rows, y):
+    """
+    Start a history over at a measurement (the verdict's ``restart``): a clock jump, a gap.
+
+    The history is cleared, so that the estimator holds its initial estimate, then set to
+    :func:`restart_state` at no time (the measurement, corrected with next, gives it). The
+    observer node, the replay and the compensator's standby all restart so.
+    """
+    history.reset(None, None)
+    history.reset(restart_state(estimator, rows, y), None)
 
 
 class Admission:
