@@ -611,17 +611,21 @@ class LoopSupervisor:
 
     def _clock_restarted(self, t, last, now):
         """Estimates agree their clock started over: forget the old run's loop; resync."""
+        # the plant's side is the sensors' to restart: when they jumped first it runs on
+        # the new time base already, with commands sent on it, and is kept
+        plant = self.plant_time is None or self.plant_time - t > self.sensor_jumps.tolerance
         self._log(WARN, f'clock jumped back: state/estimate {last - t:.3f} s '
-                  f'({self.sensor_jumps.agreement} in a row; a restarted simulator?); safe '
-                  'command and limits reset')
+                  f'({self.sensor_jumps.agreement} in a row; a restarted simulator?); '
+                  f'{"safe command and " if plant else ""}limits reset')
         self.mode, self._agree = ('resync' if self.standby and self.standby.warm else 'closed'), 0
         self._last_wall, self._last_stamp = now, t      # the new time base
         self._answered = self._followed = self._answer = None
         self._problem, self._refusals = None, 0
-        self.safe.reset()
-        self._plant_start, self.plant_stepping = None, False
-        if self.delay is not None:
-            self.delay.reset()
+        if plant:
+            self.safe.reset()
+            self._plant_start, self.plant_stepping = None, False
+            if self.delay is not None:
+                self.delay.reset()
         self.x_envelope.reset()
         self.u_envelope.reset()
 

@@ -902,3 +902,62 @@ def test_a_second_observer_is_ignored_then_followed_if_the_first_stops():
     assert off < 0.05 and theta < 0.05, (theta, off)
     assert loop.sup.mode == 'closed'
     assert loop.counts['other_stream_estimates'] == n
+
+
+def test_a_restarted_observer_after_a_restarted_plant_keeps_the_commands_order():
+    """
+    An observer that jumps to a restarted plant's clock after the sensors keeps the order.
+
+    The simulator restarted: its sensors jumped first, the standby closes the loop on the
+    new run; while the compensator's process stalled, safe commands went out stamped ahead
+    on the plant's clock. The observer's estimates jump to the new run later: no command
+    after that is stamped before one already sent (the plant would not apply it, the
+    observers would, at its stamp).
+    """
+    # at rest at its reference: every estimate agrees with the standby's
+    sup, counts, _ = supervisor('cart_pendulum', 'simulator.mode:=realtime',
+                                'controller.reference:=[0.0, 0.0, 0.0, 0.0]')
+    sent = []
+
+    def take(command, stamp):
+        if command is not None:
+            sent.append(stamp if command.answers else stamp_sec(command.t))
+
+    now = 0.0
+    for k in range(100):                    # the first run, closed on the observer
+        t = 7.0 + 0.01 * k
+        take(sup.measurement('encoder', t, [0.0], now), t)
+        take(sup.estimate(t, sup.standby.at(t), now), t)
+        sup.watchdog(now)
+        now += 0.01
+    while not sup.watchdog(now):            # the simulator killed
+        now += 0.1
+    assert sup.mode == 'stale'
+    sent.clear()                            # the restarted plant starts its stamps over
+    for _ in range(3):                      # its restart: step 0 until a command answers
+        take(sup.measurement('encoder', 1.0, [0.0], now), 1.0)
+        now += 0.01
+    assert counts['clock_jumps'] == 1
+    t = 1.0
+    for _ in range(60):                     # the standby closes the loop (warm at 0.4 s)
+        t = round(t + 0.01, 2)
+        take(sup.measurement('encoder', t, [0.0], now), t)
+        now += 0.01
+    assert sup.standby.warm and counts['standby_commands'] > 10
+    for _ in range(20):                     # a stall: safe commands on the plant's clock
+        now += 0.01
+        take(sup.safe_tick(now), None)
+    assert max(sent) > t + 0.1, (max(sent), t)
+    before = len(sent)
+    for _ in range(3):                      # the observer restarted: its estimates jump
+        t = round(t + 0.01, 2)
+        take(sup.measurement('encoder', t, [0.0], now), t)
+        take(sup.estimate(t, np.array([0.0, 0.0, 0.0, 0.0]), now), t)
+    assert counts['estimate_clock_jumps'] == 1
+    for _ in range(30):
+        t = round(t + 0.01, 2)
+        take(sup.measurement('encoder', t, [0.0], now), t)
+        now += 0.01
+    assert len(sent) > before + 10
+    assert all(b >= a for a, b in zip(sent, sent[1:])), \
+        [(i, a, b) for i, (a, b) in enumerate(zip(sent, sent[1:])) if b < a][:5]

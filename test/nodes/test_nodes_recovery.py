@@ -104,8 +104,9 @@ class Loop:
             self.wait(done, f'|x - x_d| < {self.tol} after t = {after_t} s')
         except AssertionError as err:
             trail = [(round(t, 2), np.round(x, 3).tolist()) for t, x in self.true[since::20]]
-            raise AssertionError(f'{err}; true state since: {trail[-40:]}; '
-                                 f'diagnostics: {self.levels[-12:]}') from None
+            kept = '' if self.streams is None else f'; streams in {self.write_streams()}'
+            raise AssertionError(f'{err}; true state since: {trail[:20]} ... {trail[-20:]}; '
+                                 f'diagnostics: {self.levels[-12:]}{kept}') from None
 
     def close(self):
         for proc in self.procs.values():
@@ -132,6 +133,7 @@ def loop_of(tmp_path):
 @pytest.mark.parametrize('vehicle', ['cart_pendulum', 'submarine'])
 def test_simulator_killed_and_restarted_converges_again(loop_of, vehicle):
     lp = loop_of(vehicle)
+    lp.record_streams()
     lp.wait_converged(0, 8.0)
     lp.procs['plant_simulator'].stop(signal.SIGKILL)
     since = len(lp.true)
