@@ -611,8 +611,7 @@ class LoopSupervisor:
 
     def _clock_restarted(self, t, last, now):
         """Estimates agree their clock started over: forget the old run's loop; resync."""
-        # the plant's side is the sensors' to restart: when they jumped first it runs on
-        # the new time base already, with commands sent on it, and is kept
+        # the plant's side is the sensors' to restart: kept when they jumped first
         plant = self.plant_time is None or self.plant_time - t > self.sensor_jumps.tolerance
         self._log(WARN, f'clock jumped back: state/estimate {last - t:.3f} s '
                   f'({self.sensor_jumps.agreement} in a row; a restarted simulator?); '
@@ -635,21 +634,25 @@ class LoopSupervisor:
 
         Too late by the stamps: later than ``observer.history_length`` behind the newest
         sensor stamp. The steps are counted to the plant's time at wall time now
-        (:meth:`_plant_now`; without ``now``, the newest sensor stamp).
+        (:meth:`_plant_now`, or from t, a measurement's stamp, when newer and the plant is
+        past it; without ``now``, the newest sensor stamp).
         """
         if self.delay is None:
             return 0
         steps = self.delay.steps_late(self.plant_time, t)
         plant = self._plant_now(now)
+        if plant is not None and t > plant and (newer := self._plant_now(now, t)) > t:
+            plant = newer       # the plant is past t by the wall clock
         if steps is None or plant == self.plant_time:
             return steps
         return self.delay.steps_late(min(plant, t + self.delay.max_delay), t)
 
-    def _plant_now(self, now):
-        """Return the plant's time at wall time now (:meth:`.PlantClock.plant_now`)."""
+    def _plant_now(self, now, newest=None):
+        """Return the plant's time at wall time now from the newest stamp (plant_time)."""
+        newest = self.plant_time if newest is None else newest
         if self.plant_clock is None or not self.plant_stepping:
-            return self.plant_time  # (a plant at its step 0 waits: it is where it says)
-        return self.plant_clock.plant_now(self.plant_time, now, self.dt, self.delay.max_delay)
+            return newest           # (a plant at its step 0 waits: it is where it says)
+        return self.plant_clock.plant_now(newest, now, self.dt, self.delay.max_delay)
 
     def _estimate_clock(self, now):
         """

@@ -961,3 +961,30 @@ def test_a_restarted_observer_after_a_restarted_plant_keeps_the_commands_order()
     assert len(sent) > before + 10
     assert all(b >= a for a, b in zip(sent, sent[1:])), \
         [(i, a, b) for i, (a, b) in enumerate(zip(sent, sent[1:])) if b < a][:5]
+
+
+def test_an_estimate_taken_before_the_queued_measurements_is_answered_where_the_plant_is():
+    """
+    After a stall, the newest estimate can come before the measurements that queued.
+
+    Its stamp is where the plant was when its measurement was taken: the command answering
+    it is stamped past where the plant is now, not at the estimate's stamp behind it (the
+    plant would apply it late, the observers at its stamp).
+    """
+    sup, _, _ = supervisor('cart_pendulum', 'simulator.mode:=realtime',
+                           'controller.reference:=[0.0, 0.0, 0.0, 0.0]')
+    x = np.zeros(4)
+    for k in range(100):                    # the plant at rest, the loop closed on time
+        t = 9.01 + 0.01 * k
+        sup.measurement('encoder', t, [0.0], t - 8.0)
+        sup.estimate(t, x, t - 8.0)
+        sup.watchdog(t - 8.0)
+    assert sup.mode == 'closed' and sup.plant_time == pytest.approx(10.0)
+    # the compensator's process stalls 0.37 s; the observer's newest estimate (10.34) is
+    # taken first, 0.03 s after its measurement, then the 34 measurements that queued
+    now = 10.37 - 8.0
+    command = sup.estimate(10.34, x, now)
+    stamp = 10.34 if command.answers else stamp_sec(command.t)
+    assert stamp > 10.37, (stamp, command)
+    for k in range(34):
+        sup.measurement('encoder', 10.01 + 0.01 * k, [0.0], now)
