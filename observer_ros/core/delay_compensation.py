@@ -52,7 +52,8 @@ class DelayCompensation:
         self.Ad, self.Bd = np.asarray(Ad, float), np.asarray(Bd, float)
         self.dt, self.max_delay, self.lead = float(dt), float(max_delay), int(lead)
         self._sent = collections.deque()        # (stamp, u), stamps increasing
-        self._keep = int(np.ceil(max_delay / self.dt)) + 4
+        # commands kept: enough for the longest prediction, two commands a step
+        self._keep = 2 * int(np.ceil(max_delay / self.dt)) + 64
 
     def reset(self):
         """Forget the commands sent (a clock that started over)."""
@@ -77,7 +78,11 @@ class DelayCompensation:
             Steps to ``now + lead`` steps, to the nearest step, and at least enough that
             the command is not stamped before the newest one sent (the plant would not
             apply it). ``now`` on another time base (more than 100 ``max_delay`` away)
-            counts as unknown. None when the estimate is later than ``max_delay``.
+            counts as unknown. None when the estimate is later than ``max_delay``, or
+            when a command already sent would put its answer more than ``max_delay``
+            plus the lead and a step after it (a horizon the commands kept, and the
+            unstable model's prediction, are not meant for; the plant holds the
+            commands already sent, computed for those times).
 
         """
         late = 0.0 if now is None else now - t
@@ -89,6 +94,8 @@ class DelayCompensation:
         if self._sent:
             newest = self._sent[-1][0]
             steps = max(steps, int(np.ceil((newest - t) / self.dt - 0.25)))
+            if steps > int(np.floor(self.max_delay / self.dt + 0.5)) + self.lead + 1:
+                return None
         return max(steps, 0)
 
     def sent(self, t, u):

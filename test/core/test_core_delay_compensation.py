@@ -46,6 +46,29 @@ def test_prediction_is_the_zoh_response_to_the_commands_in_force():
     assert_allclose(DelayCompensation(Ad, Bd, DT).in_force(5.0), [0.0])
 
 
+def test_a_command_sent_far_ahead_caps_the_horizon_and_the_commands_kept_cover_it():
+    vehicle, Ad, Bd = cart()
+    comp = DelayCompensation(Ad, Bd, DT, max_delay=0.25, lead=3)
+    rng = np.random.default_rng(0)
+    stamps = np.round(1.0 + DT * np.arange(111), 2)
+    for t in stamps:                        # a command a step, and a second within it
+        comp.sent(t, rng.normal(size=1))
+        comp.sent(t + 0.5 * DT, rng.normal(size=1))
+    newest = float(stamps[-1]) + 0.5 * DT     # 2.105
+    # a measurement answered no earlier than the newest command sent: at most max_delay
+    # (25 steps) plus the lead (3) and a step; older ones get no answer (None)
+    assert comp.steps_late(1.86, 1.82) == 29
+    assert comp.steps_late(1.85, 1.81) is None
+    # the 29-step prediction uses the commands sent, every one of them (none dropped)
+    x0 = np.array([0.01, 0.0, -0.02, 0.0])
+    sys = control.c2d(control.ss(vehicle.plant.A, vehicle.plant.B, np.eye(4), 0), DT, 'zoh')
+    t0 = 1.82
+    u = np.array([[comp.in_force(t0 + k * DT)[0] for k in range(30)]])
+    assert np.count_nonzero(u) == 30 and newest > t0 + 28 * DT
+    resp = control.forced_response(sys, T=np.arange(30) * DT, U=u, X0=x0)
+    assert_allclose(comp.predict(x0, t0, 29), resp.states[:, 29], rtol=1e-9, atol=1e-12)
+
+
 def test_lateness_is_the_plant_time_past_the_stamp_and_stamps_never_go_back():
     _, Ad, Bd = cart()
     comp = DelayCompensation(Ad, Bd, DT, max_delay=0.25, lead=0)
