@@ -612,7 +612,7 @@ class LoopSupervisor:
     def _clock_restarted(self, t, last, now):
         """Estimates agree their clock started over: forget the old run's loop; resync."""
         # the plant's side is the sensors' to restart: kept when they jumped first
-        plant = self.plant_time is None or self.plant_time - t > self.sensor_jumps.tolerance
+        plant = self.plant_time is None or self.sensor_jumps.far_back(t, self.plant_time)
         self._log(WARN, f'clock jumped back: state/estimate {last - t:.3f} s '
                   f'({self.sensor_jumps.agreement} in a row; a restarted simulator?); '
                   f'{"safe command and " if plant else ""}limits reset')
