@@ -52,6 +52,7 @@ class DelayCompensation:
         self.Ad, self.Bd = np.asarray(Ad, float), np.asarray(Bd, float)
         self.dt, self.max_delay, self.lead = float(dt), float(max_delay), int(lead)
         self._sent = collections.deque()        # (stamp, u), stamps increasing
+        self._max_late_steps = int(np.floor(self.max_delay / self.dt + 0.5))
         # commands kept: enough for the longest prediction, two commands a step
         self._keep = 2 * int(np.ceil(max_delay / self.dt)) + 64
 
@@ -94,7 +95,7 @@ class DelayCompensation:
         if self._sent:
             newest = self._sent[-1][0]
             steps = max(steps, int(np.ceil((newest - t) / self.dt - 0.25)))
-            if steps > int(np.floor(self.max_delay / self.dt + 0.5)) + self.lead + 1:
+            if steps > self._max_late_steps + self.lead + 1:
                 return None
         return max(steps, 0)
 
