@@ -190,9 +190,7 @@ class PlantSimulatorNode(VehicleNode):
                                       throttle_duration_sec=1.0)
             return
         if self._held_for_recorder and self._step_in_bag():
-            self._held_for_recorder = False
-            self._waiting_since = None
-            self._publish_next()
+            self._step_answered()
 
     def _step_in_bag(self):
         """
@@ -390,9 +388,13 @@ class PlantSimulatorNode(VehicleNode):
                 # the watchdog sends the step again: its estimate and command come again
                 self._held_for_recorder = True
                 return
-            self._held_for_recorder = False
-            self._waiting_since = None
-            self._publish_next()
+            self._step_answered()
+
+    def _step_answered(self):
+        """Lockstep: the step is answered (and, at step 0, in the bag): the next one."""
+        self._held_for_recorder = False
+        self._waiting_since = None
+        self._publish_next()
 
     def _on_watchdog(self):
         if self._waiting_since is None or self._done:
