@@ -187,3 +187,17 @@ def test_package_xml_uses_only_rosdep_keys_that_exist():
     assert {'launch', 'launch_ros', 'python-control-pip'} <= keys
     unknown = keys - KNOWN_ROSDEP_KEYS
     assert not unknown, f'package.xml names keys rosdep does not know: {sorted(unknown)}'
+
+
+def test_the_set_up_leaves_the_installed_modules_compiled():
+    # make's set-up installs with uv --compile-bytecode: where PYTHONDONTWRITEBYTECODE is
+    # set, a module without its .pyc is compiled again by every process that imports it
+    import importlib.util
+    if Path(sys.prefix).resolve() != (REPO / '.venv').resolve():
+        pytest.skip('not run from the set-up environment (.venv)')
+    missing = []
+    for name in ('scipy.stats._stats_py', 'control.statefbk', 'rclpy.node', 'rosbags.rosbag2'):
+        spec = importlib.util.find_spec(name)
+        if not Path(importlib.util.cache_from_source(spec.origin)).is_file():
+            missing.append(name)
+    assert not missing, f'installed without their bytecode: {missing}'
