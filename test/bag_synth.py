@@ -16,7 +16,9 @@ were published, unless told otherwise.
 
 """
 
+import os
 from pathlib import Path
+import time
 
 import numpy as np
 from observer_ros.core.estimators import make_estimator, process_noise_covariance
@@ -219,3 +221,18 @@ def bag_file(path):
     files = [p for p in Path(path).iterdir() if p.suffix in ('.mcap', '.db3')]
     assert len(files) == 1, files
     return files[0]
+
+
+def at_rest(path, age=60.0):
+    """
+    Date a bag's files (or one file) ``age`` s back: a recording closed or killed earlier.
+
+    Recovery and the reader watch a storage file changed in the last 5 s for 2 s, for a
+    writer still at work (bag_checks.still_growing); a test's bag written a moment ago
+    would wait out that watch.
+    """
+    path = Path(path)
+    when = time.time() - age
+    for p in ([path] if path.is_file() else [p for p in path.iterdir() if p.is_file()]):
+        os.utime(p, (when, when))
+    return path

@@ -8,7 +8,7 @@ import sqlite3
 import threading
 import time
 
-from bag_synth import bag_file, simulate, write_bag
+from bag_synth import at_rest, bag_file, simulate, write_bag
 from observer_ros.bag.bag_checks import hold_recording_lock, MAX_METADATA_BYTES
 from observer_ros.bag.errors import BagRecoveryError, BagToolError
 from observer_ros.bag.reader import BagReader
@@ -28,8 +28,8 @@ def vehicle():
 
 
 def _bag(path, vehicle, storage='mcap', steps=200):
-    return write_bag(path, simulate(vehicle, steps=steps)['messages'], namespace='/sub1',
-                     storage=storage)
+    return at_rest(write_bag(path, simulate(vehicle, steps=steps)['messages'],
+                             namespace='/sub1', storage=storage))
 
 
 def _cut(bag):
@@ -38,7 +38,7 @@ def _cut(bag):
     file = bag_file(bag)
     data = file.read_bytes()
     file.write_bytes(data[:len(data) - 100])   # the footer and part of the summary
-    return file
+    return at_rest(file)
 
 
 def _tree(root):
@@ -244,7 +244,7 @@ def test_recovery_cuts_before_a_chunk_whose_crc_fails(tmp_path):
     flip = chunks[4]['offset'] + chunks[4]['length'] - 40
     data[flip] ^= 0xFF
     file.write_bytes(bytes(data))
-    report = recover_bag(bag)
+    report = recover_bag(at_rest(bag))
     assert report['chunks'] == 4 and report['repaired']
     with BagReader(bag) as opened:
         kept = opened.info.message_count

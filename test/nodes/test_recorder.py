@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 
+from bag_synth import at_rest
 from diagnostic_msgs.msg import DiagnosticArray
 from observer_ros.bag.errors import BagToolError
 from observer_ros.bag.reader import BagReader
@@ -249,7 +250,7 @@ def test_recovery_refuses_what_is_not_a_bag(tmp_path):
     (tmp_path / 'junk').mkdir()
     (tmp_path / 'junk' / 'junk.mcap').write_bytes(b'not an mcap file at all')
     with pytest.raises(BagRecoveryError, match='not an mcap file'):
-        recover_bag(tmp_path / 'junk')
+        recover_bag(at_rest(tmp_path / 'junk'))
 
 
 @pytest.mark.ros
