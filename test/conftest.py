@@ -15,6 +15,7 @@ those one at a time, after the others ran in workers; ``realtime`` alone implies
 
 import multiprocessing.process
 from pathlib import Path
+import resource
 import subprocess
 
 from bag_cases import make_case
@@ -88,6 +89,74 @@ def pytest_runtest_protocol(item, nextitem):
         yield
     finally:
         mp.undo()
+
+
+# ------------------------------------------------------------------ CPU per test
+
+def pytest_addoption(parser):
+    """``--cpu-report N``: the N tests that took the most CPU, their processes' included."""
+    parser.addoption('--cpu-report', type=int, default=0, metavar='N',
+                     help='print the N tests with the most CPU seconds (the test process '
+                          'and the processes it started and waited for)')
+
+
+_CPU_AT_SETUP = pytest.StashKey()
+
+
+def _cpu_seconds():
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime, children.ru_utime + children.ru_stime
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_setup(item):
+    """Note the CPU used so far (``--cpu-report``), before the test's fixtures start."""
+    if item.config.getoption('cpu_report'):
+        item.stash[_CPU_AT_SETUP] = _cpu_seconds()
+    yield
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_teardown(item, nextitem):
+    """Count the CPU from the test's set-up to the end of its teardown (``--cpu-report``)."""
+    yield
+    start = item.stash.get(_CPU_AT_SETUP, None)
+    if start is not None:
+        own, children = _cpu_seconds()
+        item.user_properties.append(('cpu_s', (own - start[0], children - start[1])))
+
+
+def pytest_terminal_summary(terminalreporter, config):
+    """
+    Print ``--cpu-report``'s table: CPU s per module, and per test (its own, its processes').
+
+    A test's figure runs from its set-up to the end of its teardown; a module-scoped
+    fixture's are in its first and last test's. Processes count once waited for.
+    """
+    top = config.getoption('cpu_report')
+    if not top:
+        return
+    rows = []
+    for report in (r for reports in terminalreporter.stats.values() for r in reports):
+        if getattr(report, 'when', None) != 'teardown':
+            continue
+        for key, value in report.user_properties:
+            if key == 'cpu_s':
+                rows.append((sum(value), value[0], value[1], report.nodeid))
+    rows.sort(reverse=True)
+    total = sum(r[0] for r in rows)
+    write = terminalreporter.write_line
+    write(f'CPU of the tests: {total:.0f} s ({sum(r[1] for r in rows):.0f} s in the '
+          f'test processes, {sum(r[2] for r in rows):.0f} s in the processes they started)')
+    by_module = {}
+    for cpu, _, _, nodeid in rows:
+        module = nodeid.split('::')[0]
+        by_module[module] = by_module.get(module, 0.0) + cpu
+    for module, cpu in sorted(by_module.items(), key=lambda kv: -kv[1])[:top]:
+        write(f'{cpu:8.1f} s  {module}')
+    for cpu, own, children, nodeid in rows[:top]:
+        write(f'{cpu:8.1f} s  ({own:.1f} + {children:.1f} in processes)  {nodeid}')
 
 
 # ------------------------------------------------------------------ plants and vehicles
