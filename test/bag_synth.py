@@ -21,6 +21,7 @@ from pathlib import Path
 import time
 
 import numpy as np
+from observer_ros.bag.bag_checks import RECENT
 from observer_ros.core.estimators import make_estimator, process_noise_covariance
 from observer_ros.core.model import zoh_matrices
 from observer_ros.core.vehicle_design import design_vehicle
@@ -223,16 +224,16 @@ def bag_file(path):
     return files[0]
 
 
-def at_rest(path, age=60.0):
+def at_rest(path):
     """
-    Date a bag's files (or one file) ``age`` s back: a recording closed or killed earlier.
+    Date a bag's files (or one file) back, as a recording closed or killed a minute ago.
 
-    Recovery and the reader watch a storage file changed in the last 5 s for 2 s, for a
+    Recovery and the reader watch a storage file changed in the last ``RECENT`` s for a
     writer still at work (bag_checks.still_growing); a test's bag written a moment ago
     would wait out that watch.
     """
     path = Path(path)
-    when = time.time() - age
+    when = time.time() - RECENT - 60.0
     for p in ([path] if path.is_file() else [p for p in path.iterdir() if p.is_file()]):
         os.utime(p, (when, when))
     return path
