@@ -46,10 +46,12 @@ SENSOR_SUB_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT
 # (`ros2 topic echo`) gets the next message, never an old one kept for it.
 STATE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                        history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)
-# What their publishers offer: the same. (The recorder misses nothing with it: a lock-step
-# run of 1500 steps at 500 Hz recorded every estimate, command and true state in 6 of 6
-# runs at load 18-20 on 2 cores: DDS stores the samples into the recorder's 1000-deep
-# reader queue as they come, whether or not its thread is running.)
+# What their publishers offer: the same. A reliable writer keeps its last 10 samples for a
+# reader that has not acknowledged them: a recorder whose whole process stalls longer than
+# 10 steps of a loop faster than real time loses the steps between (its 1000-deep reader
+# queue does not help: the samples never reach it). Seen once (2026-11-28, make test's
+# workers beside another test run on 2 cores): 57 consecutive steps of a 1500-step
+# lock-step run at 500 Hz missing from its bag; 6 of 6 such runs at load 18-20 lost none.
 STATE_PUB_QOS = STATE_QOS
 # The reference x_d: latched, so a late subscriber gets it.
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
