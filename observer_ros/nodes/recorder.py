@@ -10,9 +10,9 @@ Messages are stamped with the node clock at reception (sim time with use_sim_tim
 received before the first /clock are written at its time). The metadata names the ROS
 distribution (``ros_distro: jazzy``, ``$ROS_DISTRO`` when set). The
 readers keep up to ``queue_depth`` messages per topic (default 1000, whatever the
-publisher's depth), so that a burst loses nothing; what a stall of the recorder's whole
-process can lose is bounded by each publisher's own history (1000 for estimates, commands
-and the true state: nodes/common.py, STATE_PUB_QOS).
+publisher's depth), so that a burst loses nothing; a stall of the recorder's whole process
+longer than the publisher's own history (keep last 10 for estimates, commands and the
+true state) loses the messages between (nodes/common.py, STATE_PUB_QOS).
 
 SIGINT or SIGTERM closes the bag cleanly: every message received before the signal is
 in it. Every ``flush_period`` seconds (wall time) the writer flushes: mcap closes its
