@@ -236,7 +236,9 @@ def test_a_full_disk_stops_the_recorder_with_a_clear_error(tmp_path, feeder, sma
     report = recover_bag(bag)
     numbers = _numbers(bag)
     assert numbers == list(range(len(numbers)))
-    assert on_disk <= len(numbers) < feeder.sent
+    # the write that fails may be the index after a chunk already whole on disk: then every
+    # message sent is readable (seen: 36 of 36); the messages are never more than were sent
+    assert on_disk <= len(numbers) <= feeder.sent
     assert report['total'] >= len(numbers)
     assert os.statvfs(small_disk).f_bavail >= 0
 
