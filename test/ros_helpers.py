@@ -45,8 +45,13 @@ def _domain_id():
 
     Workers of one run (``pytest -n N``) share a random base (from the run's id) and add
     their index, so they never share a domain; other runs on the machine pick other bases.
-    Fast DDS refuses domains above 232 with its default ports.
+    Fast DDS refuses domains above 232 with its default ports. ``OBSERVER_TEST_DOMAIN_ID``,
+    when set, is the domain of every test process (`make test` gives its realtime stage one
+    below the workers' range, so that the two stages can run at once).
     """
+    fixed = os.environ.get('OBSERVER_TEST_DOMAIN_ID')
+    if fixed:
+        return int(fixed)
     worker = os.environ.get('PYTEST_XDIST_WORKER', '')
     if not worker.startswith('gw'):
         return random.SystemRandom().randint(100, 199)

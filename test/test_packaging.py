@@ -190,7 +190,7 @@ def test_package_xml_uses_only_rosdep_keys_that_exist():
 
 
 def test_the_set_up_leaves_the_installed_modules_compiled():
-    # make's set-up installs with uv --compile-bytecode: where PYTHONDONTWRITEBYTECODE is
+    # make's set-up compiles the environment (compileall): where PYTHONDONTWRITEBYTECODE is
     # set, a module without its .pyc is compiled again by every process that imports it
     import importlib.util
     if Path(sys.prefix).resolve() != (REPO / '.venv').resolve():

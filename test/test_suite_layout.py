@@ -3,6 +3,7 @@
 
 import ast
 from pathlib import Path
+import re
 
 TEST = Path(__file__).resolve().parent
 PACKAGE = TEST.parent / 'observer_ros'
@@ -43,10 +44,20 @@ def test_module_basenames_are_unique():
     assert len(names) == len(set(names)), sorted(n for n in names if names.count(n) > 1)
 
 
-def test_make_test_runs_the_realtime_tests_one_at_a_time():
-    # realtime closed loops beside each other on 2 cores fail; the rest runs in workers
+def test_make_test_runs_the_realtime_tests_one_at_a_time_above_the_workers_priority():
+    # realtime closed loops beside each other on 2 cores fail; the rest runs in workers at
+    # nice 19 beside them, the realtime ones in a DDS domain outside the workers' range
     recipe = (TEST.parent / 'Makefile').read_text().split('\ntest: ')[1].split('\n\n')[0]
     runs = [r for r in recipe.replace('\\\n', ' ').split(';') if '-m pytest' in r]
     assert len(runs) == 2, runs
-    assert '-n ' in runs[0] and '-m "not realtime"' in runs[0], runs[0]
-    assert '-n ' not in runs[1] and '-m realtime' in runs[1], runs[1]
+    workers = [r for r in runs if '-m "not realtime"' in r]
+    realtime = [r for r in runs if '-m realtime' in r]
+    assert len(workers) == len(realtime) == 1, runs
+    assert '-n ' in workers[0] and 'nice -n $(WORKERS_NICE)' in workers[0], workers[0]
+    assert '-n ' not in realtime[0] and 'nice' not in realtime[0], realtime[0]
+    assert 'OBSERVER_TEST_DOMAIN_ID=$(REALTIME_DOMAIN_ID)' in realtime[0], realtime[0]
+    make = (TEST.parent / 'Makefile').read_text()
+    domain = re.search(r'^REALTIME_DOMAIN_ID \?= (\d+)$', make, re.M)
+    assert domain and int(domain.group(1)) < 100, 'the workers take domains from 100'
+    nice = re.search(r'^WORKERS_NICE \?= (\d+)$', make, re.M)
+    assert nice and 0 < int(nice.group(1)) < 19, 'lower than the realtime tests, not starved'
