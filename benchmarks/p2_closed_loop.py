@@ -361,8 +361,8 @@ def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=Non
                          f'{", ".join(BARE)}')
     # the simulator steps from its start; DDS matching takes it 1-3 s here, and those
     # open-loop steps are not judged: the run is that much longer than what is measured
-    duration = duration or (5.0 if smoke else 15.0)
-    sweep_steps = sweep_steps or (500 if smoke else SWEEP_STEPS)
+    duration = duration or (2.0 if smoke else 15.0)
+    sweep_steps = sweep_steps or (250 if smoke else SWEEP_STEPS)
     sweep_warmup = (0.5 if smoke else SWEEP_WARMUP) if sweep_warmup is None else sweep_warmup
     sweep_bisections = (0 if smoke else 3) if sweep_bisections is None else sweep_bisections
     os.environ['ROS_DOMAIN_ID'] = ros_env()['ROS_DOMAIN_ID']
