@@ -387,7 +387,7 @@ def test_recorded_lockstep_launch(ros2env, tmp_path):
 
 # Ctrl-C at a random moment: OBSERVER_ROS_SIGNAL_TRIES=50 is the on-demand bar
 # (docs/reliability.md); test_shutdown.py does the same through observer-run.
-SIGNAL_TRIES = int(os.environ.get('OBSERVER_ROS_SIGNAL_TRIES', '4'))
+SIGNAL_TRIES = int(os.environ.get('OBSERVER_ROS_SIGNAL_TRIES', '2'))
 CLEAN_LAUNCH_NODES = 3
 
 
