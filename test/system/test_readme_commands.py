@@ -198,6 +198,12 @@ BAGS = {'bags/runs/sub1': _submarine_noisy_bag}
 @pytest.fixture
 def workdir(tmp_path):
     """Make a scratch repository: the checkout's files linked, bags/samples copied."""
+    # its .venv is the checkout's: a `make` there that found the set-up out of date would
+    # install the package from the scratch copy, which is deleted after the run
+    stale = subprocess.run(['make', '-q', 'setup'], cwd=REPO, capture_output=True)
+    if stale.returncode != 0:
+        pytest.fail('the set-up (.venv) is older than the Makefile, setup.py or '
+                    'requirements.txt: run `make setup` in the checkout first', pytrace=False)
     work = tmp_path / 'repo'
     work.mkdir()
     for entry in REPO.iterdir():
