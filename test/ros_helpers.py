@@ -39,26 +39,31 @@ COMMANDS = ('control/u', JointState, STATE_QOS)
 ESTIMATES = ('state/estimate', JointState, STATE_QOS)
 
 
+# The lowest domain a test process picks itself (make test's realtime stage is given one
+# below it); Fast DDS refuses domains above LAST_DOMAIN with its default ports.
+FIRST_DOMAIN, LAST_DOMAIN = 100, 232
+
+
 def _domain_id():
     """
     Return this test process's DDS domain: one per pytest session, one per xdist worker.
 
     Workers of one run (``pytest -n N``) share a random base (from the run's id) and add
     their index, so they never share a domain; other runs on the machine pick other bases.
-    Fast DDS refuses domains above 232 with its default ports. ``OBSERVER_TEST_DOMAIN_ID``,
-    when set, is the domain of every test process (`make test` gives its realtime stage one
-    below the workers' range, so that the two stages can run at once).
+    ``OBSERVER_TEST_DOMAIN_ID``, when set, is the domain of every test process (`make test`
+    gives its realtime stage one below FIRST_DOMAIN, so that the two stages can run at once).
     """
     fixed = os.environ.get('OBSERVER_TEST_DOMAIN_ID')
     if fixed:
         return int(fixed)
     worker = os.environ.get('PYTEST_XDIST_WORKER', '')
     if not worker.startswith('gw'):
-        return random.SystemRandom().randint(100, 199)
+        return random.SystemRandom().randint(FIRST_DOMAIN, FIRST_DOMAIN + 99)
     index = int(worker[2:])
     count = int(os.environ.get('PYTEST_XDIST_WORKER_COUNT', '1'))
     run = os.environ.get('PYTEST_XDIST_TESTRUNUID', '')
-    base = random.Random(run).randint(100, 232 - count) if run else 100
+    base = random.Random(run).randint(FIRST_DOMAIN, LAST_DOMAIN - count) if run else \
+        FIRST_DOMAIN
     return base + index
 
 
