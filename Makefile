@@ -65,11 +65,10 @@ demo: compile
 # a lower priority (nice WORKERS_NICE); beside them, the realtime ones (closed loops of
 # unstable plants, rates, latencies) one at a time at the normal priority, in a domain of
 # their own below the workers' range, so that the scheduler hands them first the CPU they
-# ask for (about 9/10 of it where they contend at nice 10). Not nice 19: its share (1/70 of
-# a nice-0 task's) can hold a worker's observer off the CPU for longer than a lock-step run
-# stays the same run (controller.stale_timeout, 0.5 s: the compensator's resync then sends
-# the plant other commands). The realtime report is printed when the others are done. Beside
-# each other at one priority on 2 cores, realtime tests failed 1-3 different ones per run.
+# ask for (about 9/10 of it where they contend at nice 10; a worker's process gets about
+# 1/9, where nice 19 would give it 1/70). The realtime report is printed when the others are
+# done. Beside each other at one priority on 2 cores, realtime tests failed 1-3 different
+# ones per run.
 TEST_WORKERS ?= 4
 REALTIME_DOMAIN_ID ?= 99
 WORKERS_NICE ?= 10

@@ -16,13 +16,10 @@ The compensator's decisions, without ROS: one estimate in, one command (or none)
     the safe command (:mod:`.safe_command`: predict-and-hold from the last estimate that
     passed, then ``controller.safe_command``) every sample time.
 ``resync``
-    Estimates are back after an outage. With a standby: until ``RESYNC_AGREE`` of them in
-    a row agree with the standby's (``RESYNC_TOL`` of each state's scale), the standby
-    keeps closing the loop (a standby not yet warm, in its first settling time, is no
-    reference: the loop closes on the estimates again at once). Without: the prediction
-    does, until the observer's estimates follow the model step by step again
-    (:class:`~.health.SettleCheck`, at most ``RESYNC_SETTLINGS`` observer settling
-    times).
+    Estimates are back after an outage (:mod:`.resync`: in lock-step from the same observer
+    they are followed at once). Until they are trusted again, the standby (one not yet
+    warm is no reference: the loop closes on the estimates at once) or the prediction
+    keeps closing the loop.
 ``recover``
     Without a standby, after a resync: the loop closes on the estimates again, reported
     as ERROR ``recovering`` for an observer settling time.
@@ -62,11 +59,12 @@ from .clock_jump import CLOCK_JUMP, CLOCK_JUMP_AGREEMENT, ClockJump, FAR_BACK, \
     far_back_text, IN_BASE
 from .control_law import ControlLaw
 from .delay_compensation import DelayCompensation
-from .estimate_stream import CONSISTENCY_TOL, EstimateStream, within
+from .estimate_stream import CONSISTENCY_TOL, EstimateStream
 from .health import divergence_envelopes, ENVELOPE_PERSIST, SettleCheck, settling_time
 from .loop_command import Command, command_refusal
 from .loop_status import ERROR, OK, status_message, WARN
 from .plant_clock import PlantClock
+from .resync import Resync, RESYNC_AGREE, RESYNC_SETTLINGS
 from .safe_command import SafeCommand
 from .standby import StandbyObserver, unstable_plant
 from ..timeutil import stamp_sec
@@ -74,12 +72,6 @@ from ..timeutil import stamp_sec
 __all__ = ['Command', 'LoopSupervisor', 'OK', 'WARN', 'ERROR', 'CONSISTENCY_TOL',
            'RESYNC_AGREE', 'RESYNC_SETTLINGS']
 
-# After an outage, wait at most this many observer settling times for it to settle again.
-RESYNC_SETTLINGS = 10.0
-# Estimates in a row that agree with the standby's (within RESYNC_TOL of each state's
-# scale: the command does not jump) before the loop follows them again.
-RESYNC_AGREE = 10
-RESYNC_TOL = 0.02
 # Longest gap, in steps, across which an estimate is compared with the model's prediction.
 CONSISTENCY_STEPS = 50
 # Realtime with a standby: the observer is silent once its newest estimate followed is
@@ -139,6 +131,7 @@ class LoopSupervisor:
         self.mode = 'waiting'
         self.safe = None
         self.standby = None
+        self.resync = Resync()          # what an outage leaves to judge what comes back
         self.apply(vehicle, design, standby)
         self._last_wall = None          # wall time of the last estimate followed
         self._last_watch = None         # wall time of the last watchdog check
@@ -151,7 +144,6 @@ class LoopSupervisor:
         self._refused_command = None    # why the last command was not sent (per report)
         self._too_late = 0              # estimates too late to predict, since the report
         self._max_steps = 0             # steps predicted (delay compensation), since then
-        self._agree = 0                 # resync: estimates in a row that agree
         self._recover_since = None      # recover: stamp since when closed again
         self._standby_wall = None       # wall time of the standby's last command
         self.stream = EstimateStream(self._count, self._log)    # the writer followed
@@ -187,6 +179,7 @@ class LoopSupervisor:
                                     plant.is_discrete)
         self.settle_check = SettleCheck(self.safe.Ad, self.safe.Bd, self.dt, self._scale)
         realtime = vehicle.simulator.mode == 'realtime'
+        self.resync.lockstep = vehicle.simulator.mode == 'lockstep'
         self.time_rate = vehicle.simulator.realtime_factor if realtime else 1.0
         self.delay = DelayCompensation(
             self.safe.Ad, self.safe.Bd, self.dt, vehicle.observer.history_length,
@@ -382,6 +375,8 @@ class LoopSupervisor:
             return False
         c = self.vehicle.controller
         how = 'the standby observer closes the loop' if self.standby is not None else \
+            'waiting for its estimates (lock-step: the plant waits for them)' \
+            if self.resync.plant_waits() else \
             f'safe command (predict {c.predict_timeout:g} s, then {c.safe_command})'
         self._go_stale(f'estimate stale ({age:.2f} s); {how}')
         return True
@@ -393,7 +388,7 @@ class LoopSupervisor:
         With a standby that answered a measurement within the last two sample times (at
         the plant's rate measured, :attr:`.PlantClock.rate`), none: it closes the loop.
         """
-        if self.mode != 'stale':
+        if self.mode != 'stale' or self.resync.plant_waits():
             return None
         period = self.dt / (self.time_rate if self.plant_clock is None else self.plant_clock.rate)
         if self._standby_wall is not None and now - self._standby_wall < 2.0 * period:
@@ -511,6 +506,11 @@ class LoopSupervisor:
         if self.mode == 'waiting':
             self.mode = 'closed'
             return False
+        if self.mode == 'stale' and self.resync.same_observer():
+            self.mode = 'closed'
+            self._log(WARN, 'estimates back from the same observer (lock-step: the plant '
+                      'waited for them): closing the loop on them')
+            return False
         if self.standby is not None and not self.standby.warm:
             # nothing to compare them with yet (its first settling time): the observer's
             # estimates are the best there is; the prediction ran open loop meanwhile
@@ -518,11 +518,8 @@ class LoopSupervisor:
             return False
         if self.standby is not None:
             if self.mode == 'stale':
-                self.mode, self._agree = 'resync', 0
-            ref = self.standby.at(t) if self.standby.warm else None
-            agree = ref is not None and within(x_list, ref, self._scale, RESYNC_TOL)
-            self._agree = self._agree + 1 if agree else 0
-            if self._agree < RESYNC_AGREE:
+                self.mode, self.resync.agreeing = 'resync', 0
+            if not self.resync.agrees(x_list, self.standby.at(t), self._scale):
                 self._count('resync_estimates')
                 return None         # the standby answers the measurements meanwhile
             self.mode = 'closed'
@@ -563,6 +560,7 @@ class LoopSupervisor:
 
     def _go_stale(self, why):
         self.mode = 'stale'
+        self.resync.went_stale()
         self._log(ERROR, why)
 
     def _safe_command(self, t, marked=False, answers=False):
@@ -616,7 +614,8 @@ class LoopSupervisor:
         self._log(WARN, f'clock jumped back: state/estimate {last - t:.3f} s '
                   f'({self.sensor_jumps.agreement} in a row; a restarted simulator?); '
                   f'{"safe command and " if plant else ""}limits reset')
-        self.mode, self._agree = ('resync' if self.standby and self.standby.warm else 'closed'), 0
+        self.mode = 'resync' if self.standby and self.standby.warm else 'closed'
+        self.resync.agreeing = 0
         self._last_wall, self._last_stamp = now, t      # the new time base
         self._answered = self._followed = self._answer = None
         self._problem, self._refusals = None, 0

@@ -196,6 +196,11 @@ class CompensatorNode(ManagedVehicleNode):
 
     def _on_matched(self, info):
         self.loop.publishers = max(1, int(info.current_count))
+        self.loop.resync.matches = int(info.total_count)
+        self.loop.resync.publishers = int(info.current_count)
+        if self.loop.stale and self.loop.resync.lockstep and not info.current_count:
+            self.get_logger().error('no estimate publisher left: safe commands (the lock-step '
+                                    'simulator applies them)')
 
     def _on_estimate(self, msg):
         topic = TOPICS['estimate']
@@ -291,6 +296,8 @@ class CompensatorNode(ManagedVehicleNode):
         if not self.loop.stale or self._run_complete:
             self._stop_safe_timer()
             return
+        if self.loop.resync.plant_waits():
+            return      # lock-step with an observer matched: the plant waits for its estimates
         now = self.wall_now()
         clock = self._followed_clock()
         if clock is not None and clock == self._safe_clock:

@@ -2,18 +2,23 @@
 """The plant simulator, observer, compensator and recorder in closed loop."""
 
 import concurrent.futures
+import os
+from pathlib import Path
+import signal
 
 import numpy as np
 from observer_ros.bag.vectors import read_vector_topic
 from observer_ros.core.estimators import make_estimator
 from observer_ros.core.vehicle_design import design_vehicle
 from observer_ros.nodes.recorder import recorded_topics
+from observer_ros.timeutil import stamp_to_sec
 from observer_ros.tools.run_closed_loop import run_closed_loop
 from observer_ros.vehicle import load_vehicle
 import pytest
-from ros_helpers import CONFIG, domain_env, made_once
+from ros_helpers import CONFIG, domain_env, made_once, Probe
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
+from sensor_msgs.msg import JointState
 
 pytestmark = pytest.mark.ros      # processes or DDS participants
 
@@ -121,6 +126,70 @@ def test_lockstep_run_is_reproducible_bit_for_bit(tmp_path):
     (e1, xh1), (e2, xh2) = [_unique(*_vectors(b, '/state/estimate', names)) for b in runs]
     assert np.array_equal(t1, t2) and np.array_equal(x1, x2)
     assert np.array_equal(e1, e2) and np.array_equal(xh1, xh2)
+
+
+def _child_node(name):
+    """Return the pid of this process's child running the package's node ``name``."""
+    for entry in Path('/proc').iterdir():
+        try:
+            ppid = int((entry / 'stat').read_text().rsplit(')', 1)[1].split()[1])
+            argv = (entry / 'cmdline').read_bytes().split(b'\0')
+        except (OSError, ValueError, IndexError):
+            continue
+        if ppid == os.getpid() and b'observer_ros.nodes.entry' in argv and \
+                name.encode() in argv:
+            return int(entry.name)
+    raise AssertionError(f'no {name} process')
+
+
+def _log_says(path, text):
+    return path.exists() and text in path.read_text(errors='replace')
+
+
+def test_an_observer_held_off_the_cpu_leaves_the_lockstep_run_unchanged(
+        tmp_path, submarine_bag):
+    """
+    The observer stopped (SIGSTOP) mid-run until the simulator reports no command.
+
+    Longer than ``controller.stale_timeout``: the compensator goes stale and sends marked
+    safe commands, which the simulator waits out. When the same observer's estimates come
+    back, the compensator follows them at once, and the run is the run without the hold.
+    """
+    names = load_vehicle(CONFIG / 'submarine.yaml').plant.state_names
+    logs = tmp_path / 'held_logs'
+    probe = Probe('held_probe')
+    newest = [0.0]
+    probe.node.create_subscription(
+        JointState, '/state/estimate',
+        lambda m: newest.__setitem__(0, stamp_to_sec(m.header.stamp)), 10)
+    held = []
+    try:
+        with concurrent.futures.ThreadPoolExecutor(1) as pool:
+            run = pool.submit(_run, tmp_path, 'submarine.yaml', NOISE_OFF,
+                              'simulator.duration:=20.0', name='held')
+            try:
+                probe.spin_until(lambda: newest[0] >= 2.0 or run.done(),
+                                 what='estimates at t >= 2 s')
+                assert not run.done(), 'the run ended before the observer was held'
+                held = [_child_node('compensator'), _child_node('observer_node')]
+                for pid in held:
+                    os.kill(pid, signal.SIGSTOP)
+                os.kill(held[0], signal.SIGCONT)    # the observer alone stays held
+                probe.spin_until(lambda: _log_says(logs / 'compensator.log', 'estimate stale')
+                                 and _log_says(logs / 'plant_simulator.log',
+                                               'no command for step'),
+                                 what='the compensator stale and the simulator waiting')
+            finally:
+                for pid in held:
+                    os.kill(pid, signal.SIGCONT)
+            bag = run.result()
+    finally:
+        probe.close()
+    for topic in ('/state/true', '/state/estimate'):
+        (t1, x1), (t2, x2) = [_unique(*_vectors(b, topic, names)) for b in (submarine_bag, bag)]
+        assert np.array_equal(t1, t2), topic
+        assert np.array_equal(x1, x2), (topic, int(np.sum(np.any(x1 != x2, axis=1))))
+    assert _log_says(logs / 'compensator.log', 'estimates back from the same observer')
 
 
 def test_container_and_either_executor_give_the_same_run_bit_for_bit(tmp_path, monkeypatch):
