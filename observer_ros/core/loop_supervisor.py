@@ -14,7 +14,8 @@ The compensator's decisions, without ROS: one estimate in, one command (or none)
     standby observer (:mod:`.standby`; a plant that cannot be held open loop, realtime)
     the loop closes on the standby's estimate, one command per measurement; without one,
     the safe command (:mod:`.safe_command`: predict-and-hold from the last estimate that
-    passed, then ``controller.safe_command``) every sample time.
+    passed, then ``controller.safe_command``) every sample time (in lock-step none while an
+    estimate publisher is matched: :mod:`.resync`).
 ``resync``
     Estimates are back after an outage (:mod:`.resync`: in lock-step from the same observer
     they are followed at once). Until they are trusted again, the standby (one not yet

@@ -2,13 +2,16 @@
 """
 After an outage (the estimates stale), when the loop follows the observer's estimates again.
 
-- **Lock-step, the same observer.** The simulator waited for each step's answer: the
-  compensator's marked safe commands of the outage are waited out, so the plant did not
-  move and the observer missed no measurement (it was held off the CPU, its estimates
-  queued). When no estimate publisher matched since the estimates went stale (the DDS
-  match count, :attr:`Resync.matches`, is unchanged), its estimates are followed again
-  at once: the run stays the run it would have been without the outage. A publisher that
-  matched meanwhile (an observer restarted) resyncs as below.
+- **Lock-step.** The simulator waits for each step's answer. While an estimate publisher
+  is matched, the compensator sends no safe command (:meth:`Resync.plant_waits`): the
+  simulator would wait it out, while the observer would take it for the input of the step
+  it waits on. So the plant does not move and the observer misses no measurement (held
+  off the CPU, its messages queue). When no estimate publisher matched since the
+  estimates went stale (the DDS match count, :attr:`Resync.matches`, is unchanged), its
+  estimates are followed again at once: the run stays the run it would have been without
+  the outage. A publisher that matched meanwhile (an observer restarted) resyncs as
+  below. Once no estimate publisher is left, safe commands go out, and the simulator
+  applies them.
 - **With a standby observer** (realtime): the standby keeps closing the loop until
   :data:`RESYNC_AGREE` estimates in a row agree with the standby's (within
   :data:`RESYNC_TOL` of each state's scale: the command does not jump).
