@@ -48,10 +48,11 @@ STATE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                        history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)
 # What their publishers offer: the same. A reliable writer keeps its last 10 samples for a
 # reader that has not acknowledged them: a recorder whose whole process stalls longer than
-# 10 steps of a loop faster than real time loses the steps between (its 1000-deep reader
-# queue does not help: the samples never reach it). Seen once (2026-11-28, make test's
-# workers beside another test run on 2 cores): 57 consecutive steps of a 1500-step
-# lock-step run at 500 Hz missing from its bag; 6 of 6 such runs at load 18-20 lost none.
+# 10 steps of a loop faster than real time would lose the steps between (its 1000-deep
+# reader queue does not help: the samples never reach it). A lock-step simulator started
+# with wait_for_recorder (observer-run, the launch file) steps at most RECORDER_WINDOW (5)
+# steps past the recorder's recorder/progress, so a recorded lock-step run loses none; a
+# realtime loop does not wait for the recorder.
 STATE_PUB_QOS = STATE_QOS
 # The reference x_d: latched, so a late subscriber gets it.
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,

@@ -50,6 +50,7 @@ simulated time does.
 import json
 import time
 
+from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus
 import numpy as np
 from rcl_interfaces.msg import SetParametersResult
@@ -79,6 +80,10 @@ FUTURE_COMMAND = 2.0
 READY_WAIT = 10.0
 # s: how long the end of the run may take to reach its readers before the process exits
 RUN_COMPLETE_ACK_WAIT = 1.0
+# lockstep with wait_for_recorder: steps at most this far past the newest true state the
+# recorder wrote (recorder/progress); below the publishers' history (keep last 10), so a
+# recorder that stalls loses no message of the run
+RECORDER_WINDOW = 5
 
 
 class PlantSimulatorNode(VehicleNode):
@@ -138,6 +143,12 @@ class PlantSimulatorNode(VehicleNode):
                 Bool, 'recorder/ready', self._on_recorder_ready, LATCHED_QOS, shed=False)
             self._heard_sub = self.watched_subscription(
                 String, 'recorder/heard', self._on_recorder_heard, LATCHED_QOS, shed=False)
+            self._progress_sub = self.watched_subscription(
+                Time, 'recorder/progress', self._on_recorder_progress, STATE_QOS, shed=False)
+        self._recorded = None           # lockstep: the newest true state the recorder wrote
+        self._step0_t = None            # lockstep: the time of step 0
+        self._held_since = None         # lockstep: wall time it waits for the recorder since
+        self._recorder_gone = False     # lockstep: no recorder/progress publisher left
         # lockstep bookkeeping
         self._due = []                  # sensors still to publish at this step
         self._answers = 0               # commands stamped t_k received so far
@@ -158,6 +169,7 @@ class PlantSimulatorNode(VehicleNode):
         self._timeout_reported = False
         self._resend_period = 0.2           # s of wall time before a measurement is re-sent
         self.count('command_timeouts', 0)
+        self.count('recorder_waits', 0)
         if self._lockstep:
             self._start_timer = self.wall_timer(0.01, self._try_start)
             self._watchdog = self.wall_timer(0.05, self._on_watchdog)
@@ -191,6 +203,32 @@ class PlantSimulatorNode(VehicleNode):
             return
         if self._held_for_recorder and self._step_in_bag():
             self._step_answered()
+
+    def _on_recorder_progress(self, msg):
+        t = msg.sec + msg.nanosec * 1e-9
+        if self._recorded is None or t > self._recorded:
+            self._recorded = t
+        if self._held_since is not None and not self._recorder_behind():
+            self._publish_next()
+
+    def _recorder_behind(self):
+        """
+        Tell whether the next step would be more than RECORDER_WINDOW past the bag (lockstep).
+
+        The bag's newest true state is what recorder/progress said last (before any, the
+        step before step 0). Without wait_for_recorder, or once the recorder is gone, never.
+        """
+        if not self._lockstep or self._step0_t is None or self._recorder_gone or \
+                not self.param('wait_for_recorder'):
+            return False
+        newest = self._step0_t - self.dt if self._recorded is None else self._recorded
+        if self.t + self.dt - newest <= (RECORDER_WINDOW + 0.25) * self.dt:
+            self._held_since = None
+            return False
+        if self._held_since is None:
+            self._held_since = time.monotonic()
+            self.count('recorder_waits')
+        return True
 
     def _step_in_bag(self):
         """
@@ -322,6 +360,7 @@ class PlantSimulatorNode(VehicleNode):
             return
         self._start_timer.cancel()
         self._started = True
+        self._step0_t = self.t
         self.get_logger().info(f'{self.vehicle.name}: lockstep run of '
                                f'{self.steps or "unlimited"} steps of {self.dt} s')
         self._begin_step()
@@ -344,6 +383,8 @@ class PlantSimulatorNode(VehicleNode):
             if self.steps is not None and self.k >= self.steps:
                 self._finish()
                 return
+            if self._recorder_behind():
+                return      # _on_recorder_progress (or the watchdog) goes on
             if self._steps_due() == 0:
                 self._clock_wait = True     # /clock has not reached it: _on_clock goes on
                 return
@@ -397,6 +438,8 @@ class PlantSimulatorNode(VehicleNode):
         self._publish_next()
 
     def _on_watchdog(self):
+        if self._held_since is not None and not self._done:
+            self._watch_recorder()
         if self._waiting_since is None or self._done:
             return
         waited = time.monotonic() - self._waiting_since
@@ -419,6 +462,22 @@ class PlantSimulatorNode(VehicleNode):
             self.get_logger().error(
                 f'no command for step {self.k} (t={self.t:.3f}) after {waited:.1f} s; '
                 'still waiting (lockstep never advances without the answer)')
+
+    def _watch_recorder(self):
+        """Lockstep, held for the recorder: say so once; go on when it is gone."""
+        if self.count_publishers('recorder/progress') < 1:
+            self._recorder_gone = True
+            self._held_since = None
+            self.get_logger().warning('recorder/progress has no publisher (the recorder '
+                                      'stopped?): stepping on without waiting for it')
+            self._publish_next()
+            return
+        waited = time.monotonic() - self._held_since
+        if waited > self.vehicle.simulator.command_timeout and not self._timeout_reported:
+            self._timeout_reported = True
+            self.get_logger().warning(
+                f'step {self.k} (t={self.t:.3f}) answered; waiting {waited:.1f} s for the '
+                f'recorder, whose bag ends at t={self._recorded}')
 
     def _finish(self):
         self._done = True

@@ -10,9 +10,13 @@ Messages are stamped with the node clock at reception (sim time with use_sim_tim
 received before the first /clock are written at its time). The metadata names the ROS
 distribution (``ros_distro: jazzy``, ``$ROS_DISTRO`` when set). The
 readers keep up to ``queue_depth`` messages per topic (default 1000, whatever the
-publisher's depth), so that a burst loses nothing; a stall of the recorder's whole process
-longer than the publisher's own history (keep last 10 for estimates, commands and the
-true state) loses the messages between (nodes/common.py, STATE_PUB_QOS).
+publisher's depth), so that a burst loses nothing. The publishers keep only their last 10
+estimates, commands and true states (nodes/common.py, STATE_PUB_QOS): a stall of the
+recorder's whole process longer than that loses the messages between, unless the run
+waits for it. A lock-step simulator started with ``wait_for_recorder`` does: the recorder
+publishes on ``recorder/progress`` (builtin_interfaces/Time) the stamp of the newest true
+state it wrote, every ``PROGRESS_EVERY`` of them, and the simulator steps at most
+``RECORDER_WINDOW`` steps past it (nodes/plant_simulator.py).
 
 SIGINT or SIGTERM closes the bag cleanly: every message received before the signal is
 in it. Every ``flush_period`` seconds (wall time) the writer flushes: mcap closes its
@@ -38,10 +42,12 @@ import os
 from pathlib import Path
 import shutil
 import sqlite3
+import struct
 import sys
 import time
 import warnings
 
+from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus
 import rclpy
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -100,6 +106,10 @@ def _check_free_space(path, reserve):
 
 # messages received before the first /clock (simulated time 0) kept for it, at most
 EARLY_LIMIT = 10000
+
+#: recorder/progress: said every this many true states written (a lock-step simulator
+#: with wait_for_recorder steps at most plant_simulator.RECORDER_WINDOW steps past it).
+PROGRESS_EVERY = 2
 # the ROS distribution named in the bag's metadata (rosbags writes its own name there)
 ROS_DISTRO = os.environ.get('ROS_DISTRO') or 'jazzy'
 
@@ -287,6 +297,10 @@ class RecorderNode(VehicleNode):
         self._heard = set()
         self._heard_pub = self.create_publisher(String, 'recorder/heard', LATCHED_QOS)
         self._say_heard()
+        # 'recorder/progress': the newest true state's stamp written (the module says why)
+        self._true_topic = self.resolve_topic_name(TOPICS['true_state'])
+        self._true_written = 0
+        self._progress_pub = self.create_publisher(Time, 'recorder/progress', STATE_QOS)
 
     def _number(self, name, kind):
         """Return a numeric own parameter as ``kind``; refuse another type by name."""
@@ -373,6 +387,13 @@ class RecorderNode(VehicleNode):
         except (OSError, sqlite3.Error) as err:
             self._fail(err)
         self.counts[connection.topic] += 1
+        if connection.topic == self._true_topic:
+            self._true_written += 1
+            if self._true_written % PROGRESS_EVERY == 0 and len(data) >= 12:
+                # CDR: a 4-byte encapsulation header (byte 1: 1 little-endian), then the
+                # header's stamp
+                sec, nanosec = struct.unpack_from('<iI' if data[1] else '>iI', data, 4)
+                self._progress_pub.publish(Time(sec=sec, nanosec=nanosec))
         if connection.topic not in self._heard:
             self._heard.add(connection.topic)
             self._say_heard()

@@ -329,8 +329,9 @@ NODE_KEYS = _keys(
             details='nodes: plant_simulator'),
     KeySpec('wait_for_subscribers', INTEGER, 'lockstep: matched readers of each sensor to '
             'wait for', default=1, low=0, high=1000, details='nodes: plant_simulator'),
-    KeySpec('wait_for_recorder', BOOL, 'lockstep: start once recorder/ready is true, and '
-            'step on from step 0 once recorder/heard lists its estimate and command',
+    KeySpec('wait_for_recorder', BOOL, 'lockstep: start once recorder/ready is true, step '
+            'on from step 0 once recorder/heard lists its estimate and command, and step at '
+            'most 5 steps past the newest true state the recorder wrote (recorder/progress)',
             default=False, details='nodes: plant_simulator'),
     KeySpec('exit_when_done', BOOL, 'exit (status 0) when simulator.duration is over',
             default=True, details='nodes: plant_simulator'),

@@ -14,7 +14,7 @@ from observer_ros.bag.reader import BagReader
 from observer_ros.bag.recover import BagRecoveryError, recover_bag
 from observer_ros.nodes.common import STATE_PUB_QOS, STATE_QOS
 import pytest
-from ros_helpers import CONFIG, Probe, Proc, tmpfs, WAIT
+from ros_helpers import CONFIG, Probe, Proc, ros_env, tmpfs, WAIT
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
 from sensor_msgs.msg import JointState
@@ -304,3 +304,72 @@ def test_the_recorder_says_which_topics_are_in_the_bag(tmp_path, feeder):
         assert '/state/estimate' not in said[-1]['heard']
     finally:
         assert rec.stop() == 0
+
+
+def _recorder_of(bag):
+    """Return the pid of the recorder writing ``bag`` (its command line has output:=bag)."""
+    for entry in Path('/proc').iterdir():
+        try:
+            words = (entry / 'cmdline').read_bytes().decode(errors='replace').split('\0')
+        except OSError:
+            continue
+        if f'output:={bag}' in words:
+            return int(entry.name)
+    raise AssertionError(f'no recorder writing {bag}')
+
+
+@pytest.mark.ros
+def test_a_stalled_recorder_loses_no_step_of_a_lockstep_run(tmp_path):
+    """
+    The recorder's whole process stopped 1 s in a recorded lock-step run: every step is in.
+
+    observer-run starts the simulator with wait_for_recorder: it steps at most
+    RECORDER_WINDOW steps past the newest true state the recorder wrote, fewer than the
+    publishers keep, so nothing is lost while the recorder does not run.
+    """
+    import time
+    bag = tmp_path / 'run'
+    log = open(tmp_path / 'observer-run.log', 'w')
+    run = subprocess.Popen(
+        [str(Path(sys.executable).parent / 'observer-run'), str(VEHICLE), '--out', str(bag),
+         '-p', 'simulator.duration:=300.0'],
+        stdout=log, stderr=subprocess.STDOUT, env=ros_env(), start_new_session=True)
+    probe = Probe('stalled_recorder_probe')
+    steps = []
+    probe.node.create_subscription(JointState, 'state/true', steps.append, STATE_QOS)
+    try:
+        probe.spin_until(lambda: len(steps) >= 20, WAIT, 'the lock-step run stepping')
+        recorder = _recorder_of(bag)
+        os.kill(recorder, signal.SIGSTOP)
+        time.sleep(1.0)                 # the stall: nothing waits on it
+        os.kill(recorder, signal.SIGCONT)
+        probe.close()
+        code = run.wait(timeout=WAIT)
+    finally:
+        if run.poll() is None:
+            os.killpg(run.pid, signal.SIGINT)
+            run.wait(timeout=60)
+    out = (tmp_path / 'observer-run.log').read_text()
+    assert code == 0, out[-3000:]
+    stamps = {}
+    with AnyReader([bag], default_typestore=STORE) as reader:
+        for c, _, raw in reader.messages():
+            if c.topic in ('/state/true', '/state/estimate', '/control/u'):
+                h = reader.deserialize(raw, c.msgtype).header.stamp
+                stamps.setdefault(c.topic, []).append(h.sec * 10**9 + h.nanosec)
+    # 300 s at 20 Hz: 6001 steps with step 0, each a true state (one), an estimate and a
+    # command (an unanswered estimate may be sent again, with its stamp)
+    assert len(stamps['/state/true']) == len(set(stamps['/state/true'])) == 6001
+    for topic in ('/state/estimate', '/control/u'):
+        assert set(stamps[topic]) == set(stamps['/state/true']), topic
+
+
+def test_the_lockstep_window_is_below_the_publishers_history():
+    # a lock-step simulator never gets further ahead of the bag than the writers keep for
+    # it, and the recorder says its progress more often than the window is wide (else the
+    # simulator would wait for a report that is not due)
+    from observer_ros.nodes.plant_simulator import RECORDER_WINDOW
+    from observer_ros.nodes.recorder import PROGRESS_EVERY
+    from observer_ros.vehicle.schema import NODE_KEYS
+    assert PROGRESS_EVERY < RECORDER_WINDOW < STATE_PUB_QOS.depth
+    assert f'at most {RECORDER_WINDOW} steps past' in NODE_KEYS['wait_for_recorder'].description
