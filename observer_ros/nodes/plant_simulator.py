@@ -12,7 +12,13 @@ start). Measurement noise comes from ``simulator.seed``. Two modes:
   (wall time) is reported on /diagnostics and in the log, and the simulator keeps
   waiting (re-sending the measurement with back-off): it never advances without the
   answer, which would make the run depend on the machine's speed (a 20-state observer
-  designs its gains for several seconds at its first measurements).
+  designs its gains for several seconds at its first measurements). With
+  ``wait_for_recorder`` it starts once the recorder is ready, holds step 0 until the bag
+  has its estimate and command, and steps at most ``RECORDER_WINDOW`` steps past the
+  newest true state the recorder wrote (``recorder/progress``; ``recorder_waits`` counts
+  the holds), fewer than the publishers keep for a reader: a recorder whose process
+  stalls loses nothing. A recorder that is gone (no ``recorder/progress`` publisher) is
+  not waited for.
 - ``realtime``: a wall-clock timer at ``rate_hz * realtime_factor``. A command's stamp is
   the time it takes effect: one stamped at the current step or before applies from this
   step, one stamped ahead (a compensator that predicted over its latency) waits for its
