@@ -14,7 +14,7 @@ from observer_ros.bag.reader import BagReader
 from observer_ros.bag.recover import BagRecoveryError, recover_bag
 from observer_ros.nodes.common import STATE_PUB_QOS, STATE_QOS
 import pytest
-from ros_helpers import CONFIG, Probe, Proc, ros_env, tmpfs, WAIT
+from ros_helpers import CONFIG, Listener, Probe, Proc, ros_env, tmpfs, WAIT
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
 from sensor_msgs.msg import JointState
@@ -335,6 +335,7 @@ def test_a_stalled_recorder_loses_no_step_of_a_lockstep_run(tmp_path):
          '-p', 'simulator.duration:=300.0'],
         stdout=log, stderr=subprocess.STDOUT, env=ros_env(), start_new_session=True)
     probe = Probe('stalled_recorder_probe')
+    listener = Listener(probe)
     steps = []
     probe.node.create_subscription(JointState, 'state/true', steps.append, STATE_QOS)
     try:
@@ -343,6 +344,8 @@ def test_a_stalled_recorder_loses_no_step_of_a_lockstep_run(tmp_path):
         os.kill(recorder, signal.SIGSTOP)
         time.sleep(1.0)                 # the stall: nothing waits on it
         os.kill(recorder, signal.SIGCONT)
+        # the simulator held for it (else the test would not test the window)
+        listener.wait_counter('plant_simulator', 'recorder_waits', 1)
         probe.close()
         code = run.wait(timeout=WAIT)
     finally:
