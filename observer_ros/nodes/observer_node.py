@@ -55,6 +55,10 @@ __all__ = ['ObserverNode', 'covariance_names', 'main', 'silence_watch_period']
 
 # the node's parameters the admission reads (and takes again when they change)
 ADMISSION_PARAMETERS = ('clock_jump_tolerance', 'future_tolerance', 'clock_jump_agreement')
+# s: the lock-step watchdog's period, and the gap between two of its checks beyond which the
+# later one judges nothing (this process did not run meanwhile)
+LOCKSTEP_WATCH_PERIOD = 0.1
+LOCKSTEP_WATCH_GAP = 0.5
 
 
 class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
@@ -90,6 +94,7 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
             self._design_and_build(v)
         self._pending_commands = 0          # lockstep: estimates whose command is not back
         self._pending_since = None
+        self._last_watch = None             # lockstep: wall time of the watchdog's last check
         self._queue = []                    # lockstep: measurements waiting for that command
         self._last_estimate = None
         self._pending_stamp = None
@@ -110,7 +115,8 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
         self._diag_timer = self.wall_timer(self.param('diagnostics_period'),
                                            self._on_diagnostics)
         if self._lockstep:
-            self._lockstep_timer = self.wall_timer(0.1, self._on_lockstep_watchdog)
+            self._lockstep_timer = self.wall_timer(LOCKSTEP_WATCH_PERIOD,
+                                                   self._on_lockstep_watchdog)
         else:
             # free running: when every sensor is silent past its timeout, publish the
             # prediction at observer.rate_hz (default: the simulator's rate); while they
@@ -433,10 +439,22 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
             self._process_measurement(sensor, msg)
 
     def _on_lockstep_watchdog(self):
-        """Re-send an unanswered estimate (DDS matching can lag at start); give up late."""
+        """
+        Re-send an unanswered estimate (DDS matching can lag at start); give up late.
+
+        A check more than ``LOCKSTEP_WATCH_GAP`` after the one before judges nothing
+        (``watchdog_deferred``): this process did not run meanwhile (held off the CPU), and
+        the command it waits for may be in its queue, taken after this check. Giving up
+        then would take the next measurement before that command.
+        """
+        now = time.monotonic()
+        last, self._last_watch = self._last_watch, now
         if not self._pending_commands or self._pending_since is None:
             return
-        waited = time.monotonic() - self._pending_since
+        if last is not None and now - last > LOCKSTEP_WATCH_GAP:
+            self.count('watchdog_deferred')
+            return
+        waited = now - self._pending_since
         if waited > self.vehicle.simulator.command_timeout:
             self.count('command_wait_timeouts')
             self._pending_commands = 0
