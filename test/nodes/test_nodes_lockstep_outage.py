@@ -8,32 +8,36 @@ step's input), so none is sent then. Once no estimate publisher is left, they ar
 simulator applies them: the run goes on to its end.
 """
 
-from observer_ros.nodes.common import STATE_QOS
+from observer_ros.nodes.common import SENSOR_SUB_QOS
 from observer_ros.timeutil import stamp_to_sec
 import pytest
 from ros_helpers import CONFIG, Probe, Proc
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import Imu
 
 pytestmark = pytest.mark.ros
 
 VEHICLE = CONFIG / 'submarine.yaml'
-RUN = ('use_sim_time:=true', 'simulator.duration:=6.0')
+# 200 Hz: the observer's stop lands mid-run (1200 steps, at least 1.5 s of lock-step with it
+# here), and the safe commands after it step the plant at that rate
+RUN = ('use_sim_time:=true', 'simulator.duration:=6.0', 'simulator.rate_hz:=200.0')
 
 
 def test_a_lockstep_run_ends_on_safe_commands_once_its_observer_is_gone(tmp_path):
+    # the probe reads the gyro, and the simulator waits for it as for the observer: the run
+    # (thousands of steps a second while the observer answers) starts once it is matched
     probe = Probe('lockstep_outage_probe')
     stamps = [0.0]
     probe.node.create_subscription(
-        JointState, 'state/true',
+        Imu, 'imu/data',
         lambda m: stamps.__setitem__(0, max(stamps[0], stamp_to_sec(m.header.stamp))),
-        STATE_QOS)
+        SENSOR_SUB_QOS)
     procs = [Proc('observer_node', VEHICLE, *RUN, log_dir=tmp_path),
              Proc('compensator', VEHICLE, *RUN, log_dir=tmp_path)]
-    sim = Proc('plant_simulator', VEHICLE, *RUN[1:], 'wait_for_subscribers:=1',
+    sim = Proc('plant_simulator', VEHICLE, *RUN[1:], 'wait_for_subscribers:=2',
                log_dir=tmp_path)
     procs.append(sim)
     try:
-        probe.spin_until(lambda: stamps[0] >= 3.0, what='the run at t >= 3 s (it starts at 1 s)')
+        probe.spin_until(lambda: stamps[0] >= 1.5, what='the run at t >= 1.5 s (from 1 s)')
         observer = procs[0]
         assert observer.stop() == 0
         probe.spin_until(lambda: not sim.alive(), what="the simulator's run to its end")
