@@ -60,6 +60,10 @@ class Resync:
         self.agreeing = 0
         self._matches_at_stale = None
 
+    def matched(self, current, total):
+        """Take a match event of the estimate topic: publishers matched now, and in all."""
+        self.publishers, self.matches = int(current), int(total)
+
     def went_stale(self):
         """Note that the estimates went stale (the publishers matched until then)."""
         self._matches_at_stale = self.matches

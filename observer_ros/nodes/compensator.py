@@ -196,8 +196,7 @@ class CompensatorNode(ManagedVehicleNode):
 
     def _on_matched(self, info):
         self.loop.publishers = max(1, int(info.current_count))
-        self.loop.resync.matches = int(info.total_count)
-        self.loop.resync.publishers = int(info.current_count)
+        self.loop.resync.matched(info.current_count, info.total_count)
         if self.loop.stale and self.loop.resync.lockstep and not info.current_count:
             self.get_logger().error('no estimate publisher left: safe commands (the lock-step '
                                     'simulator applies them)')

@@ -17,7 +17,7 @@ def _stale_lockstep(*overrides, publishers=1):
     logs = []
     sup = LoopSupervisor(v, design_vehicle(v), log=lambda level, text: logs.append(text))
     assert sup.resync.lockstep
-    sup.resync.matches = sup.resync.publishers = publishers
+    sup.resync.matched(publishers, publishers)
     for k in range(10):
         sup.estimate(0.05 * k, X, 0.05 * k)
     assert sup.watchdog(0.45 + 1.0) and sup.stale
@@ -30,7 +30,7 @@ def test_lockstep_sends_no_safe_command_while_an_observer_is_matched():
     assert 'waiting for its estimates (lock-step' in logs[-1]
     assert sup.safe_tick(1.5) is None and sup.safe_tick(2.0) is None
     # the observer's publisher gone: the simulator applies safe commands, so they are sent
-    sup.resync.publishers = 0
+    sup.resync.matched(0, 1)
     command = sup.safe_tick(2.1)
     assert command is not None and command.marked and command.source == 'safe'
 
@@ -47,7 +47,7 @@ def test_lockstep_resyncs_on_an_observer_matched_meanwhile():
     # a publisher matched since the estimates went stale (a restarted observer): its
     # estimates are not followed before they settle; the prediction answers meanwhile
     sup, logs = _stale_lockstep()
-    sup.resync.matches += 1
+    sup.resync.matched(1, 2)
     command = sup.estimate(0.5, X, 3.0)
     assert sup.mode == 'resync' and command.source == 'safe'
 
