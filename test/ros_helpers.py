@@ -440,6 +440,19 @@ def tmpfs(path, options, what):
         subprocess.run(['umount', '-l', str(path)], check=False)
 
 
+def processes():
+    """Yield ``(pid, ppid, argv)`` of every process on the machine (from /proc)."""
+    for entry in Path('/proc').iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            ppid = int((entry / 'stat').read_text().rsplit(')', 1)[1].split()[1])
+            argv = (entry / 'cmdline').read_bytes().decode(errors='replace').split('\0')
+        except (OSError, ValueError, IndexError):
+            continue
+        yield int(entry.name), ppid, argv
+
+
 def rss_kib(pid):
     """Return a process's resident set size (VmRSS, KiB)."""
     for line in Path(f'/proc/{pid}/status').read_text().splitlines():

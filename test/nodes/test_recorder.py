@@ -14,7 +14,7 @@ from observer_ros.bag.reader import BagReader
 from observer_ros.bag.recover import BagRecoveryError, recover_bag
 from observer_ros.nodes.common import STATE_PUB_QOS, STATE_QOS
 import pytest
-from ros_helpers import CONFIG, Listener, Probe, Proc, ros_env, tmpfs, WAIT
+from ros_helpers import CONFIG, Listener, Probe, Proc, processes, ros_env, tmpfs, WAIT
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
 from sensor_msgs.msg import JointState
@@ -308,13 +308,9 @@ def test_the_recorder_says_which_topics_are_in_the_bag(tmp_path, feeder):
 
 def _recorder_of(bag):
     """Return the pid of the recorder writing ``bag`` (its command line has output:=bag)."""
-    for entry in Path('/proc').iterdir():
-        try:
-            words = (entry / 'cmdline').read_bytes().decode(errors='replace').split('\0')
-        except OSError:
-            continue
-        if f'output:={bag}' in words:
-            return int(entry.name)
+    for pid, _, argv in processes():
+        if f'output:={bag}' in argv:
+            return pid
     raise AssertionError(f'no recorder writing {bag}')
 
 

@@ -3,7 +3,6 @@
 
 import concurrent.futures
 import os
-from pathlib import Path
 import signal
 
 import numpy as np
@@ -15,7 +14,7 @@ from observer_ros.timeutil import stamp_to_sec
 from observer_ros.tools.run_closed_loop import run_closed_loop
 from observer_ros.vehicle import load_vehicle
 import pytest
-from ros_helpers import CONFIG, domain_env, made_once, Probe
+from ros_helpers import CONFIG, domain_env, made_once, Probe, processes
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
 from sensor_msgs.msg import JointState
@@ -130,15 +129,9 @@ def test_lockstep_run_is_reproducible_bit_for_bit(tmp_path):
 
 def _child_node(name):
     """Return the pid of this process's child running the package's node ``name``."""
-    for entry in Path('/proc').iterdir():
-        try:
-            ppid = int((entry / 'stat').read_text().rsplit(')', 1)[1].split()[1])
-            argv = (entry / 'cmdline').read_bytes().split(b'\0')
-        except (OSError, ValueError, IndexError):
-            continue
-        if ppid == os.getpid() and b'observer_ros.nodes.entry' in argv and \
-                name.encode() in argv:
-            return int(entry.name)
+    for pid, ppid, argv in processes():
+        if ppid == os.getpid() and 'observer_ros.nodes.entry' in argv and name in argv:
+            return pid
     raise AssertionError(f'no {name} process')
 
 

@@ -13,7 +13,7 @@ import sys
 import time
 
 import pytest
-from ros_helpers import DOMAIN_ID, made_once, REPO, RUN_SEED
+from ros_helpers import DOMAIN_ID, made_once, processes, REPO, RUN_SEED
 import yaml
 
 README = (REPO / 'README.md').read_text()
@@ -393,16 +393,7 @@ CLEAN_LAUNCH_NODES = 3
 
 def _children(pid):
     """Return the pids of a process's children (from /proc)."""
-    kids = []
-    for entry in Path('/proc').iterdir():
-        if entry.name.isdigit():
-            try:
-                stat = (entry / 'stat').read_text()
-            except OSError:
-                continue
-            if int(stat.rsplit(')', 1)[1].split()[1]) == pid:
-                kids.append(int(entry.name))
-    return kids
+    return [child for child, ppid, _ in processes() if ppid == pid]
 
 
 def _handles_sigterm(pid):
