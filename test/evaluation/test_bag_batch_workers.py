@@ -66,11 +66,19 @@ class Cluster:
         self.scheduler = self._start(
             'scheduler', ['scheduler', '--host', '127.0.0.1', '--port', '0',
                           '--no-dashboard', '--scheduler-file', str(self.file)])
-        deadline = time.monotonic() + WAIT
-        while not self.file.exists() and time.monotonic() < deadline:
-            time.sleep(0.1)
-        self.address = json.loads(self.file.read_text())['address']
+        self.address = self._read_address(time.monotonic() + WAIT)
         self.workers = []
+
+    def _read_address(self, deadline):
+        # The scheduler writes its file in place: it can exist, empty or cut
+        # short, before the write ends.
+        while True:
+            try:
+                return json.loads(self.file.read_text())['address']
+            except (FileNotFoundError, json.JSONDecodeError, KeyError):
+                if time.monotonic() > deadline or self.scheduler.poll() is not None:
+                    raise
+            time.sleep(0.1)
 
     def _start(self, name, args):
         log = open(self.logs / f'{name}_{len(self.procs)}.log', 'w')
