@@ -282,8 +282,10 @@ class WorkBudget:
     """
     Admit a kind of work (a node's parameter changes) while it takes little of the time.
 
-    Each piece of work admitted is timed (:meth:`spent`); a new one is admitted while the
-    work of the last ``window`` seconds took less than ``share`` of them (the first one
+    Each piece of work admitted is timed (:meth:`spent`: the CPU time of the thread that
+    ran it, so that a host busy with other processes does not count against the node); a
+    new one is admitted while the work of the last ``window`` seconds took less than
+    ``share`` of them (the first one
     after a quiet window always: one redesign may take longer than the share, and the next
     waits until it has left the window). A refusal costs nothing but this check.
 
@@ -331,10 +333,10 @@ class WorkBudget:
                 f"{self.window:g} s, at most {100 * self.share:g} % of the node's time "
                 f'(estimation and control first); try again in {max(wait, 0.0):.1f} s')
 
-    def spent(self, start, end):
-        """Note work that ran from ``start`` to ``end`` (monotonic seconds)."""
+    def spent(self, seconds, end):
+        """Note work of ``seconds`` that ended at ``end`` (monotonic seconds)."""
         self._forget(end)
-        self._work.append((end, max(0.0, end - start)))
+        self._work.append((end, max(0.0, seconds)))
 
 
 class SettleCheck:

@@ -210,7 +210,7 @@ class GatedParameterService(ParameterService):
     (``busy: ...``, counted ``parameter_changes_refused``) while the node's parameter work
     of the last ``PARAMETER_WINDOW`` s took more than ``PARAMETER_SHARE`` of it
     (core.health.WorkBudget); otherwise it is handled as rclpy handles it (SetParameters
-    one parameter at a time), and timed.
+    one parameter at a time), and timed (the CPU time of the executor's thread).
     """
 
     def __init__(self, node, budget=None):
@@ -226,11 +226,11 @@ class GatedParameterService(ParameterService):
         return changed, self.budget.refuse(time.monotonic())
 
     def _timed(self, handle, request, response):
-        start = time.monotonic()
+        start = time.thread_time()
         try:
             return handle(request, response)
         finally:
-            self.budget.spent(start, time.monotonic())
+            self.budget.spent(time.thread_time() - start, time.monotonic())
 
     def _refused(self, reason):
         node = self._get_node()

@@ -6,7 +6,8 @@ from types import SimpleNamespace
 
 import numpy as np
 from observer_ros.core.design import controller_gain
-from observer_ros.core.health import Envelope, LoadMeter, pole_margin_problem, SettleCheck
+from observer_ros.core.health import (Envelope, LoadMeter, pole_margin_problem, SettleCheck,
+                                      WorkBudget)
 from observer_ros.core.model import zoh_matrices
 from observer_ros.core.safe_command import SafeCommand
 from observer_ros.nodes.checks import own_parameter_problem
@@ -224,3 +225,19 @@ def test_settle_check_waits_for_estimates_that_follow_the_model():
     check.start(deadline=1.0)
     assert not check.settled(0.5, x, u)
     assert check.settled(1.0, x + 100.0, u)
+
+
+def test_the_work_budget_admits_work_while_it_takes_less_than_its_share():
+    budget = WorkBudget(share=0.03, window=10.0)      # 0.3 s of work per 10 s
+    assert budget.refuse(100.0) is None                # nothing done yet
+    budget.spent(0.5, 100.5)                           # one long redesign: admitted
+    reason = budget.refuse(101.0)
+    assert reason.startswith('busy: parameter changes took 500 ms of the last 10 s')
+    assert 'at most 3 %' in reason and 'try again in 9.5 s' in reason
+    assert budget.refuse(110.6) is None                # it has left the window
+    for end in (111.0, 112.0, 113.0):                  # 0.1 s each: the third reaches 0.3 s
+        assert budget.refuse(end) is None
+        budget.spent(0.1, end)
+    assert budget.refuse(113.5) is not None
+    assert budget.used(113.5) == pytest.approx(0.3)
+    assert budget.refuse(121.1) is None                # the first has left: 0.2 s used
