@@ -13,7 +13,7 @@ import time
 import numpy as np
 
 __all__ = ['ENVELOPE_FACTOR', 'ENVELOPE_LEARN_CAP', 'ENVELOPE_LEARN_S', 'ENVELOPE_PERSIST',
-           'Envelope', 'state_scale', 'divergence_envelopes', 'WorkBudget',
+           'Envelope', 'state_scale', 'divergence_envelopes', 'WorkBudget', 'HeldOff',
            'PARAMETER_SHARE', 'PARAMETER_WINDOW',
            'LoadMeter', 'max_prediction_gap', 'SettleCheck', 'pole_margin_problem',
            'settling_time', 'POLE_SLOWEST', 'POLE_FASTEST']
@@ -337,6 +337,31 @@ class WorkBudget:
         """Note work of ``seconds`` that ended at ``end`` (monotonic seconds)."""
         self._forget(end)
         self._work.append((end, max(0.0, seconds)))
+
+
+class HeldOff:
+    """
+    Tell a watchdog's check that comes after its process was held off the CPU.
+
+    A watchdog that runs on a timer checks every period. A check that comes more than
+    ``gap`` seconds after the one before shows that the process did not run meanwhile
+    (stopped, or starved of the CPU): whatever reached it since waits in its queue, taken
+    after this check, so the check must judge nothing (a timeout now would be the
+    process's own, not its peers'). The next check, one period later, judges.
+
+    """
+
+    def __init__(self):
+        self._last = None
+
+    def check(self, now, gap):
+        """
+        Note a check at ``now`` (wall seconds); return True when it must judge nothing.
+
+        ``gap``: seconds since the check before beyond which this one judges nothing.
+        """
+        last, self._last = self._last, now
+        return last is not None and now - last > gap
 
 
 class SettleCheck:

@@ -61,7 +61,7 @@ from .clock_jump import CLOCK_JUMP, CLOCK_JUMP_AGREEMENT, ClockJump, FAR_BACK, \
 from .control_law import ControlLaw
 from .delay_compensation import DelayCompensation
 from .estimate_stream import CONSISTENCY_TOL, EstimateStream
-from .health import divergence_envelopes, ENVELOPE_PERSIST, SettleCheck, settling_time
+from .health import divergence_envelopes, ENVELOPE_PERSIST, HeldOff, SettleCheck, settling_time
 from .loop_command import Command, command_refusal
 from .loop_status import ERROR, OK, status_message, WARN
 from .plant_clock import PlantClock
@@ -135,7 +135,7 @@ class LoopSupervisor:
         self.resync = Resync()          # what an outage leaves to judge what comes back
         self.apply(vehicle, design, standby)
         self._last_wall = None          # wall time of the last estimate followed
-        self._last_watch = None         # wall time of the last watchdog check
+        self._held_off = HeldOff()      # the watchdog's checks
         self._last_stamp = None         # its stamp: the estimates' time base
         self._answered = None           # the newest estimate's stamp answered
         self._answer = None             # the command that answered it
@@ -349,21 +349,21 @@ class LoopSupervisor:
         Check the estimate's age on the wall clock; return True when it just went stale.
 
         A check that comes more than ``controller.stale_timeout`` after the one before
-        judges nothing (``watchdog_deferred``): the compensator's own process did not run
-        meanwhile, and the estimates that reached it wait in its queue, taken after this
-        check. The next check, a watchdog period later, judges. Once the sensors are
-        heard (realtime), nothing is judged before the plant steps (a sensor stamp later
-        than its first): a realtime simulator waits at its step 0 until a command reaches
-        it, and no estimate is due meanwhile.
+        judges nothing (``watchdog_deferred``, core.health.HeldOff): the estimates that
+        reached the compensator meanwhile wait in its queue, taken after this check. The
+        next check, a watchdog period later, judges. Once the sensors are heard (realtime),
+        nothing is judged before the plant steps (a sensor stamp later than its first): a
+        realtime simulator waits at its step 0 until a command reaches it, and no estimate
+        is due meanwhile.
         """
-        last, self._last_watch = self._last_watch, now
+        held_off = self._held_off.check(now, self.vehicle.controller.stale_timeout)
         if self._last_wall is None or self.mode == 'stale':
             return False
         if self._plant_start is not None and not self.plant_stepping:
             # the plant still waits at its step 0 (its measurements say so): no estimate
             # is due before it steps
             return False
-        if last is not None and now - last > self.vehicle.controller.stale_timeout:
+        if held_off:
             self._count('watchdog_deferred')
             return False
         age = now - self._last_wall

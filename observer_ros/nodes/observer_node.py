@@ -48,6 +48,7 @@ from ..core.estimators import History, make_estimator
 from ..core.estimators.admission import (Admission, AHEAD_COMMAND, BAD_STAMP, check_stamp,
                                          CLOCK_JUMP, DUPLICATE, FAR_BACK, LATE, OUT_OF_ORDER,
                                          restart_at, STALE_COMMAND)
+from ..core.health import HeldOff
 from ..core.innovation import InnovationMonitor, transient_time
 from ..core.vehicle_design import design_vehicle
 
@@ -94,7 +95,7 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
             self._design_and_build(v)
         self._pending_commands = 0          # lockstep: estimates whose command is not back
         self._pending_since = None
-        self._last_watch = None             # lockstep: wall time of the watchdog's last check
+        self._held_off = HeldOff()          # lockstep: the watchdog's checks
         self._queue = []                    # lockstep: measurements waiting for that command
         self._last_estimate = None
         self._pending_stamp = None
@@ -443,15 +444,15 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
         Re-send an unanswered estimate (DDS matching can lag at start); give up late.
 
         A check more than ``LOCKSTEP_WATCH_GAP`` after the one before judges nothing
-        (``watchdog_deferred``): this process did not run meanwhile (held off the CPU), and
-        the command it waits for may be in its queue, taken after this check. Giving up
-        then would take the next measurement before that command.
+        (``watchdog_deferred``, core.health.HeldOff): the command it waits for may be in
+        this process's queue, taken after this check. Giving up then would take the next
+        measurement before that command.
         """
         now = time.monotonic()
-        last, self._last_watch = self._last_watch, now
+        held_off = self._held_off.check(now, LOCKSTEP_WATCH_GAP)
         if not self._pending_commands or self._pending_since is None:
             return
-        if last is not None and now - last > LOCKSTEP_WATCH_GAP:
+        if held_off:
             self.count('watchdog_deferred')
             return
         waited = now - self._pending_since

@@ -6,8 +6,8 @@ from types import SimpleNamespace
 
 import numpy as np
 from observer_ros.core.design import controller_gain
-from observer_ros.core.health import (Envelope, LoadMeter, pole_margin_problem, SettleCheck,
-                                      WorkBudget)
+from observer_ros.core.health import (Envelope, HeldOff, LoadMeter, pole_margin_problem,
+                                      SettleCheck, WorkBudget)
 from observer_ros.core.model import zoh_matrices
 from observer_ros.core.safe_command import SafeCommand
 from observer_ros.nodes.checks import own_parameter_problem
@@ -241,3 +241,13 @@ def test_the_work_budget_admits_work_while_it_takes_less_than_its_share():
     assert budget.refuse(113.5) is not None
     assert budget.used(113.5) == pytest.approx(0.3)
     assert budget.refuse(121.1) is None                # the first has left: 0.2 s used
+
+
+def test_a_check_after_the_process_was_held_off_judges_nothing():
+    held = HeldOff()
+    assert held.check(10.0, 0.5) is False              # the first check judges
+    assert held.check(10.1, 0.5) is False
+    assert held.check(12.1, 0.5) is True               # 2 s without a check: held off
+    assert held.check(12.2, 0.5) is False              # the next one judges again
+    assert held.check(12.9, 1.0) is False              # the gap is the caller's, per check
+    assert held.check(13.5, 0.5) is True
