@@ -144,7 +144,8 @@ class PlantSimulatorNode(VehicleNode):
         self._recorder_ready = False
         self._recorder_heard = None     # (topics recorded, topics in the bag)
         self._held_for_recorder = False     # lockstep: step 0 answered, not yet in the bag
-        if self.param('wait_for_recorder'):
+        self._wait_for_recorder = bool(self.param('wait_for_recorder'))     # read-only
+        if self._wait_for_recorder:
             self._ready_sub = self.watched_subscription(
                 Bool, 'recorder/ready', self._on_recorder_ready, LATCHED_QOS, shed=False)
             self._heard_sub = self.watched_subscription(
@@ -225,7 +226,7 @@ class PlantSimulatorNode(VehicleNode):
         step before step 0). Without wait_for_recorder, or once the recorder is gone, never.
         """
         if not self._lockstep or self._step0_t is None or self._recorder_gone or \
-                not self.param('wait_for_recorder'):
+                not self._wait_for_recorder:
             return False
         newest = self._step0_t - self.dt if self._recorded is None else self._recorded
         if self.t + self.dt - newest <= (RECORDER_WINDOW + 0.25) * self.dt:
@@ -245,7 +246,7 @@ class PlantSimulatorNode(VehicleNode):
         the bag has a message of each, step 0 is sent again (answered again) and the run
         waits; without wait_for_recorder, or after step 0, nothing is held.
         """
-        if self.k != 0 or not self.param('wait_for_recorder'):
+        if self.k != 0 or not self._wait_for_recorder:
             return True
         if self._recorder_heard is None:
             return False
@@ -351,7 +352,7 @@ class PlantSimulatorNode(VehicleNode):
             return
         if self._cmd_sub.get_publisher_count() < 1:
             return
-        if self.param('wait_for_recorder') and (
+        if self._wait_for_recorder and (
                 not self._recorder_ready or self._state_pub.get_subscription_count() < 1):
             return
         # the observer and the compensator are up: someone publishes and someone reads the

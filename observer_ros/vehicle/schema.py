@@ -332,7 +332,7 @@ NODE_KEYS = _keys(
     KeySpec('wait_for_recorder', BOOL, 'lockstep: start once recorder/ready is true, step '
             'on from step 0 once recorder/heard lists its estimate and command, and step at '
             'most 5 steps past the newest true state the recorder wrote (recorder/progress)',
-            default=False, details='nodes: plant_simulator'),
+            default=False, details='nodes: plant_simulator', read_once=True),
     KeySpec('exit_when_done', BOOL, 'exit (status 0) when simulator.duration is over',
             default=True, details='nodes: plant_simulator'),
     KeySpec('publish_array', BOOL, 'also publish control/u_array, a Float64MultiArray '

@@ -76,6 +76,8 @@ def test_unknown_keys_and_own_parameters_are_described():
     own = describe('diagnostics_period', 1.0, schema)
     assert own.description == NODE_KEYS['diagnostics_period'].description + ' [s]'
     assert not own.read_only
+    # the simulator subscribes to the recorder's topics at start, or not at all
+    assert describe('wait_for_recorder', True, schema).read_only
     assert own.floating_point_range[0].from_value == 0.01
     other = describe('flush_period', 1.0, schema, 's between flushes')
     assert other.description == 's between flushes' and not other.floating_point_range
