@@ -48,18 +48,14 @@ from ..core.estimators import History, make_estimator
 from ..core.estimators.admission import (Admission, AHEAD_COMMAND, BAD_STAMP, check_stamp,
                                          CLOCK_JUMP, DUPLICATE, FAR_BACK, LATE, OUT_OF_ORDER,
                                          restart_at, STALE_COMMAND)
-from ..core.health import HeldOff
 from ..core.innovation import InnovationMonitor, transient_time
+from ..core.lockstep_wait import CommandWait, GAVE_UP, RESEND, WATCH_PERIOD
 from ..core.vehicle_design import design_vehicle
 
 __all__ = ['ObserverNode', 'covariance_names', 'main', 'silence_watch_period']
 
 # the node's parameters the admission reads (and takes again when they change)
 ADMISSION_PARAMETERS = ('clock_jump_tolerance', 'future_tolerance', 'clock_jump_agreement')
-# s: the lock-step watchdog's period, and the gap between two of its checks beyond which the
-# later one judges nothing (this process did not run meanwhile)
-LOCKSTEP_WATCH_PERIOD = 0.1
-LOCKSTEP_WATCH_GAP = 0.5
 
 
 class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
@@ -93,12 +89,9 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
         v = self.vehicle
         if self.history.t is not None:      # activated again: the estimate starts over
             self._design_and_build(v)
-        self._pending_commands = 0          # lockstep: estimates whose command is not back
-        self._pending_since = None
-        self._held_off = HeldOff()          # lockstep: the watchdog's checks
+        self._wait = CommandWait()          # lockstep: estimates whose command is not back
         self._queue = []                    # lockstep: measurements waiting for that command
         self._last_estimate = None
-        self._pending_stamp = None
         self._last_seen = {}                # sensor name -> wall time of last message
         self._init_health()
         self._subs = []
@@ -116,7 +109,7 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
         self._diag_timer = self.wall_timer(self.param('diagnostics_period'),
                                            self._on_diagnostics)
         if self._lockstep:
-            self._lockstep_timer = self.wall_timer(LOCKSTEP_WATCH_PERIOD,
+            self._lockstep_timer = self.wall_timer(WATCH_PERIOD,
                                                    self._on_lockstep_watchdog)
         else:
             # free running: when every sensor is silent past its timeout, publish the
@@ -214,7 +207,7 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
     # -- callbacks ----------------------------------------------------------------------
     def _on_measurement(self, sensor, msg):
         start = self._last_seen[sensor.name] = self.wall_now()
-        if self._lockstep and self._pending_commands > 0:
+        if self._lockstep and self._wait.pending:
             self._queue.append((sensor, msg))
         else:
             self._process_measurement(sensor, msg)
@@ -315,9 +308,7 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
         self._last_estimate = msg
         self._last_header = (stamp, frame_id)
         if self._lockstep:
-            self._pending_commands += 1
-            self._pending_since = time.monotonic()
-            self._pending_stamp = t
+            self._wait.published(t, time.monotonic())
 
     def _publish_covariance(self):
         """Kalman: publish P of the estimate just published, with its stamp."""
@@ -429,40 +420,24 @@ class ObserverNode(ObserverHealth, ObserverReset, ManagedVehicleNode):
                     'skipped', throttle_duration_sec=1.0)
         except (ObserverError, ValueError) as err:
             self._reject('bad_commands', about(topic, err))
-        if self._lockstep and self._pending_commands > 0 and t == self._pending_stamp:
-            self._pending_commands -= 1
-            if self._pending_commands == 0:
-                self._drain_queue()
+        if self._lockstep and self._wait.answered(t):
+            self._drain_queue()
 
     def _drain_queue(self):
-        while self._queue and self._pending_commands == 0:
+        while self._queue and not self._wait.pending:
             sensor, msg = self._queue.pop(0)
             self._process_measurement(sensor, msg)
 
     def _on_lockstep_watchdog(self):
-        """
-        Re-send an unanswered estimate (DDS matching can lag at start); give up late.
-
-        A check more than ``LOCKSTEP_WATCH_GAP`` after the one before judges nothing
-        (``watchdog_deferred``, core.health.HeldOff): the command it waits for may be in
-        this process's queue, taken after this check. Giving up then would take the next
-        measurement before that command.
-        """
-        now = time.monotonic()
-        held_off = self._held_off.check(now, LOCKSTEP_WATCH_GAP)
-        if not self._pending_commands or self._pending_since is None:
+        """Re-send an unanswered estimate, give up late, or wait on (core.lockstep_wait)."""
+        verdict = self._wait.check(time.monotonic(), self.vehicle.simulator.command_timeout)
+        if verdict is None or (verdict is RESEND and self._last_estimate is None):
             return
-        if held_off:
-            self.count('watchdog_deferred')
-            return
-        waited = now - self._pending_since
-        if waited > self.vehicle.simulator.command_timeout:
-            self.count('command_wait_timeouts')
-            self._pending_commands = 0
+        self.count(verdict)
+        if verdict is GAVE_UP:
             self._drain_queue()
-        elif waited > 0.2 and self._last_estimate is not None:
+        elif verdict is RESEND:
             self._est_pub.publish(self._last_estimate)
-            self.count('resent_estimates')
 
     def _reject(self, counter, text):
         self.count(counter)
