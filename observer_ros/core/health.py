@@ -347,7 +347,11 @@ class HeldOff:
     ``gap`` seconds after the one before shows that the process did not run meanwhile
     (stopped, or starved of the CPU): whatever reached it since waits in its queue, taken
     after this check, so the check must judge nothing (a timeout now would be the
-    process's own, not its peers'). The next check, one period later, judges.
+    process's own, not its peers'). The next check, one period later, judges, on the
+    caller's terms: the compensator judges the estimate's age as it is (in a realtime loop
+    an observer that is really gone must not be waited for longer), the lock-step
+    observer starts its wait for the command again (core.lockstep_wait: there waiting
+    longer costs nothing, and giving up early changes the run).
 
     """
 
