@@ -59,7 +59,7 @@ from std_msgs.msg import Bool, String
 from . import signals
 from .common import LATCHED_QOS, SENSOR_QOS, STATE_PUB_QOS, STATE_QOS, TOPICS, VehicleNode
 from .runner import exit_status, init_ros, make_executor, spin_until
-from .wire import stamp_of
+from .wire import header_stamp
 from ..bag.bag_checks import hold_recording_lock, LOCK_NAME
 from ..bag.integrity import CrcWriter
 from ..bag.play import message_class
@@ -390,7 +390,7 @@ class RecorderNode(VehicleNode):
         if connection.topic == self._true_topic:
             self._true_written += 1
             if self._true_written % PROGRESS_EVERY == 0 and len(data) >= 12:
-                sec, nanosec = stamp_of(data[4:12])     # the header's, after CDR's 4 bytes
+                sec, nanosec, _ = header_stamp(data)
                 self._progress_pub.publish(Time(sec=sec, nanosec=nanosec))
         if connection.topic not in self._heard:
             self._heard.add(connection.topic)

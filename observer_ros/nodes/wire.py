@@ -38,7 +38,7 @@ from ..sensors import (extract_measurement, IMU, JOINT_STATE, max_components,
 from ..timeutil import sec_to_stamp_parts
 
 __all__ = ['WireError', 'SensorReader', 'VectorReader', 'JointStateWriter', 'stamp_bytes',
-           'stamp_of']
+           'stamp_of', 'header_stamp']
 
 _LE = LITTLE_ENDIAN
 _U32 = struct.Struct('<I')
@@ -62,6 +62,16 @@ def stamp_bytes(t):
 def stamp_of(tag):
     """Return ``(sec, nanosec)`` of stamp bytes (:func:`stamp_bytes`, a reader's tag)."""
     return _STAMP.unpack(tag)
+
+
+def header_stamp(raw):
+    """
+    Return ``(sec, nanosec, tag)`` of the header stamp of a stamped message's bytes.
+
+    The stamp is the first field, after CDR's 4-byte encapsulation header; ``tag`` is its
+    8 bytes. ``struct.error`` for fewer than 12 bytes.
+    """
+    return _STAMP.unpack_from(raw, 4) + (raw[4:12],)
 
 
 def _bytes_or_none(msg):
@@ -207,8 +217,7 @@ class SensorReader:
         if raw is not None:
             y = self._fast(raw)
             if y is not None:
-                return (_STAMP.unpack_from(raw, 4) + (raw[4:12],) if self.stamped else None,
-                        y, None)
+                return header_stamp(raw) if self.stamped else None, y, None
             msg = _deserialize(raw, self.msg_class, self.sensor.topic)
         header = _header_of(msg) if self.stamped else None
         try:
@@ -289,14 +298,14 @@ class VectorReader:
                 if plan is not None:
                     values = _unpack(plan, raw) if plan[0].size else []
                     if all(map(_isfinite, values)):
-                        return _STAMP.unpack_from(raw, 4) + (raw[4:12],), values, None
+                        return header_stamp(raw), values, None
             try:
                 most = max(joint_state_counts(raw)[:2])
             except CdrError:
                 most = 0                # rclpy is left to say why not
             if most > self._limit:
                 # refused by its size, as vector_from_joint_state does, before any object
-                return (_STAMP.unpack_from(raw, 4) + (raw[4:12],), None,
+                return (header_stamp(raw), None,
                         too_many_components(self.topic, most, self.names))
         return self._object(_deserialize(raw, _joint_state_class(), self.topic))
 
