@@ -212,7 +212,7 @@ class PlantSimulatorNode(VehicleNode):
             self._step_answered()
 
     def _on_recorder_progress(self, msg):
-        t = msg.sec + msg.nanosec * 1e-9
+        t = stamp_to_sec(msg)
         if self._recorded is None or t > self._recorded:
             self._recorded = t
         if self._held_since is not None and not self._recorder_behind():
@@ -259,7 +259,7 @@ class PlantSimulatorNode(VehicleNode):
         if not self._follower.heard(msg.clock.sec, msg.clock.nanosec):
             follower = self._follower
             self.get_logger().warning(
-                far_back_text('/clock', msg.clock.sec + msg.clock.nanosec * 1e-9,
+                far_back_text('/clock', stamp_to_sec(msg.clock),
                               follower.newest, follower.jumps.agreement),
                 throttle_duration_sec=1.0)
             return
