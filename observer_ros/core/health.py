@@ -285,9 +285,9 @@ class WorkBudget:
     Each piece of work admitted is timed (:meth:`spent`: the CPU time of the thread that
     ran it, so that a host busy with other processes does not count against the node); a
     new one is admitted while the work of the last ``window`` seconds took less than
-    ``share`` of them (the first one
-    after a quiet window always: one redesign may take longer than the share, and the next
-    waits until it has left the window). A refusal costs nothing but this check.
+    ``share`` of them (the first one after a quiet window always: one redesign may take
+    longer than the share, and the next waits until it has left the window). A refusal
+    costs nothing but this check.
 
     Parameters
     ----------

@@ -44,7 +44,7 @@ class CommandWait:
 
     def __init__(self):
         self.pending = 0            # estimates whose command is not back
-        self.since = None           # monotonic time of the newest of them
+        self.since = None           # monotonic time of the newest of them (once pending)
         self.stamp = None           # its stamp: the command that answers it has this one
         self._held_off = HeldOff()
 
@@ -74,7 +74,7 @@ class CommandWait:
         seconds to wait for a command (the simulator's ``command_timeout``).
         """
         held_off = self._held_off.check(now, WATCH_GAP)
-        if not self.pending or self.since is None:
+        if not self.pending:
             return None
         if held_off:
             self.since = now
