@@ -6,6 +6,7 @@ from pathlib import Path
 import signal
 import subprocess
 import sys
+import time
 
 from bag_synth import at_rest
 from diagnostic_msgs.msg import DiagnosticArray
@@ -13,6 +14,7 @@ from observer_ros.bag.errors import BagToolError
 from observer_ros.bag.reader import BagReader
 from observer_ros.bag.recover import BagRecoveryError, recover_bag
 from observer_ros.nodes.common import STATE_PUB_QOS, STATE_QOS
+from observer_ros.timeutil import stamp_to_ns
 import pytest
 from ros_helpers import CONFIG, Listener, Probe, Proc, processes, ros_env, tmpfs, WAIT
 from rosbags.highlevel import AnyReader
@@ -323,7 +325,6 @@ def test_a_stalled_recorder_loses_no_step_of_a_lockstep_run(tmp_path):
     RECORDER_WINDOW steps past the newest true state the recorder wrote, fewer than the
     publishers keep, so nothing is lost while the recorder does not run.
     """
-    import time
     bag = tmp_path / 'run'
     log = open(tmp_path / 'observer-run.log', 'w')
     run = subprocess.Popen(
@@ -354,8 +355,8 @@ def test_a_stalled_recorder_loses_no_step_of_a_lockstep_run(tmp_path):
     with AnyReader([bag], default_typestore=STORE) as reader:
         for c, _, raw in reader.messages():
             if c.topic in ('/state/true', '/state/estimate', '/control/u'):
-                h = reader.deserialize(raw, c.msgtype).header.stamp
-                stamps.setdefault(c.topic, []).append(h.sec * 10**9 + h.nanosec)
+                stamp = reader.deserialize(raw, c.msgtype).header.stamp
+                stamps.setdefault(c.topic, []).append(stamp_to_ns(stamp))
     # 300 s at 20 Hz: 6001 steps with step 0, each a true state (one), an estimate and a
     # command (an unanswered estimate may be sent again, with its stamp)
     assert len(stamps['/state/true']) == len(set(stamps['/state/true'])) == 6001

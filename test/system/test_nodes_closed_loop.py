@@ -144,9 +144,11 @@ def test_an_observer_held_off_the_cpu_leaves_the_lockstep_run_unchanged(
     """
     The observer stopped (SIGSTOP) mid-run until the simulator reports no command.
 
-    Longer than ``controller.stale_timeout``: the compensator goes stale and sends marked
-    safe commands, which the simulator waits out. When the same observer's estimates come
-    back, the compensator follows them at once, and the run is the run without the hold.
+    Longer than ``controller.stale_timeout``: the compensator goes stale and, while the
+    observer's publisher is matched, sends no safe command (the simulator waits). When the
+    same observer's estimates come back, the compensator follows them at once, and the
+    observer takes the command it waited for before the next measurement: the run is the
+    run without the hold.
     """
     names = load_vehicle(CONFIG / 'submarine.yaml').plant.state_names
     logs = tmp_path / 'held_logs'
