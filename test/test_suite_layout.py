@@ -50,13 +50,17 @@ def test_make_test_runs_the_realtime_tests_one_at_a_time_above_the_workers_prior
     # realtime closed loops beside each other on 2 cores fail; the rest runs in workers at
     # a lower priority beside them, the realtime ones in a DDS domain below the workers'
     make = (TEST.parent / 'Makefile').read_text()
-    recipe = make.split('\ntest: ')[1].split('\n\n')[0]
+    pytest_command = re.search(r'^PYTEST := (.+)$', make, re.M).group(1)
+    recipe = make.split('\ntest: ')[1].split('\n\n')[0].replace('$(PYTEST)', pytest_command)
     runs = [r for r in recipe.replace('\\\n', ' ').split(';') if '-m pytest' in r]
     assert len(runs) == 2, runs
     workers = [r for r in runs if '-m "not realtime"' in r]
     realtime = [r for r in runs if '-m realtime' in r]
     assert len(workers) == len(realtime) == 1, runs
     assert '-n ' in workers[0] and 'nice -n $(WORKERS_NICE)' in workers[0], workers[0]
+    # nice runs a program: an environment assignment right after it is not one
+    niced = workers[0].split('nice -n $(WORKERS_NICE)')[1].split()[0]
+    assert '=' not in niced, workers[0]
     assert '-n ' not in realtime[0] and 'nice' not in realtime[0], realtime[0]
     assert 'OBSERVER_TEST_DOMAIN_ID=$(REALTIME_DOMAIN_ID)' in realtime[0], realtime[0]
     domain = re.search(r'^REALTIME_DOMAIN_ID \?= (\d+)$', make, re.M)
