@@ -11,7 +11,7 @@ stays dead), and ``observer-eval-batch`` run as a user runs it:
   ``error:`` line, the finished results are on disk, and the printed resume command,
   run with a new worker, finishes only the jobs that were missing.
 
-The jobs replay a 30 000-message Imu bag call by call (``--exact``), long enough for the
+The jobs replay a 10 000-message Imu bag call by call (``--exact``), long enough for the
 kills to land mid-run.
 
 """
@@ -44,12 +44,12 @@ WAIT = 900.0                 # s: a whole run on a loaded 2-core host
 
 @pytest.fixture(scope='module')
 def bags(tmp_path_factory):
-    """Return a folder of BAGS links to one 30 000-message Imu bag (P3's generator)."""
+    """Return a folder of BAGS links to one 10 000-message Imu bag (P3's generator)."""
     def generate(folder):
         sys.path.insert(0, str(ROOT / 'benchmarks'))
         import p3_replay
         (folder / 'p3').mkdir()
-        bag = p3_replay.generate(30_000, data=folder / 'p3', log=lambda *a: None)
+        bag = p3_replay.generate(10_000, data=folder / 'p3', log=lambda *a: None)
         (folder / 'bags').mkdir()
         for i in range(BAGS):
             (folder / 'bags' / f'b{i}').symlink_to(bag, target_is_directory=True)
