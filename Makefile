@@ -74,8 +74,9 @@ demo: compile
 # machines) would have every worker rewrite and compile them again at each run: 2.7 s of CPU
 # per pytest process to collect make check's tests (6.6 s without the cache, 3.5 s with it)
 PYTEST := env PYTHONDONTWRITEBYTECODE= $(PY) -W ignore::DeprecationWarning -m pytest
-# 6 workers: their processes wait on DDS discovery and on one another, and 4 left 0.18 of the
-# 2 cores idle (1027 s of CPU in 564 s; 6: 971 s in 518 s, fresh clones, 2026-11-28)
+# 6 workers: their processes wait on DDS discovery and on one another; 4 kept 1.82 of the 2
+# cores busy (1027 s of CPU in 564 s), 6 kept 1.87 and 1.92 (971 s in 518 s, 1045 s in
+# 544 s; fresh clones, 2026-11-28)
 TEST_WORKERS ?= 6
 REALTIME_DOMAIN_ID ?= 99
 WORKERS_NICE ?= 10
