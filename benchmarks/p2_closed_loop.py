@@ -128,6 +128,27 @@ def _command(parts, params, rt_priority=None, pythonpath=None):
     return cmd
 
 
+class DiscoveryLate(RuntimeError):
+    """A simulator ended its run (exit 0) before its /diagnostics reached the driver."""
+
+
+#: Runs again of a layout whose simulator ran before the driver discovered it: one_process
+#: runs the simulator with its observer and compensator, so its 2-s smoke run starts at
+#: once, and discovery takes seconds on a loaded host.
+DISCOVERY_RETRIES = 2
+
+
+def _one_run_heard(log, *args, **kwargs):
+    """Return ``_one_run(*args, **kwargs)``, run again while its simulator was not heard."""
+    for attempt in range(DISCOVERY_RETRIES + 1):
+        try:
+            return _one_run(*args, **kwargs)
+        except DiscoveryLate as err:
+            if attempt == DISCOVERY_RETRIES:
+                raise
+            log(f'  {err}: run again ({attempt + 2} of {DISCOVERY_RETRIES + 1})')
+
+
 def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None,
              rt_priority=None, observer_pythonpath=None, loop='nodes', baseline=None,
              warmup=0.0):
@@ -159,6 +180,9 @@ def _one_run(node, state, layout, duration, rate, logdir, run, pythonpath=None,
                     break
             time.sleep(0.05)
         else:
+            if sim.returncode == 0:
+                raise DiscoveryLate(f'P2: the simulator ended its run before its diagnostics '
+                                    f'reached this driver; see {logdir}')
             raise RuntimeError(f'P2: no diagnostics from the simulator before its run; '
                                f'see {logdir}')
         for parts in layouts[layout]:
@@ -412,9 +436,9 @@ def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=Non
                 order.insert(order.index(('processes', None, 'nodes')) + 1,
                              ('processes', baseline_observer, 'nodes'))
             for layout, base, loop in (order if r % 2 == 0 else order[::-1]):
-                res = _one_run(node, state, parsed[layout][0], duration, rate, logdir, r,
-                               nodes_pythonpath, parsed[layout][1],
-                               base or observer_pythonpath, loop, baseline_nodes)
+                res = _one_run_heard(log, node, state, parsed[layout][0], duration, rate,
+                                     logdir, r, nodes_pythonpath, parsed[layout][1],
+                                     base or observer_pythonpath, loop, baseline_nodes)
                 if base:
                     baseline_runs.append(res)
                 else:
@@ -425,8 +449,8 @@ def run(smoke=False, runs=None, duration=None, rate=1000.0, nodes_pythonpath=Non
                 _log_run(log, label, r, runs, rate, res)
         for layout in sweep:
             sweeps[layout] = _sweep(
-                lambda loop, hz, k, c=layout: dict(_one_run(
-                    node, state, parsed[c][0],
+                lambda loop, hz, k, c=layout: dict(_one_run_heard(
+                    log, node, state, parsed[c][0],
                     sweep_duration or sweep_warmup + sweep_steps / hz + 0.5, hz, logdir,
                     f'sweep{k}', nodes_pythonpath, parsed[c][1], observer_pythonpath,
                     loop, baseline_nodes, warmup=sweep_warmup), warmup_s=sweep_warmup),

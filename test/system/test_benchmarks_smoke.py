@@ -9,11 +9,37 @@ import sys
 
 import pytest
 
-pytestmark = pytest.mark.ros      # processes or DDS participants
-
 REPO = Path(__file__).resolve().parents[2]
 
 
+def test_p2_runs_again_a_run_its_driver_did_not_hear(monkeypatch):
+    # one_process starts its run at once: a driver that discovers it late hears nothing
+    sys.path.insert(0, str(REPO / 'benchmarks'))
+    import p2_closed_loop as p2
+    calls, said = [], []
+
+    def late_twice(*args, **kwargs):
+        calls.append(args)
+        if len(calls) <= p2.DISCOVERY_RETRIES:
+            raise p2.DiscoveryLate('P2: not heard')
+        return {'on_time': 1.0}
+    monkeypatch.setattr(p2, '_one_run', late_twice)
+    assert p2._one_run_heard(said.append, 'node', 'state') == {'on_time': 1.0}
+    assert len(calls) == p2.DISCOVERY_RETRIES + 1 and len(said) == p2.DISCOVERY_RETRIES
+    assert said[0] == f'  P2: not heard: run again (2 of {p2.DISCOVERY_RETRIES + 1})'
+    # never heard: the last run's error, after DISCOVERY_RETRIES runs again
+    calls.clear()
+
+    def never(*args, **kwargs):
+        calls.append(args)
+        raise p2.DiscoveryLate('P2: not heard')
+    monkeypatch.setattr(p2, '_one_run', never)
+    with pytest.raises(p2.DiscoveryLate):
+        p2._one_run_heard(said.append, 'node', 'state')
+    assert len(calls) == p2.DISCOVERY_RETRIES + 1
+
+
+@pytest.mark.ros
 def test_run_all_smoke_prints_every_ratio():
     env = dict(os.environ)
     env['BENCH_ROS_DOMAIN_ID'] = '46'        # apart from a full benchmark run (47)
