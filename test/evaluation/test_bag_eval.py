@@ -11,16 +11,14 @@ sequence, exact ZOH plant, u from the estimate of the vehicle's own estimator), 
 
 import copy
 import json
-import os
 from pathlib import Path
 import pickle
 import shutil
 import subprocess
 import sys
-import time
 
-from bag_synth import (bag_file, blank, CONFIG, FLOAT64, IMU, JOINT_STATE, simulate, STORE,
-                       write_bag)
+from bag_synth import (at_rest, bag_file, blank, CONFIG, FLOAT64, IMU, JOINT_STATE, simulate,
+                       STORE, write_bag)
 import numpy as np
 from numpy.testing import assert_allclose, assert_array_equal
 from observer_ros.bag.errors import BagToolError
@@ -572,11 +570,8 @@ def test_bag_errors_truncated_file(runs, tmp_path, storage, capsys):
 
 def test_bag_missing_metadata_reads_the_storage_file(runs, bags, tmp_path):
     vehicle, _ = runs['sub']
-    bag = shutil.copytree(bags['sub'], tmp_path / 'nometa')
+    bag = at_rest(shutil.copytree(bags['sub'], tmp_path / 'nometa'))
     (bag / 'metadata.yaml').unlink()
-    # a recording closed long ago: no watch for growth (RECENT; test_bag_checks.py has it)
-    old = time.time() - 3600.0
-    os.utime(bag_file(bag), (old, old))
     rec = read_recording(bag, vehicle)
     assert any('metadata.yaml is missing (a recording that was not closed? '
                f'`observer-bag-recover {bag}` completes it); reading' in w
