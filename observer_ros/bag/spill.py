@@ -30,6 +30,10 @@ __all__ = ['SpilledColumn', 'Sink', 'SortedColumn', 'is_spilled', 'spill_folder'
 READ_BLOCK = 1 << 16             # rows: a spilled column is read this many at a time
 CACHE_ROWS = 1 << 12             # rows: one row asked for reads (and keeps) this many
 PAIRWISE_BLOCK = 1 << 16         # values: the largest subtree of a sum left to numpy
+#: numpy before 2.3 reduces an array a buffer (np.getbufsize() values) at a time, adding the
+#: buffers' pairwise sums in order; 2.3 on sums a float64 array pairwise as a whole (the
+#: same arrays summed with numpy 1.26.4, 2.0.2, 2.1.3, 2.2.6, 2.3.5 and 2.4.6)
+NUMPY_SUMS_IN_BUFFERS = np.lib.NumpyVersion(np.__version__) < '2.3.0'
 SEARCH_STRIDE = 1 << 10          # rows: a sorted column keeps every this many in memory
 
 
@@ -281,23 +285,36 @@ def pairwise_sum(values, lo=0, hi=None, block=PAIRWISE_BLOCK, square=False):
     """
     Return ``np.sum(values[lo:hi])`` of a 1-D float64 column, bit for bit, a block at a time.
 
-    numpy sums a contiguous float64 array by pairwise summation: a run of n values is
-    split at ``n2 = n // 2`` rounded down to a multiple of 8, and each half summed
-    alike down to 128 values. The same splits are made here; every part of at most
-    ``block`` values is read and summed by numpy itself, so the result is numpy's sum
-    of the whole array, with memory bounded by the block. ``square``: the sum of the
-    squares (``np.sum(v * v)``).
+    numpy sums a float64 array by pairwise summation: a run of n values is split at
+    ``n2 = n // 2`` rounded down to a multiple of 8, and each half summed alike down to 128
+    values. numpy before 2.3 (Ubuntu 24.04's is 1.26) does so for each run of its buffer
+    size (``np.getbufsize()``, 8192 values) and adds the runs' sums in order; 2.3 and later
+    over the whole array (:data:`NUMPY_SUMS_IN_BUFFERS`). The same splits are made here;
+    every part of at most ``block`` values is read and summed by numpy itself, so the
+    result is numpy's sum of the whole array, with memory bounded by the block.
+    ``square``: the sum of the squares (``np.sum(v * v)``).
 
     """
     hi = len(values) if hi is None else hi
+    if not NUMPY_SUMS_IN_BUFFERS or hi - lo <= np.getbufsize():
+        return _pairwise(values, lo, hi, block, square)
+    size = np.getbufsize()
+    total = _pairwise(values, lo, lo + size, block, square)
+    for start in range(lo + size, hi, size):
+        total = total + _pairwise(values, start, min(hi, start + size), block, square)
+    return total
+
+
+def _pairwise(values, lo, hi, block, square):
+    """Return numpy's pairwise sum of values[lo:hi] (one run), parts of at most block values."""
     n = hi - lo
     if n <= block:
         part = np.asarray(values[lo:hi], dtype=np.float64)
         return np.add.reduce(part * part if square else part)
     n2 = n // 2
     n2 -= n2 % 8
-    return pairwise_sum(values, lo, lo + n2, block, square) + \
-        pairwise_sum(values, lo + n2, hi, block, square)
+    return _pairwise(values, lo, lo + n2, block, square) + \
+        _pairwise(values, lo + n2, hi, block, square)
 
 
 class SortedColumn:

@@ -30,7 +30,7 @@ def _both(values, tmp_path):
     return values, col
 
 
-@pytest.mark.parametrize('n', [1, 7, 8, 9, 127, 128, 129, 1000, 1025, 4097, 20_011])
+@pytest.mark.parametrize('n', [1, 7, 8, 9, 127, 128, 129, 1000, 1025, 4097, 20_011, 100_003])
 def test_pairwise_sum_is_numpys_sum_bit_for_bit(n, tmp_path):
     rng = np.random.default_rng(n)
     # magnitudes over 16 decades: any other order of the additions changes the last digits
@@ -42,6 +42,28 @@ def test_pairwise_sum_is_numpys_sum_bit_for_bit(n, tmp_path):
     col = _both(values, tmp_path)[1]
     assert col.sum() == np.sum(values) and col.mean() == np.mean(values)
     assert col.min() == values.min() and col.max() == values.max()
+
+
+@pytest.mark.parametrize('in_buffers', [False, True])
+def test_pairwise_sum_follows_numpys_reduction_of_either_kind(in_buffers, monkeypatch):
+    # numpy before 2.3 adds the pairwise sums of each buffer (np.getbufsize() values) in
+    # order, 2.3 on sums the whole array pairwise: a sum of buffers of 8192 or fewer values
+    # is the same in both, so each kind's figure is known whatever numpy runs the test
+    installed = spill.NUMPY_SUMS_IN_BUFFERS
+    monkeypatch.setattr(spill, 'NUMPY_SUMS_IN_BUFFERS', in_buffers)
+    rng = np.random.default_rng(5)
+    values = rng.normal(size=100_003) * 10.0 ** rng.integers(-8, 8, size=100_003)
+    size = np.getbufsize()
+    buffered = np.sum(values[:size])
+    for lo in range(size, values.size, size):
+        buffered = buffered + np.sum(values[lo:lo + size])
+    assert buffered != spill._pairwise(values, 0, values.size, 128, False)   # they differ
+    expected = buffered if in_buffers else spill._pairwise(values, 0, values.size, 128, False)
+    for block in (128, 1000, spill.PAIRWISE_BLOCK):
+        assert pairwise_sum(values, block=block) == expected
+    assert pairwise_sum(values[:size]) == np.sum(values[:size])
+    if in_buffers == installed:                         # the kind of the numpy installed
+        assert expected == np.sum(values)
 
 
 def test_pairwise_sum_differs_from_a_plain_sum_of_blocks():
