@@ -50,15 +50,17 @@ def test_pairwise_sum_follows_numpys_reduction_of_either_kind(in_buffers, monkey
     # order, 2.3 on sums the whole array pairwise: a sum of buffers of 8192 or fewer values
     # is the same in both, so each kind's figure is known whatever numpy runs the test
     installed = spill.NUMPY_SUMS_IN_BUFFERS
-    monkeypatch.setattr(spill, 'NUMPY_SUMS_IN_BUFFERS', in_buffers)
     rng = np.random.default_rng(5)
     values = rng.normal(size=100_003) * 10.0 ** rng.integers(-8, 8, size=100_003)
     size = np.getbufsize()
     buffered = np.sum(values[:size])
     for lo in range(size, values.size, size):
         buffered = buffered + np.sum(values[lo:lo + size])
-    assert buffered != spill._pairwise(values, 0, values.size, 128, False)   # they differ
-    expected = buffered if in_buffers else spill._pairwise(values, 0, values.size, 128, False)
+    monkeypatch.setattr(spill, 'NUMPY_SUMS_IN_BUFFERS', False)
+    whole = pairwise_sum(values, block=128)
+    assert buffered != whole                            # the two kinds differ here
+    monkeypatch.setattr(spill, 'NUMPY_SUMS_IN_BUFFERS', in_buffers)
+    expected = buffered if in_buffers else whole
     for block in (128, 1000, spill.PAIRWISE_BLOCK):
         assert pairwise_sum(values, block=block) == expected
     assert pairwise_sum(values[:size]) == np.sum(values[:size])
