@@ -296,9 +296,9 @@ def pairwise_sum(values, lo=0, hi=None, block=PAIRWISE_BLOCK, square=False):
 
     """
     hi = len(values) if hi is None else hi
-    if not NUMPY_SUMS_IN_BUFFERS or hi - lo <= np.getbufsize():
-        return _pairwise(values, lo, hi, block, square)
     size = np.getbufsize()
+    if not NUMPY_SUMS_IN_BUFFERS or hi - lo <= size:
+        return _pairwise(values, lo, hi, block, square)
     total = _pairwise(values, lo, lo + size, block, square)
     for start in range(lo + size, hi, size):
         total = total + _pairwise(values, start, min(hi, start + size), block, square)
